@@ -1,0 +1,153 @@
+"""The policy network shared by the learner and the actors.
+
+A tanh-squashed Gaussian over the 18 muscle excitations. The network works in tanh space
+(-1, 1); `act` maps its output to excitations in [0, 1], the environment's action space.
+The learner maps stored excitations back with `to_tanh_space` before training on them.
+
+The architecture travels as a small spec dict in the weights message, so an actor can
+rebuild exactly the network the learner trains:
+
+    {"obs_dim": 41, "act_dim": 18, "hidden": [512, 512, 512], "activation": "elu",
+     "layer_norm": true}
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
+SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
+
+
+def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
+    """The reference architecture: three hidden layers of 512, ELU, LayerNorm."""
+    return {"obs_dim": obs_dim, "act_dim": act_dim, "hidden": [512, 512, 512],
+            "activation": "elu", "layer_norm": True}
+
+
+def check_spec(spec: Mapping) -> dict:
+    """Return a clean copy of an architecture spec, or raise ValueError saying what is wrong."""
+    if not isinstance(spec, Mapping):
+        raise ValueError(f"policy spec must be a mapping, got {type(spec).__name__}")
+    missing = [k for k in SPEC_KEYS if k not in spec]
+    if missing:
+        raise ValueError(f"policy spec lacks {missing}")
+    hidden = spec["hidden"]
+    if (not isinstance(hidden, Sequence) or not hidden
+            or not all(isinstance(h, int) and 0 < h <= 65536 for h in hidden)):
+        raise ValueError(f"policy spec 'hidden' must be a non-empty list of widths, got {hidden!r}")
+    for key in ("obs_dim", "act_dim"):
+        if not isinstance(spec[key], int) or not 0 < spec[key] <= 65536:
+            raise ValueError(f"policy spec {key!r} must be a positive int, got {spec[key]!r}")
+    if spec["activation"] not in ACTIVATIONS:
+        raise ValueError(f"policy spec 'activation' must be one of {sorted(ACTIVATIONS)}, "
+                         f"got {spec['activation']!r}")
+    return {"obs_dim": spec["obs_dim"], "act_dim": spec["act_dim"], "hidden": list(hidden),
+            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"])}
+
+
+def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: bool) -> nn.Sequential:
+    """Hidden layers: Linear, then LayerNorm (optional), then the activation."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers.append(nn.Linear(in_dim, width))
+        if layer_norm:
+            layers.append(nn.LayerNorm(width))
+        layers.append(ACTIVATIONS[activation]())
+        in_dim = width
+    return nn.Sequential(*layers)
+
+
+class Policy(nn.Module):
+    """Tanh-Gaussian policy: observation -> mean and log-std of a pre-tanh Gaussian."""
+
+    def __init__(self, spec: Mapping):
+        super().__init__()
+        self.spec = check_spec(spec)
+        self.trunk = mlp_trunk(self.spec["obs_dim"], self.spec["hidden"],
+                               self.spec["activation"], self.spec["layer_norm"])
+        self.head = nn.Linear(self.spec["hidden"][-1], 2 * self.spec["act_dim"])
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.head(self.trunk(obs)).chunk(2, dim=-1)
+        # Squash log-std smoothly into its bounds so gradients never vanish at a hard clip.
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+        return mean, log_std
+
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A reparameterised action in (-1, 1) and its log-probability (summed over dims)."""
+        mean, log_std = self(obs)
+        std = log_std.exp()
+        noise = torch.randn_like(mean)
+        pre_tanh = mean + std * noise
+        action = torch.tanh(pre_tanh)
+        # log N(pre_tanh; mean, std) minus the log-determinant of tanh, in a stable form:
+        # log(1 - tanh(x)^2) = 2 * (log 2 - x - softplus(-2x)).
+        gauss = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+        squash = 2.0 * (math.log(2.0) - pre_tanh - nn.functional.softplus(-2.0 * pre_tanh))
+        return action, (gauss - squash).sum(-1)
+
+    @torch.no_grad()
+    def act(self, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Excitations in [0, 1] for a batch of observations, shape (n, obs_dim) -> (n, act_dim)."""
+        return act(self, obs_batch, deterministic)
+
+
+def build_policy(spec: Mapping) -> Policy:
+    """A freshly initialised policy for an architecture spec (see module docstring)."""
+    return Policy(spec)
+
+
+@torch.no_grad()
+def act(policy: Policy, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    """Excitations in [0, 1], float32, for a batch of observations (runs on the policy's device)."""
+    device = next(policy.parameters()).device
+    obs = torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device)
+    if deterministic:
+        mean, _ = policy(obs)
+        action = torch.tanh(mean)
+    else:
+        action, _ = policy.sample(obs)
+    return to_excitation(action).cpu().numpy()
+
+
+def to_excitation(tanh_action: torch.Tensor) -> torch.Tensor:
+    """Map the policy's (-1, 1) output to the environment's [0, 1] excitations."""
+    return (tanh_action + 1.0) * 0.5
+
+
+def to_tanh_space(excitation: torch.Tensor) -> torch.Tensor:
+    """Map stored [0, 1] excitations back to the policy's (-1, 1) space."""
+    return excitation * 2.0 - 1.0
+
+
+def policy_state(policy: Policy) -> dict[str, np.ndarray]:
+    """The policy's parameters as float32 numpy arrays, keyed by parameter name."""
+    return {name: t.detach().to("cpu", torch.float32).numpy().copy()
+            for name, t in policy.state_dict().items()}
+
+
+def load_policy_state(policy: Policy, arrays: Mapping[str, np.ndarray]) -> None:
+    """Copy arrays from `policy_state` into the policy; ValueError on missing keys or bad shapes."""
+    own = policy.state_dict()
+    missing = sorted(set(own) - set(arrays))
+    unexpected = sorted(set(arrays) - set(own))
+    if missing or unexpected:
+        raise ValueError(f"policy weights do not match the network: missing {missing}, "
+                         f"unexpected {unexpected}")
+    for name, target in own.items():
+        array = np.asarray(arrays[name])
+        if tuple(array.shape) != tuple(target.shape):
+            raise ValueError(f"policy weight {name!r} has shape {tuple(array.shape)}, "
+                             f"the network expects {tuple(target.shape)}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"policy weight {name!r} holds NaN or infinite values")
+    with torch.no_grad():
+        for name, target in own.items():
+            target.copy_(torch.as_tensor(np.asarray(arrays[name]), dtype=target.dtype))
