@@ -1,0 +1,405 @@
+"""The messages l2r daemons exchange, and their msgpack wire format.
+
+Every message is one msgpack map ``{"v": PROTOCOL_VERSION, "kind": KIND, <fields>}``.
+An array field is a map ``{"dtype": "<f4", "shape": [T, 41], "data": <bin>}`` in C order,
+decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data).
+``decode`` checks everything a peer could get wrong and raises ``ProtocolError``
+with the reason; it never raises anything else.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+MAX_ARRAY_DIMS = 4
+
+# Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
+# msgpack-native), "arrays" (str -> float array), or an array of one dtype such as "float32[]".
+_SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)}
+_WEIGHT_DTYPES = {"float16", "float32", "float64"}
+
+
+class ProtocolError(ValueError):
+    """A message that cannot be accepted; ``str(error)`` is the reason."""
+
+
+class Message:
+    """Base of all messages: subclasses declare ``KIND`` and ``SCHEMA`` (field -> type)."""
+
+    KIND: ClassVar[str]
+    SCHEMA: ClassVar[dict[str, str]]
+
+    def validate(self) -> None:
+        """Cross-field checks (shapes that must agree); raise ProtocolError."""
+
+
+def _kinds() -> dict[str, type[Message]]:
+    return {cls.KIND: cls for cls in Message.__subclasses__()}
+
+
+@dataclass
+class ExperienceChunk(Message):
+    """T consecutive transitions of one environment of one actor.
+
+    ``obs`` has T+1 rows: ``obs[t]`` is seen before step t and ``obs[t+1]`` after it, so
+    consecutive steps share one row. When step t < T-1 ends an episode, ``obs[t+1]`` is the
+    first observation of the next episode and the true next observation of step t is the
+    next row of ``final_obs`` (rows in step order); ``obs[T]`` is always the true next
+    observation of the last step. ``terminated`` (no bootstrap) and ``truncated`` (time
+    limit: bootstrap) are kept apart. ``(actor_id, epoch, seq)`` makes a chunk unique:
+    ``epoch`` is fixed for one actor process (its start time in ns), ``seq`` counts its
+    chunks from 0, one per chunk, across all its environments.
+    """
+
+    KIND: ClassVar[str] = "experience"
+    SCHEMA: ClassVar[dict[str, str]] = {
+        "actor_id": "int", "env_id": "int", "epoch": "int", "seq": "int", "policy_version": "int",
+        "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]",
+        "terminated": "bool[]", "truncated": "bool[]", "final_obs": "float32[]",
+    }
+    actor_id: int
+    env_id: int
+    epoch: int
+    seq: int
+    policy_version: int
+    obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    final_obs: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return len(self.actions)
+
+    def validate(self) -> None:
+        _ndim(self, obs=2, actions=2, rewards=1, terminated=1, truncated=1, final_obs=2)
+        t = len(self.actions)
+        if t == 0:
+            raise ProtocolError("experience: empty chunk")
+        if len(self.obs) != t + 1:
+            raise ProtocolError(f"experience: obs has {len(self.obs)} rows, expected T+1 = {t + 1}")
+        _rows(self, t, "rewards", "terminated", "truncated")
+        if self.final_obs.shape[1] != self.obs.shape[1]:
+            raise ProtocolError(f"experience: final_obs width {self.final_obs.shape[1]} != obs width {self.obs.shape[1]}")
+        inner_ends = int(np.count_nonzero((self.terminated | self.truncated)[:-1]))
+        if len(self.final_obs) != inner_ends:
+            raise ProtocolError(f"experience: final_obs has {len(self.final_obs)} rows, but {inner_ends} episodes end before the last step")
+        _finite(self, "obs", "actions", "rewards", "final_obs")
+
+    def next_obs(self) -> np.ndarray:
+        """The true next observation of every step, (T, obs_dim) (a copy; for tests and tools)."""
+        nxt = np.array(self.obs[1:])
+        ends = np.flatnonzero((self.terminated | self.truncated)[:-1])
+        nxt[ends] = self.final_obs
+        return nxt
+
+
+@dataclass
+class Weights(Message):
+    """Policy weights with their version, and the spec an actor needs to build the network."""
+
+    KIND: ClassVar[str] = "weights"
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "params": "arrays", "spec": "dict"}
+    version: int
+    params: dict[str, np.ndarray]
+    spec: dict = field(default_factory=dict)
+
+
+@dataclass
+class SampleRequest(Message):
+    """A learner asks one replay shard for a batch (query payload)."""
+
+    KIND: ClassVar[str] = "sample_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"batch_size": "int", "count": "int", "prioritized": "bool", "learner_version": "int"}
+    batch_size: int = 256
+    count: int = 1  # batches in one reply, each a separate reply sample
+    prioritized: bool = False
+    learner_version: int = -1  # newest version the learner has published; for policy lag
+
+    def validate(self) -> None:
+        if not 1 <= self.batch_size <= 1 << 20:
+            raise ProtocolError(f"sample_request: batch_size {self.batch_size} not in [1, 2**20]")
+        if not 1 <= self.count <= 64:
+            raise ProtocolError(f"sample_request: count {self.count} not in [1, 64]")
+
+
+@dataclass
+class SampleBatch(Message):
+    """One sampled batch (query reply). ``probabilities`` are the sampling probabilities
+    (1/size when uniform); ``indices`` and ``generations`` address the slots for priority updates."""
+
+    KIND: ClassVar[str] = "sample_batch"
+    SCHEMA: ClassVar[dict[str, str]] = {
+        "shard": "int", "size": "int", "prioritized": "bool",
+        "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]",
+        "terminated": "bool[]", "truncated": "bool[]", "indices": "int64[]", "generations": "int64[]",
+        "probabilities": "float64[]", "policy_versions": "int64[]",
+    }
+    shard: int
+    size: int
+    prioritized: bool
+    obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_obs: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    indices: np.ndarray
+    generations: np.ndarray
+    probabilities: np.ndarray
+    policy_versions: np.ndarray
+
+    def validate(self) -> None:
+        _ndim(self, obs=2, actions=2, next_obs=2, rewards=1, terminated=1, truncated=1,
+              indices=1, generations=1, probabilities=1, policy_versions=1)
+        b = len(self.obs)
+        _rows(self, b, "actions", "rewards", "next_obs", "terminated", "truncated",
+              "indices", "generations", "probabilities", "policy_versions")
+        if self.next_obs.shape != self.obs.shape:
+            raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}")
+
+    def importance_weights(self, beta: float) -> np.ndarray:
+        """Prioritized-replay correction ``(size * p)^-beta``, normalised to a maximum of 1."""
+        w = (self.size * self.probabilities) ** (-beta)
+        return (w / w.max()).astype(np.float32)
+
+
+@dataclass
+class NotReady(Message):
+    """Reply to a sample request the rate limiter holds back; ask again after ``retry_after`` s."""
+
+    KIND: ClassVar[str] = "not_ready"
+    SCHEMA: ClassVar[dict[str, str]] = {"shard": "int", "reason": "str", "size": "int", "retry_after": "float"}
+    shard: int
+    reason: str
+    size: int
+    retry_after: float
+
+
+@dataclass
+class PriorityUpdate(Message):
+    """New priorities (before the server's exponent) for sampled slots of one shard.
+    A slot whose generation changed since it was sampled has been overwritten: ignored."""
+
+    KIND: ClassVar[str] = "priority_update"
+    SCHEMA: ClassVar[dict[str, str]] = {"indices": "int64[]", "generations": "int64[]", "priorities": "float32[]"}
+    indices: np.ndarray
+    generations: np.ndarray
+    priorities: np.ndarray
+
+    def validate(self) -> None:
+        _ndim(self, indices=1, generations=1, priorities=1)
+        _rows(self, len(self.indices), "generations", "priorities")
+        if not np.all(np.isfinite(self.priorities)) or np.any(self.priorities < 0):
+            raise ProtocolError("priority_update: priorities must be finite and >= 0")
+
+
+@dataclass
+class EpisodeSummary(Message):
+    """One finished episode."""
+
+    KIND: ClassVar[str] = "episode"
+    SCHEMA: ClassVar[dict[str, str]] = {
+        "actor_id": "int", "env_id": "int", "episode_return": "float", "distance": "float",
+        "length": "int", "policy_version": "int", "difficulty": "int", "seed": "int",
+        "evaluation": "bool", "time": "float",
+    }
+    actor_id: int
+    env_id: int
+    episode_return: float
+    distance: float
+    length: int
+    policy_version: int
+    difficulty: int
+    seed: int
+    evaluation: bool = False
+    time: float = 0.0  # sender's wall clock (s since epoch)
+
+
+@dataclass
+class Stats(Message):
+    """Free-form numbers a daemon reports about itself."""
+
+    KIND: ClassVar[str] = "stats"
+    SCHEMA: ClassVar[dict[str, str]] = {"role": "str", "instance": "str", "time": "float", "values": "numbers"}
+    role: str
+    instance: str
+    time: float
+    values: dict[str, float]
+
+
+@dataclass
+class LearnerVersion(Message):
+    """The newest policy version a learner has published (a small beacon)."""
+
+    KIND: ClassVar[str] = "learner_version"
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "int", "time": "float"}
+    version: int
+    updates: int = 0
+    time: float = 0.0
+
+
+@dataclass
+class Frame(Message):
+    """One step of a running episode for a live viewer: named arrays and numbers."""
+
+    KIND: ClassVar[str] = "frame"
+    SCHEMA: ClassVar[dict[str, str]] = {
+        "actor_id": "int", "env_id": "int", "episode": "int", "step": "int",
+        "arrays": "arrays", "values": "numbers",
+    }
+    actor_id: int
+    env_id: int
+    episode: int
+    step: int
+    arrays: dict[str, np.ndarray]
+    values: dict[str, float] = field(default_factory=dict)
+
+
+# -- encoding -----------------------------------------------------------------------------
+
+def encode(message: Message) -> bytes:
+    """msgpack bytes of ``message`` (validated first, so a sender cannot emit garbage)."""
+    message.validate()
+    out: dict[str, Any] = {"v": PROTOCOL_VERSION, "kind": message.KIND}
+    for name, kind in message.SCHEMA.items():
+        value = getattr(message, name)
+        if kind == "arrays":
+            out[name] = {k: _pack_array(np.asarray(a)) for k, a in value.items()}
+        elif kind.endswith("[]"):
+            out[name] = _pack_array(np.asarray(value, dtype=kind[:-2]))
+        elif kind == "numbers":
+            out[name] = {str(k): (v if isinstance(v, int) else float(v)) for k, v in value.items()}
+        else:
+            out[name] = value
+    return msgpack.packb(out, use_bin_type=True)
+
+
+def _pack_array(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(a)
+    if a.dtype.byteorder == ">":
+        a = a.astype(a.dtype.newbyteorder("<"))
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": memoryview(a).cast("B")}
+
+
+# -- decoding -----------------------------------------------------------------------------
+
+def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple = Message) -> Message:
+    """Parse and check one message; raise ProtocolError with the reason if it is not acceptable.
+
+    ``payload`` may be a ``zenoh.ZBytes``; ``expected`` restricts the accepted classes.
+    """
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        payload = payload.to_bytes()
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise ProtocolError(f"oversized message: {len(payload)} bytes > {MAX_MESSAGE_BYTES}")
+    try:
+        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
+    except Exception as e:  # msgpack raises several types for truncated or malformed input
+        raise ProtocolError(f"malformed msgpack ({type(e).__name__}: {e})") from None
+    if not isinstance(raw, dict):
+        raise ProtocolError(f"message is a msgpack {type(raw).__name__}, expected a map")
+    version = raw.get("v")
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"protocol version {version!r}, this side speaks {PROTOCOL_VERSION}")
+    kind = raw.get("kind")
+    cls = _KINDS.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise ProtocolError(f"unknown message kind {kind!r}")
+    if not issubclass(cls, expected):
+        raise ProtocolError(f"unexpected message kind {kind!r} here")
+    values = {name: _field(kind, name, spec, raw.get(name, _MISSING)) for name, spec in cls.SCHEMA.items()}
+    message = cls(**values)
+    try:
+        message.validate()
+    except ProtocolError:
+        raise
+    except Exception as e:  # a validation on absurd input must still end as a rejection
+        raise ProtocolError(f"{kind}: invalid ({type(e).__name__}: {e})") from None
+    return message
+
+
+_MISSING = object()
+
+
+def _field(kind: str, name: str, spec: str, value: Any) -> Any:
+    where = f"{kind}.{name}"
+    if value is _MISSING:
+        raise ProtocolError(f"{where}: missing")
+    if spec in _SCALARS:
+        ok = isinstance(value, _SCALARS[spec]) and not (spec != "bool" and isinstance(value, bool))
+        if not ok:
+            raise ProtocolError(f"{where}: expected {spec}, got {type(value).__name__}")
+        if spec == "float":
+            value = float(value)
+            if not math.isfinite(value):
+                raise ProtocolError(f"{where}: not finite")
+        return value
+    if spec == "dict":
+        if not isinstance(value, dict):
+            raise ProtocolError(f"{where}: expected a map, got {type(value).__name__}")
+        return value
+    if spec == "numbers":
+        if not isinstance(value, dict) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value.values()
+        ):
+            raise ProtocolError(f"{where}: expected a map of names to numbers")
+        return value
+    if spec == "arrays":
+        if not isinstance(value, dict):
+            raise ProtocolError(f"{where}: expected a map of names to arrays")
+        return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
+    return _unpack_array(where, value, spec[:-2])
+
+
+def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:
+    if not isinstance(value, dict) or set(value) != {"dtype", "shape", "data"}:
+        raise ProtocolError(f"{where}: expected an array map with dtype, shape and data")
+    dtype_str, shape, data = value["dtype"], value["shape"], value["data"]
+    if not isinstance(dtype_str, str) or not isinstance(data, bytes):
+        raise ProtocolError(f"{where}: dtype must be a string and data bytes")
+    try:
+        dtype = np.dtype(dtype_str)
+    except TypeError:
+        raise ProtocolError(f"{where}: unknown dtype {dtype_str!r}") from None
+    allowed = {dtype_name} if dtype_name else _WEIGHT_DTYPES
+    if dtype.name not in allowed or dtype.byteorder == ">":
+        raise ProtocolError(f"{where}: dtype {dtype_str}, expected {' or '.join(sorted(allowed))} (little-endian)")
+    if (not isinstance(shape, list) or len(shape) > MAX_ARRAY_DIMS
+            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
+        raise ProtocolError(f"{where}: bad shape {shape!r}")
+    expected_bytes = math.prod(shape) * dtype.itemsize
+    if expected_bytes != len(data):
+        raise ProtocolError(f"{where}: shape {shape} of {dtype.name} needs {expected_bytes} bytes, got {len(data)}")
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def _ndim(message: Message, **dims: int) -> None:
+    for name, nd in dims.items():
+        a = getattr(message, name)
+        if not isinstance(a, np.ndarray) or a.ndim != nd:
+            raise ProtocolError(f"{message.KIND}: {name} must be {nd}-d, got shape {getattr(a, 'shape', None)}")
+
+
+def _rows(message: Message, n: int, *names: str) -> None:
+    for name in names:
+        if len(getattr(message, name)) != n:
+            raise ProtocolError(f"{message.KIND}: {name} has {len(getattr(message, name))} rows, expected {n}")
+
+
+def _finite(message: Message, *names: str) -> None:
+    for name in names:
+        if not np.all(np.isfinite(getattr(message, name))):
+            raise ProtocolError(f"{message.KIND}: {name} contains NaN or infinity")
+
+
+_KINDS = _kinds()
