@@ -1,0 +1,579 @@
+"""Generate the MuJoCo body (`assets/runner.xml`) from the OpenSim model it ports.
+
+    python -m l2r.sim.convert [--osim IN] [--out OUT] [--check]
+
+The output depends only on the .osim file: every fitted number comes from OpenSim geometry
+computed here in numpy (see `l2r.sim.opensim_geometry` in this module's lower half) over a
+dense grid of poses, never from the validation figures. `--check` regenerates in memory and
+exits 1 when the committed file differs, so a test can hold the two together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ASSETS = Path(__file__).parent / "assets"
+OSIM_PATH = ASSETS / "gait9dof18musc.osim"
+MJCF_PATH = ASSETS / "runner.xml"
+
+TIMESTEP = 0.005  # two physics steps per 0.01 s env step
+KNEE_POLY_DEGREE = 4  # MuJoCo's joint coupling is a quartic
+OBSTACLE_PARK = (-100.0, -10.0, 0.0)  # far behind and below the start until the env places them
+MUSCLE_RANGE = (0.5, 1.6)  # normalised fibre lengths that `lengthrange` maps onto
+
+
+# --------------------------------------------------------------------------- reading the .osim
+
+
+class Spline:
+    """OpenSim's `SimmSpline`: a cubic spline whose end third derivatives match the cubic
+    through the four end knots (Forsythe, Malcolm and Moler), extrapolated linearly."""
+
+    def __init__(self, x, y):
+        self.x, self.y = np.asarray(x, float), np.asarray(y, float)
+        n, h = len(self.x), np.diff(self.x)
+        # unknowns: second derivatives m at the knots
+        a, rhs = np.zeros((n, n)), np.zeros(n)
+        if n == 2:
+            a[0, 0] = a[1, 1] = 1.0
+        else:
+            slope = np.diff(self.y) / h
+            for i in range(1, n - 1):
+                a[i, i - 1 : i + 2] = h[i - 1], 2 * (h[i - 1] + h[i]), h[i]
+                rhs[i] = 6 * (slope[i] - slope[i - 1])
+            third = [0.0, 0.0]
+            if n > 3:
+                third = [6 * self._divided(slice(0, 4)), 6 * self._divided(slice(n - 4, n))]
+            a[0, :2] = -1.0 / h[0], 1.0 / h[0]
+            a[-1, -2:] = -1.0 / h[-1], 1.0 / h[-1]
+            rhs[0], rhs[-1] = third
+        self.m = np.linalg.solve(a, rhs)
+        self.end_slopes = (self.derivative(self.x[0]), self.derivative(self.x[-1]))
+
+    def _divided(self, s: slice) -> float:
+        x, y = self.x[s], self.y[s].copy()
+        for k in range(1, 4):
+            y[k:] = (y[k:] - y[k - 1 : -1]) / (x[k:] - x[:-k])
+        return float(y[3])
+
+    def _segment(self, q):
+        i = np.clip(np.searchsorted(self.x, q, side="right") - 1, 0, len(self.x) - 2)
+        h = self.x[i + 1] - self.x[i]
+        return i, h, (q - self.x[i]) / h
+
+    def derivative(self, q):
+        i, h, t = self._segment(np.asarray(q, float))
+        m0, m1, y0, y1 = self.m[i], self.m[i + 1], self.y[i], self.y[i + 1]
+        return (y1 - y0) / h - h * (m0 * (3 * (1 - t) ** 2 - 1) - m1 * (3 * t**2 - 1)) / 6
+
+    def __call__(self, q):
+        q = np.asarray(q, float)
+        i, h, t = self._segment(np.clip(q, self.x[0], self.x[-1]))
+        m0, m1, y0, y1 = self.m[i], self.m[i + 1], self.y[i], self.y[i + 1]
+        inside = (1 - t) * y0 + t * y1 + h * h / 6 * (((1 - t) ** 3 - (1 - t)) * m0 + (t**3 - t) * m1)
+        below = self.y[0] + (q - self.x[0]) * self.end_slopes[0]
+        above = self.y[-1] + (q - self.x[-1]) * self.end_slopes[1]
+        return np.where(q < self.x[0], below, np.where(q > self.x[-1], above, inside))
+
+
+def _vec(el: ET.Element, tag: str) -> np.ndarray:
+    found = el.find(tag)
+    if found is None or found.text is None:
+        raise ValueError(f"<{el.tag} name={el.get('name')!r}> has no <{tag}>")
+    return np.array(found.text.split(), float)
+
+
+def _num(el: ET.Element, tag: str, default: float | None = None) -> float:
+    if el.find(tag) is None and default is not None:
+        return default
+    return float(_vec(el, tag)[0])
+
+
+def _function(el: ET.Element):
+    """A TransformAxis/MovingPathPoint function as a callable of the coordinate value."""
+    (f,) = list(el)
+    if f.tag == "SimmSpline":
+        return Spline(_vec(f, "x"), _vec(f, "y"))
+    if f.tag == "Constant":
+        value = _num(f, "value")
+        return lambda q: np.full_like(np.asarray(q, float), value)
+    if f.tag == "LinearFunction":
+        slope, offset = _vec(f, "coefficients")
+        return lambda q: slope * np.asarray(q, float) + offset
+    raise ValueError(f"unsupported OpenSim function <{f.tag}>")
+
+
+@dataclass
+class Coordinate:
+    name: str
+    default: float
+    range: tuple[float, float]
+    locked: bool
+
+
+@dataclass
+class Joint:
+    kind: str
+    parent: str
+    offset: np.ndarray  # location_in_parent
+    orientation: np.ndarray  # orientation_in_parent (body-fixed XYZ)
+    coordinates: list[Coordinate]
+    rotations: list = field(default_factory=list)  # (axis, coordinate name or None, function)
+    translations: list = field(default_factory=list)
+
+
+@dataclass
+class Body:
+    name: str
+    mass: float
+    com: np.ndarray
+    inertia: np.ndarray  # xx yy zz xy xz yz
+    joint: Joint | None
+
+
+@dataclass
+class PathPoint:
+    name: str
+    body: str
+    location: np.ndarray
+    kind: str  # "fixed", "conditional" or "moving"
+    coordinate: str | None = None
+    active_range: tuple[float, float] | None = None
+    moving: tuple | None = None  # x, y, z functions of `coordinate`
+
+
+@dataclass
+class Muscle:
+    name: str
+    max_force: float
+    optimal_length: float
+    slack_length: float
+    pennation: float
+    max_velocity: float
+    activation_tau: float
+    deactivation_tau: float
+    tendon_strain: float
+    muscle_strain: float
+    passive_shape: float
+    points: list[PathPoint]
+
+
+@dataclass
+class Sphere:
+    name: str
+    body: str
+    location: np.ndarray
+    radius: float
+
+
+@dataclass
+class Osim:
+    gravity: np.ndarray
+    bodies: dict[str, Body]
+    muscles: list[Muscle]
+    spheres: list[Sphere]
+    contact: dict[str, float]
+
+    def coordinate(self, name: str) -> Coordinate:
+        for body in self.bodies.values():
+            for c in body.joint.coordinates if body.joint else ():
+                if c.name == name:
+                    return c
+        raise KeyError(name)
+
+
+def _read_joint(body_el: ET.Element) -> Joint | None:
+    holder = body_el.find("Joint")
+    if holder is None or len(holder) == 0:
+        return None
+    (j,) = list(holder)
+    if np.any(_vec(j, "location")) or np.any(_vec(j, "orientation")):
+        raise ValueError(f"joint {j.get('name')}: child-side joint frames are not supported")
+    coords = [
+        Coordinate(c.get("name"), _num(c, "default_value"), tuple(_vec(c, "range")), (c.findtext("locked") or "").strip() == "true")
+        for c in j.iter("Coordinate")
+    ]
+    joint = Joint(j.tag, j.findtext("parent_body").strip(), _vec(j, "location_in_parent"), _vec(j, "orientation_in_parent"), coords)
+    for axis_el in j.iter("TransformAxis"):
+        coord = (axis_el.findtext("coordinates") or "").strip() or None
+        entry = (_vec(axis_el, "axis"), coord, _function(axis_el.find("function")))
+        (joint.rotations if axis_el.get("name").startswith("rotation") else joint.translations).append(entry)
+    return joint
+
+
+def _read_point(p: ET.Element) -> PathPoint:
+    point = PathPoint(p.get("name"), p.findtext("body").strip(), _vec(p, "location"), "fixed")
+    if p.tag == "ConditionalPathPoint":
+        point.kind, point.coordinate, point.active_range = "conditional", p.findtext("coordinate").strip(), tuple(_vec(p, "range"))
+    elif p.tag == "MovingPathPoint":
+        point.kind, point.coordinate = "moving", p.findtext("x_coordinate").strip()
+        point.moving = tuple(_function(p.find(f"{a}_location")) for a in "xyz")
+    return point
+
+
+def read_osim(path: Path | str) -> Osim:
+    """Parse the parts of an OpenSim 3/4 model file that the port needs."""
+    try:
+        # OpenSim tags such as `HuntCrossleyForce::ContactParameters` are not valid XML names
+        root = ET.fromstring(Path(path).read_text().replace("::", "__"))
+    except (OSError, ET.ParseError) as e:
+        raise ValueError(f"cannot read {path}: {e}") from e
+    model = root.find("Model")
+    if model is None:
+        raise ValueError(f"{path}: no <Model> element; is this an .osim file?")
+    bodies = {}
+    for b in model.find("BodySet").iter("Body"):
+        inertia = np.array([_num(b, f"inertia_{a}") for a in ("xx", "yy", "zz", "xy", "xz", "yz")])
+        bodies[b.get("name")] = Body(b.get("name"), _num(b, "mass"), _vec(b, "mass_center"), inertia, _read_joint(b))
+    muscles = []
+    for m in model.iter("Thelen2003Muscle"):
+        points = [_read_point(p) for p in m.find("GeometryPath/PathPointSet/objects")]
+        muscles.append(
+            Muscle(
+                m.get("name"), _num(m, "max_isometric_force"), _num(m, "optimal_fiber_length"), _num(m, "tendon_slack_length"),
+                _num(m, "pennation_angle_at_optimal"), _num(m, "max_contraction_velocity"), _num(m, "activation_time_constant"),
+                _num(m, "deactivation_time_constant"), _num(m, "FmaxTendonStrain", 0.033), _num(m, "FmaxMuscleStrain", 0.6),
+                _num(m, "KshapePassive", 4.0), points,
+            )
+        )
+    spheres = [
+        Sphere(s.get("name"), s.findtext("body_name").strip(), _vec(s, "location"), _num(s, "radius"))
+        for s in model.iter("ContactSphere")
+    ]
+    hc = next(model.iter("HuntCrossleyForce__ContactParameters"))
+    contact = {k: _num(hc, k) for k in ("stiffness", "dissipation", "static_friction")}
+    return Osim(_vec(model, "gravity"), bodies, muscles, spheres, contact)
+
+
+# --------------------------------------------------------------------------- OpenSim geometry
+
+
+def _axis_rotation(axis: np.ndarray, angle) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) about a unit axis (Rodrigues)."""
+    angle = np.atleast_1d(np.asarray(angle, float))
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1 - c) * (k @ k)
+
+
+def _euler_xyz(angles: np.ndarray) -> np.ndarray:
+    r = np.eye(3)
+    for axis, a in zip(np.eye(3), angles):
+        r = r @ _axis_rotation(axis, a)[0]
+    return r
+
+
+def body_frames(osim: Osim, pose: dict[str, np.ndarray], translations: dict | None = None) -> dict:
+    """Rotation (n,3,3) and origin (n,3) of every body in the pelvis frame.
+
+    `pose` maps coordinate names to arrays of n values (missing ones take their defaults);
+    `translations` optionally replaces a joint's translation functions: {body: f(q) -> (n,3)}.
+    """
+    n = len(next(iter(pose.values())))
+    frames = {"pelvis": (np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3)))}
+
+    def value(coord_name):
+        if coord_name in pose:
+            return np.asarray(pose[coord_name], float)
+        return np.full(n, osim.coordinate(coord_name).default)
+
+    def frame(name):
+        if name in frames:
+            return frames[name]
+        joint = osim.bodies[name].joint
+        parent_r, parent_p = frame(joint.parent)
+        fixed = _euler_xyz(joint.orientation)
+        rot, trans = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3))
+        if joint.kind == "PinJoint":
+            rot = _axis_rotation(np.array([0.0, 0.0, 1.0]), value(joint.coordinates[0].name))
+        elif joint.kind == "CustomJoint":
+            for axis, coord, f in joint.rotations:
+                rot = rot @ _axis_rotation(axis, f(value(coord)) if coord else f(np.zeros(n)))
+            if name in (translations or {}):
+                trans = translations[name](value(joint.coordinates[0].name))
+            else:
+                for axis, coord, f in joint.translations:
+                    trans = trans + np.outer(f(value(coord)) if coord else f(np.zeros(n)), axis)
+        elif joint.kind != "WeldJoint":
+            raise ValueError(f"{name}: unsupported joint type {joint.kind}")
+        r = parent_r @ fixed @ rot
+        p = parent_p + np.einsum("nij,j->ni", parent_r, joint.offset) + np.einsum("nij,nj->ni", parent_r @ fixed, trans)
+        frames[name] = (r, p)
+        return frames[name]
+
+    for name in osim.bodies:
+        if name not in ("ground", "pelvis"):
+            frame(name)
+    return frames
+
+
+def _place(frames: dict, body: str, local) -> np.ndarray:
+    r, p = frames[body]
+    local = np.asarray(local, float)
+    return p + (np.einsum("nij,nj->ni", r, local) if local.ndim == 2 else np.einsum("nij,j->ni", r, local))
+
+
+def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray]) -> np.ndarray:
+    """Muscle-tendon length along OpenSim's path: fixed points, conditional points only
+    inside their coordinate range, moving points at their spline positions."""
+    frames = body_frames(osim, pose)
+    n = len(next(iter(pose.values())))
+    length, previous = np.zeros(n), None
+    for point in muscle.points:
+        active = np.ones(n, bool)
+        local = point.location
+        if point.kind != "fixed":
+            q = np.asarray(pose.get(point.coordinate, np.full(n, osim.coordinate(point.coordinate).default)))
+            if point.kind == "conditional":
+                active = (q >= point.active_range[0]) & (q <= point.active_range[1])
+            else:
+                local = np.stack([f(q) for f in point.moving], axis=1)
+        position = _place(frames, point.body, local)
+        if previous is None:
+            previous = position
+            continue
+        length += np.where(active, np.linalg.norm(position - previous, axis=1), 0.0)
+        previous = np.where(active[:, None], position, previous)
+    return length
+
+
+# --------------------------------------------------------------------------- the MuJoCo body
+
+
+def _fmt(*values: float, digits: int = 6) -> str:
+    out = []
+    for v in np.ravel(values):
+        s = f"{float(v):.{digits}f}".rstrip("0").rstrip(".")
+        out.append("0" if s in ("-0", "") else s)
+    return " ".join(out)
+
+
+def _quat_z(angle: float) -> str:
+    return _fmt(np.cos(angle / 2), 0, 0, np.sin(angle / 2), digits=9)
+
+
+def knee_coupling(osim: Osim, body: str) -> np.ndarray:
+    """Quartic coefficients (MuJoCo `polycoef`) of the knee's x and y translation, relative to
+    knee angle 0, least-squares over the angle's range: shape (2, 5)."""
+    joint = osim.bodies[body].joint
+    lo, hi = joint.coordinates[0].range
+    q = np.linspace(lo, hi, 801)
+    coefs = []
+    for axis_index in (0, 1):
+        _, _, f = joint.translations[axis_index]
+        dy = f(q) - f(np.zeros(1))
+        # no constant term, so the coupling holds exactly at the default pose (all zeros)
+        basis = np.stack([q**k for k in range(1, KNEE_POLY_DEGREE + 1)], axis=1)
+        c, *_ = np.linalg.lstsq(basis, dy, rcond=None)
+        coefs.append(np.concatenate([[0.0], c]))
+    return np.array(coefs)
+
+
+def _knee_origin(osim: Osim, body: str) -> np.ndarray:
+    joint = osim.bodies[body].joint
+    return np.array([f(np.zeros(1))[0] for _, _, f in joint.translations])
+
+
+@dataclass
+class MusclePath:
+    """The MuJoCo path of one muscle: sites (body, local position) in order, and optionally a
+    wrapping cylinder (body, centre, radius, side-site position) between sites `wrap_after`
+    and `wrap_after + 1`."""
+
+    sites: list[tuple[str, np.ndarray]]
+    wrap: tuple[str, np.ndarray, float, np.ndarray] | None = None
+    wrap_after: int = 0
+
+
+def static_path(muscle: Muscle) -> MusclePath:
+    """Every OpenSim point as a site; moving points at their knee-angle-0 position."""
+    sites = []
+    for p in muscle.points:
+        local = p.location if p.kind != "moving" else np.array([f(np.zeros(1))[0] for f in p.moving])
+        sites.append((p.body, local))
+    return MusclePath(sites)
+
+
+@dataclass
+class MuscleCurves:
+    lmin: float = 0.5
+    lmax: float = 1.6
+    fpmax: float = 1.3
+    fvmax: float = 1.2
+
+
+def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, MuscleCurves], contact: dict) -> str:
+    """The MJCF text of the body: planar joints, welded lumbar, coupled knee translation,
+    muscles on spatial tendons, foot spheres, ground and parked obstacles."""
+    root = ET.Element("mujoco", model="l2r_runner")
+    ET.SubElement(root, "compiler", angle="radian", autolimits="true")
+    ET.SubElement(root, "option", timestep=_fmt(TIMESTEP), gravity=_fmt(osim.gravity), integrator="implicitfast")
+    default = ET.SubElement(root, "default")
+    ET.SubElement(default, "joint", limited="false", armature="0", damping="0")
+    ET.SubElement(default, "site", size="0.005", group="3")
+    contact_attrs = dict(condim="3", friction=_fmt(contact["friction"], 0.005, 0.0001), solref=_fmt(contact["timeconst"], 1.0), solimp=_fmt(contact["impedance"], contact["impedance"], 0.001))
+    foot = ET.SubElement(default, "default", attrib={"class": "foot"})
+    ET.SubElement(foot, "geom", type="sphere", contype="1", conaffinity="2", rgba="0.8 0.3 0.3 1", **contact_attrs)
+    world_geom = ET.SubElement(default, "default", attrib={"class": "world"})
+    ET.SubElement(world_geom, "geom", contype="2", conaffinity="1", rgba="0.6 0.6 0.6 1", **contact_attrs)
+
+    world = ET.SubElement(root, "worldbody")
+    ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 1", zaxis="0 1 0", attrib={"class": "world"})
+    for i in range(3):
+        ET.SubElement(world, "geom", name=f"obstacle_{i}", type="sphere", size="0.05", pos=_fmt(OBSTACLE_PARK), attrib={"class": "world"})
+
+    children: dict[str, list[str]] = {}
+    for name, body in osim.bodies.items():
+        if body.joint is not None and name != "pelvis":
+            children.setdefault(body.joint.parent, []).append(name)
+    spheres = {s.body: s for s in osim.spheres}
+    sites_by_body: dict[str, list] = {}
+    for muscle in osim.muscles:
+        for i, (body, pos) in enumerate(paths[muscle.name].sites):
+            sites_by_body.setdefault(body, []).append((f"{muscle.name}_{i}", pos))
+        wrap = paths[muscle.name].wrap
+        if wrap is not None:
+            sites_by_body.setdefault(wrap[0], []).append((f"{muscle.name}_side", wrap[3]))
+
+    qpos0: list[float] = []  # the .osim default pose, in MuJoCo's joint order
+
+    def add_joint(el: ET.Element, name: str, kind: str, axis: str, value: float) -> None:
+        ET.SubElement(el, "joint", name=name, type=kind, axis=axis)
+        qpos0.append(value)
+
+    def add_body(parent_el: ET.Element, name: str) -> None:
+        body = osim.bodies[name]
+        joint = body.joint
+        attrs = {"name": name}
+        if name == "pelvis":
+            el = ET.SubElement(parent_el, "body", **attrs)
+            # translations first: MuJoCo moves along slide axes in the frame before later hinges
+            for coord, kind, axis in (("pelvis_tx", "slide", "1 0 0"), ("pelvis_ty", "slide", "0 1 0"), ("pelvis_tilt", "hinge", "0 0 1")):
+                add_joint(el, coord, kind, axis, osim.coordinate(coord).default)
+        else:
+            if np.any(joint.orientation):
+                raise ValueError(f"{name}: rotated joint frames are not supported")
+            pos = joint.offset + (_knee_origin(osim, name) if joint.kind == "CustomJoint" else 0.0)
+            attrs["pos"] = _fmt(pos)
+            locked = [c for c in joint.coordinates if c.locked]
+            if joint.kind == "PinJoint" and locked:
+                attrs["quat"] = _quat_z(locked[0].default)
+            el = ET.SubElement(parent_el, "body", **attrs)
+            side = name[-1]
+            if joint.kind == "CustomJoint":
+                q = np.array([joint.coordinates[0].default])
+                for (_, _, f), axis_name, axis in zip(joint.translations, ("tx", "ty"), ("1 0 0", "0 1 0")):
+                    add_joint(el, f"knee_{axis_name}_{side}", "slide", axis, float(f(q)[0] - f(np.zeros(1))[0]))
+            if joint.kind in ("PinJoint", "CustomJoint") and not locked:
+                add_joint(el, joint.coordinates[0].name, "hinge", "0 0 1", joint.coordinates[0].default)
+        inertia = np.maximum(body.inertia, 0.0)
+        if not np.any(inertia[:3]):
+            inertia[:3] = 1e-6  # a point mass in the .osim; MuJoCo needs some rotational inertia
+        ET.SubElement(el, "inertial", pos=_fmt(body.com), mass=_fmt(body.mass), fullinertia=_fmt(inertia, digits=7))
+        if name in spheres:
+            s = spheres[name]
+            ET.SubElement(el, "geom", name=s.name, size=_fmt(s.radius), pos=_fmt(s.location), attrib={"class": "foot"})
+        for site_name, pos in sites_by_body.get(name, []):
+            ET.SubElement(el, "site", name=site_name, pos=_fmt(pos))
+        for muscle in osim.muscles:
+            wrap = paths[muscle.name].wrap
+            if wrap is not None and wrap[0] == name:
+                ET.SubElement(el, "geom", name=f"{muscle.name}_wrap", type="cylinder", pos=_fmt(wrap[1]), size=_fmt(wrap[2], 0.02),
+                              contype="0", conaffinity="0", group="3", mass="0")
+        for child in children.get(name, []):
+            add_body(el, child)
+
+    add_body(world, "pelvis")
+
+    equality = ET.SubElement(root, "equality")
+    for name, body in osim.bodies.items():
+        if body.joint is not None and body.joint.kind == "CustomJoint":
+            side = name[-1]
+            coefs = knee_coupling(osim, name)
+            for axis, c in zip(("tx", "ty"), coefs):
+                ET.SubElement(equality, "joint", name=f"knee_{axis}_{side}_coupling", joint1=f"knee_{axis}_{side}",
+                              joint2=body.joint.coordinates[0].name, polycoef=_fmt(c, digits=8))
+
+    tendon = ET.SubElement(root, "tendon")
+    actuator = ET.SubElement(root, "actuator")
+    for muscle in osim.muscles:
+        path = paths[muscle.name]
+        spatial = ET.SubElement(tendon, "spatial", name=muscle.name, width="0.004")
+        for i in range(len(path.sites)):
+            ET.SubElement(spatial, "site", site=f"{muscle.name}_{i}")
+            if path.wrap is not None and i == path.wrap_after:
+                ET.SubElement(spatial, "geom", geom=f"{muscle.name}_wrap", sidesite=f"{muscle.name}_side")
+        c = curves[muscle.name]
+        # MuJoCo normalises length as range0 + (L - lengthrange0) / L0 with
+        # L0 = (lengthrange1 - lengthrange0) / (range1 - range0); these bounds make the normalised
+        # length exactly (L - tendon slack) / optimal fibre length.
+        lengthrange = muscle.slack_length + np.array(MUSCLE_RANGE) * muscle.optimal_length
+        ET.SubElement(
+            actuator, "muscle", name=muscle.name, tendon=muscle.name, ctrlrange="0 1",
+            force=_fmt(muscle.max_force), lengthrange=_fmt(lengthrange, digits=8), range=_fmt(MUSCLE_RANGE),
+            timeconst=_fmt(muscle.activation_tau, muscle.deactivation_tau), vmax=_fmt(muscle.max_velocity),
+            lmin=_fmt(c.lmin, digits=4), lmax=_fmt(c.lmax, digits=4), fpmax=_fmt(c.fpmax, digits=4), fvmax=_fmt(c.fvmax, digits=4),
+        )
+
+    keyframe = ET.SubElement(root, "keyframe")
+    ET.SubElement(keyframe, "key", name="default", qpos=_fmt(qpos0))
+    ET.indent(root, space="  ")
+    header = "<!-- Generated by `python -m l2r.sim.convert` from gait9dof18musc.osim (osim-rl, Apache-2.0). Do not edit. -->\n"
+    return header + ET.tostring(root, encoding="unicode") + "\n"
+
+
+
+def contact_parameters(osim: Osim) -> dict:
+    """MuJoCo contact settings whose static penetration under body weight, shared by the four
+    foot spheres, equals the Hunt-Crossley penetration of the .osim contact model."""
+    k = osim.contact["stiffness"] ** (2 / 3) / 2  # two surfaces of equal stiffness in series
+    radius = osim.spheres[0].radius
+    weight = sum(b.mass for b in osim.bodies.values()) * float(np.linalg.norm(osim.gravity))
+    # Hunt-Crossley elastic force: 4/3 k^1.5 sqrt(R) x^1.5
+    depth = (weight / len(osim.spheres) / (4 / 3 * k**1.5 * np.sqrt(radius))) ** (2 / 3)
+    # MuJoCo at rest: d k r = (1 - d) a0 with k = 1 / (d^2 tau^2) for damping ratio 1, so
+    # r = (1 - d) d tau^2 g; the impedance d = 0.5 makes that contact the stiffest one for r.
+    impedance = 0.5
+    timeconst = np.sqrt(depth / ((1 - impedance) * impedance * np.linalg.norm(osim.gravity)))
+    return {"friction": osim.contact["static_friction"], "timeconst": float(timeconst), "impedance": impedance, "depth": float(depth)}
+
+
+def generate(osim_path: Path | str = OSIM_PATH) -> str:
+    """The MJCF text for an .osim file."""
+    osim = read_osim(osim_path)
+    paths = {m.name: static_path(m) for m in osim.muscles}
+    curves = {m.name: MuscleCurves() for m in osim.muscles}
+    return build_mjcf(osim, paths, curves, contact_parameters(osim))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m l2r.sim.convert", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--osim", type=Path, default=OSIM_PATH, help="OpenSim model to convert (default: the packaged one)")
+    parser.add_argument("--out", type=Path, default=MJCF_PATH, help="MJCF file to write or check (default: the packaged runner.xml)")
+    parser.add_argument("--check", action="store_true", help="do not write; exit 1 when OUT differs from a fresh conversion")
+    args = parser.parse_args(argv)
+    try:
+        text = generate(args.osim)
+    except ValueError as e:
+        print(f"convert: {e}", file=sys.stderr)
+        return 2
+    if args.check:
+        current = args.out.read_text() if args.out.exists() else ""
+        if current != text:
+            print(f"{args.out} differs from a fresh conversion of {args.osim}; run `python -m l2r.sim.convert`", file=sys.stderr)
+            return 1
+        print(f"{args.out} is up to date")
+        return 0
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
