@@ -75,7 +75,10 @@ class Policy(nn.Module):
         self.head = nn.Linear(self.spec["hidden"][-1], 2 * self.spec["act_dim"])
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, log_std = self.head(self.trunk(obs)).chunk(2, dim=-1)
+        features = self.trunk(obs)
+        # The head stays in float32 under mixed precision: means and log-stds need the bits.
+        with torch.autocast(obs.device.type, enabled=False):
+            mean, log_std = self.head(features.float()).chunk(2, dim=-1)
         # Squash log-std smoothly into its bounds so gradients never vanish at a hard clip.
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mean, log_std

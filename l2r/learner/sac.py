@@ -1,0 +1,305 @@
+"""Soft Actor-Critic: settings, training state and the update, apart from any process.
+
+`update(state, batch, config)` is the whole algorithm, in CleanRL's order: soft Bellman target,
+twin-critic loss and step, actor loss and step, temperature (alpha) loss and step, Polyak copy
+of the target critics. The learner daemon and the tests call this same function.
+
+Speed on CPU comes from doing less, not from tricks in the maths: both critics run as one
+batched network, the actor loss differentiates the critics with respect to the action only
+(their weights are detached, so no weight gradients are computed there), the optimizers use
+the fused Adam kernels, and nothing here reads a value back to Python (metrics stay tensors).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Mapping
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.nn import functional as F
+
+from l2r.policy import ACTIVATIONS, Policy, check_spec, to_tanh_space
+
+
+@dataclass
+class SACConfig:
+    """Algorithm settings (run and infrastructure settings live with the daemon)."""
+
+    gamma: float = 0.99
+    """Discount per environment step of the policy (one action-repeated step)."""
+    tau: float = 0.005
+    """Polyak rate: target <- (1 - tau) * target + tau * online, after every update."""
+    actor_lr: float = 3e-4
+    """Adam learning rate of the policy."""
+    critic_lr: float = 3e-4
+    """Adam learning rate of the twin critics."""
+    alpha_lr: float = 3e-4
+    """Adam learning rate of log(alpha), the entropy temperature."""
+    batch_size: int = 640
+    """Transitions per sampled batch (the reference solution's 640)."""
+    hidden: tuple[int, ...] = (512, 512, 512)
+    """Widths of the hidden layers, the same for policy and critics."""
+    activation: str = "elu"
+    """Hidden activation: 'elu' (reference), 'relu' or 'tanh'."""
+    layer_norm: bool = True
+    """LayerNorm after each hidden Linear, before the activation (reference: on)."""
+    reward_scale: float = 10.0
+    """Multiplier on rewards before the Bellman target (per-step rewards here are ~0.01-0.03 m)."""
+    update_repeat: int = 3
+    """Gradient steps taken on each sampled batch (the reference solution's 3)."""
+    target_entropy: float | None = None
+    """Entropy the temperature steers towards; None means -act_dim."""
+    initial_alpha: float = 0.1
+    """Entropy temperature at the start of training."""
+    autotune_alpha: bool = True
+    """Learn alpha towards the target entropy; off keeps it at initial_alpha."""
+    precision: str = "auto"
+    """'bfloat16': hidden-layer matmuls in bfloat16 with float32 accumulation (weights, output
+    heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 where the device computes
+    it natively (CUDA with bf16, CPUs with AVX512-BF16 or AMX), else float32."""
+
+    def __post_init__(self) -> None:
+        self.hidden = tuple(int(h) for h in self.hidden)
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
+        if not 0.0 <= self.gamma <= 1.0 or not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {self.gamma}, {self.tau}")
+        if self.precision not in ("auto", "float32", "bfloat16"):
+            raise ValueError(f"precision must be auto, float32 or bfloat16, got {self.precision!r}")
+        if self.batch_size < 1 or self.update_repeat < 1 or self.initial_alpha <= 0:
+            raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "hidden": list(self.hidden)}
+
+
+def policy_spec(config: SACConfig, obs_dim: int, act_dim: int) -> dict:
+    """The architecture spec of the policy this config trains (sent with the weights)."""
+    return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
+                       "activation": config.activation, "layer_norm": config.layer_norm})
+
+
+class TwinCritic(nn.Module):
+    """`n` Q networks evaluated as one: every layer stacks the critics' weights as (n, in, out).
+
+    One batched matmul per layer instead of one per critic; `forward` returns (n, batch).
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...], activation: str,
+                 layer_norm: bool, n: int = 2):
+        super().__init__()
+        dims = [obs_dim + act_dim, *hidden, 1]
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            bound = 1.0 / math.sqrt(d_in)  # nn.Linear's default initialisation
+            self.weights.append(nn.Parameter(torch.empty(n, d_in, d_out).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(n, 1, d_out).uniform_(-bound, bound)))
+        self.norm_scales = nn.ParameterList(
+            [nn.Parameter(torch.ones(n, 1, h)) for h in hidden] if layer_norm else [])
+        self.norm_shifts = nn.ParameterList(
+            [nn.Parameter(torch.zeros(n, 1, h)) for h in hidden] if layer_norm else [])
+        self.activation = ACTIVATIONS[activation]()
+        self.n = n
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_weights: bool = False) -> torch.Tensor:
+        weights = [w.detach() if detach_weights else w for w in self.weights]
+        biases = [b.detach() if detach_weights else b for b in self.biases]
+        scales = [s.detach() if detach_weights else s for s in self.norm_scales]
+        shifts = [s.detach() if detach_weights else s for s in self.norm_shifts]
+        x = torch.cat([obs, action], dim=-1).expand(self.n, -1, -1)
+        for i, (w, b) in enumerate(zip(weights[:-1], biases[:-1])):
+            x = torch.baddbmm(b, x, w)
+            if scales:
+                x = torch.addcmul(shifts[i], F.layer_norm(x, x.shape[-1:]), scales[i])
+            x = self.activation(x)
+        # The Q head stays in float32 under mixed precision: TD errors are small differences.
+        with torch.autocast(obs.device.type, enabled=False):
+            return torch.baddbmm(biases[-1], x.float(), weights[-1]).squeeze(-1)
+
+
+@dataclass
+class TrainState:
+    """Everything training changes: networks, optimizers, temperature and counters."""
+
+    actor: Policy
+    critic: TwinCritic
+    target_critic: TwinCritic
+    log_alpha: torch.Tensor
+    actor_opt: torch.optim.Optimizer
+    critic_opt: torch.optim.Optimizer
+    alpha_opt: torch.optim.Optimizer
+    target_entropy: float
+    updates: int = 0
+    """Gradient steps taken so far (over the whole run, across resumes)."""
+    version: int = 0
+    """Version of the last weights published; increases with every publication."""
+    extra: dict = field(default_factory=dict)
+    """Counters the hosting process wants checkpointed with the networks (plain values)."""
+    bfloat16: bool = False
+    """Whether hidden-layer matmuls run in bfloat16 (resolved from config.precision, not saved)."""
+
+    def autocast(self) -> torch.autocast:
+        return torch.autocast(self.log_alpha.device.type, dtype=torch.bfloat16, enabled=self.bfloat16)
+
+    def state_dict(self) -> dict:
+        return {name: getattr(self, name).state_dict() for name in _MODULES} | {
+            "log_alpha": self.log_alpha.detach().cpu().clone(),
+            "updates": self.updates, "version": self.version, "extra": dict(self.extra)}
+
+    def load_state_dict(self, saved: Mapping) -> None:
+        for name in _MODULES:
+            getattr(self, name).load_state_dict(saved[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(saved["log_alpha"])
+        self.updates, self.version = int(saved["updates"]), int(saved["version"])
+        self.extra = dict(saved.get("extra", {}))
+
+
+_MODULES = ("actor", "critic", "target_critic", "actor_opt", "critic_opt", "alpha_opt")
+
+
+def _adam(params, lr: float, device: torch.device) -> torch.optim.Adam:
+    # The fused kernel exists on CPU and CUDA; it is the fastest Adam on both.
+    return torch.optim.Adam(params, lr=lr, fused=device.type in ("cpu", "cuda"))
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether `device` runs bfloat16 matmuls natively (else they are emulated and slow)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return device.type == "cpu" and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
+               seed: int | None = None) -> TrainState:
+    """Freshly initialised networks and optimizers on `device`."""
+    device = torch.device(device)
+    if seed is not None:
+        torch.manual_seed(seed)
+    actor = Policy(policy_spec(config, obs_dim, act_dim)).to(device)
+    critic = TwinCritic(obs_dim, act_dim, config.hidden, config.activation, config.layer_norm).to(device)
+    target_critic = copy.deepcopy(critic).requires_grad_(False)
+    log_alpha = torch.tensor(math.log(config.initial_alpha), device=device, requires_grad=True)
+    target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
+    bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and native_bfloat16(device))
+    return TrainState(actor, critic, target_critic, log_alpha,
+                      _adam(actor.parameters(), config.actor_lr, device),
+                      _adam(critic.parameters(), config.critic_lr, device),
+                      _adam([log_alpha], config.alpha_lr, device), target_entropy,
+                      bfloat16=bfloat16)
+
+
+@dataclass
+class Batch:
+    """A batch of transitions as tensors; actions in the policy's (-1, 1) space."""
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_obs: torch.Tensor
+    terminated: torch.Tensor
+    """1.0 where the episode ended for real (no bootstrap); time-limit ends stay 0."""
+    weights: torch.Tensor | None = None
+    """Importance weights from prioritized replay, or None for uniform sampling."""
+
+
+def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+                     terminated: np.ndarray, weights: np.ndarray | None = None,
+                     device: str | torch.device = "cpu") -> Batch:
+    """A Batch from replay arrays; actions arrive as [0, 1] excitations."""
+
+    def tensor(a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(a, dtype=np.float32)).to(device, non_blocking=True)
+
+    return Batch(tensor(obs), to_tanh_space(tensor(action)), tensor(reward).reshape(-1),
+                 tensor(next_obs), tensor(terminated).reshape(-1),
+                 None if weights is None else tensor(weights).reshape(-1))
+
+
+def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torch.Tensor]:
+    """One SAC gradient step. Returns detached metrics tensors and `priorities` (|TD error|, per sample)."""
+    alpha = state.log_alpha.detach().exp()
+
+    # 1. Soft Bellman target. Only a real termination cuts the bootstrap; a time limit does not.
+    with torch.no_grad(), state.autocast():
+        next_action, next_log_prob = state.actor.sample(batch.next_obs)
+        next_q = state.target_critic(batch.next_obs, next_action).min(0).values
+        next_value = next_q - alpha * next_log_prob
+        target = config.reward_scale * batch.reward + config.gamma * (1.0 - batch.terminated) * next_value
+
+    # 2. Twin critic loss (importance-weighted under prioritized replay) and step.
+    with state.autocast():
+        q = state.critic(batch.obs, batch.action)
+    td_error = q - target
+    squared = td_error.pow(2) if batch.weights is None else td_error.pow(2) * batch.weights
+    critic_loss = squared.mean(-1).sum()
+    state.critic_opt.zero_grad(set_to_none=True)
+    critic_loss.backward()
+    _average_gradients(state.critic.parameters())
+    state.critic_opt.step()
+
+    # 3. Actor loss against the updated critics; their weights are detached (only dQ/da is needed).
+    with state.autocast():
+        action, log_prob = state.actor.sample(batch.obs)
+        q_pi = state.critic(batch.obs, action, detach_weights=True).min(0).values
+    actor_loss = (alpha * log_prob - q_pi).mean()
+    state.actor_opt.zero_grad(set_to_none=True)
+    actor_loss.backward()
+    _average_gradients(state.actor.parameters())
+    state.actor_opt.step()
+
+    # 4. Temperature: raise alpha when entropy is below target, lower it when above.
+    log_prob = log_prob.detach()
+    alpha_loss = -(state.log_alpha.exp() * (log_prob + state.target_entropy)).mean()
+    if config.autotune_alpha:
+        state.alpha_opt.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        _average_gradients([state.log_alpha])
+        state.alpha_opt.step()
+
+    # 5. Polyak copy of the target critics.
+    with torch.no_grad():
+        torch._foreach_lerp_(list(state.target_critic.parameters()), list(state.critic.parameters()),
+                             config.tau)
+    state.updates += 1
+
+    return {
+        "critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(),
+        "alpha_loss": alpha_loss.detach(), "alpha": alpha, "q_mean": q.detach().mean(),
+        "target_mean": target.mean(), "entropy": -log_prob.mean(),
+        "priorities": td_error.detach().abs().mean(0),
+    }
+
+
+def _average_gradients(params) -> None:
+    """Average gradients over data-parallel ranks (a no-op when training alone).
+
+    All gradients travel in one flat buffer: one all-reduce per optimizer step.
+    """
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return
+    grads = [p.grad for p in params if p.grad is not None]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= dist.get_world_size()
+    offset = 0
+    for g in grads:
+        g.copy_(flat[offset:offset + g.numel()].view_as(g))
+        offset += g.numel()
+
+
+def broadcast_state(state: TrainState, src: int = 0) -> None:
+    """Give every data-parallel rank the weights of rank `src`, so all start identical."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    with torch.no_grad():
+        for module in (state.actor, state.critic, state.target_critic):
+            for tensor in module.state_dict().values():
+                dist.broadcast(tensor, src)
+        dist.broadcast(state.log_alpha.data, src)
