@@ -1,0 +1,366 @@
+"""The `l2r-actor` daemon: several environments in one process, one batched policy call per step.
+
+Each loop iteration swaps in the newest weights if some arrived, picks actions for all
+environments at once (uniform random excitations during warm-up, the stochastic policy while
+training, its mean when evaluating), steps every environment, and hands finished chunks and
+episodes to Zenoh. Nothing here blocks on the learner: without new weights the actor goes on
+with the policy it has. Without any live replay shard it waits, since its experience would be lost.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import gymnasium
+import numpy as np
+import torch
+import zenoh
+
+import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
+from l2r.actors.experience import ChunkBuilder
+from l2r.actors.weights import WeightFollower
+from l2r.policy import act
+from l2r.protocol import (
+    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode, parse_alive,
+)
+from l2r.sim.wrappers import ActionRepeat
+
+log = logging.getLogger("l2r.actor")
+
+
+@dataclass
+class ActorConfig:
+    """What one actor process does. Run and network settings travel in the Zenoh config."""
+
+    run: str = "default"
+    actor_id: int = 0
+    num_envs: int = 4
+    """Environments stepped in lock-step, their observations batched into one policy call."""
+    env_id: str = "l2r/Run-v0"
+    """Gymnasium id of the environment (any env with a Box observation and [0, 1] actions)."""
+    difficulty: int = 0
+    action_repeat: int = 3
+    random_steps: int = 5_000
+    """Uniform random excitations for this many of the actor's first steps (skipped when it
+    joins a run whose policy is already past version 0)."""
+    chunk_size: int = 64
+    """Transitions per experience chunk."""
+    chunk_delay: float = 1.0
+    """A chunk older than this (seconds) is sent even when not full."""
+    seed: int = 0
+    num_shards: int = 1
+    evaluate: bool = False
+    """Evaluation role: deterministic episodes on fixed seeds, no experience sent."""
+    eval_episodes: int = 4
+    """Evaluation: episodes per round, on seeds seed, seed+1, ..."""
+    eval_interval: float = 30.0
+    """Evaluation: seconds between the starts of two rounds (a round waits for a new policy)."""
+    torch_threads: int = 1
+    stats_interval: float = 2.0
+    max_steps: int = 0
+    """Stop after this many steps of this actor (0: run until stopped)."""
+    episode_log: dict = field(default_factory=dict)
+    """Keyword arguments for the MCAP episode logger; empty: no logging."""
+
+    @property
+    def role(self) -> str:
+        return "evaluator" if self.evaluate else "actor"
+
+
+def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
+    env = gymnasium.make(config.env_id, difficulty=config.difficulty, seed=seed)
+    return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
+
+
+def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
+    """Training seeds differ across actors, envs and episodes; evaluation seeds are fixed."""
+    if config.evaluate:
+        return config.seed + episode % config.eval_episodes
+    return int(np.random.SeedSequence([config.seed, config.actor_id, env_index, episode]).generate_state(1)[0])
+
+
+class ReplayWatch:
+    """Whether any replay shard of the run holds a liveliness token."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys):
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+        self._sub = session.liveliness().declare_subscriber(keys.alive_role("replay"), self._on_token, history=True)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        _, instance = parse_alive(sample.key_expr)
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(instance)
+            else:
+                self._alive.discard(instance)
+
+    @property
+    def any_alive(self) -> bool:
+        with self._lock:
+            return bool(self._alive)
+
+
+@dataclass
+class EnvSlot:
+    """One environment and its episode in progress."""
+
+    env: gymnasium.Env
+    obs: np.ndarray
+    seed: int
+    episode: int = 0
+    ret: float = 0.0
+    length: int = 0
+    start_x: float = 0.0
+
+
+class Actor:
+    """The stepping loop; `main` wires it to a Zenoh session."""
+
+    def __init__(self, config: ActorConfig, session: zenoh.Session):
+        self.config = config
+        self.keys = Keys(config.run)
+        self.session = session
+        self.weights = WeightFollower(session, self.keys)
+        self.replay = None if config.evaluate else ReplayWatch(session, self.keys)
+        self.rng = np.random.default_rng([config.seed, config.actor_id])
+        self.epoch = time.time_ns()
+        self.seq = 0
+        self.steps = 0
+        self.episodes = 0
+        self.chunks_sent = 0
+        self.waiting_for_replay = False
+        self.random_phase = not config.evaluate and config.random_steps > 0
+        self.slots: list[EnvSlot] = []
+        for i in range(config.num_envs):
+            seed = episode_seed(config, i, 0)
+            env = make_env(config, seed)
+            obs, info = env.reset(seed=seed)
+            self.slots.append(EnvSlot(env, obs, seed, start_x=float(info.get("distance", 0.0))))
+        self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size) for i in range(config.num_envs)]
+        for builder, slot in zip(self.builders, self.slots):
+            builder.begin(slot.obs)
+        self.experience = session.declare_publisher(
+            self.keys.experience(config.actor_id, config.num_shards), **EXPERIENCE_QOS.publisher())
+        self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
+        self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
+        self.episode_logger = make_episode_logger(config)
+        self._rate_steps, self._rate_time = 0, time.monotonic()
+        self._next_round = 0.0
+        self._round_version = -1
+
+    # -- actions -------------------------------------------------------------------------
+
+    def actions(self) -> np.ndarray:
+        obs = np.stack([s.obs for s in self.slots])
+        act_dim = self.slots[0].env.action_space.shape[0]
+        if self.random_phase or self.weights.policy is None:
+            return self.rng.random((len(self.slots), act_dim), dtype=np.float32)
+        actions = act(self.weights.policy, obs, deterministic=self.config.evaluate)
+        bad = ~np.isfinite(actions).all(axis=1)
+        if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
+            log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
+                        self.weights.version, int(bad.sum()))
+            actions[bad] = self.rng.random((int(bad.sum()), act_dim), dtype=np.float32)
+        return actions
+
+    # -- one iteration ---------------------------------------------------------------------
+
+    def step(self) -> None:
+        if self.weights.poll():
+            self.flush(force=True)  # a chunk carries the one version that produced it
+        if self.random_phase and (self.steps >= self.config.random_steps
+                                  or self.weights.version > 0 and self.steps == 0):
+            self.random_phase = False
+            log.info("warm-up over after %d random steps; acting with the policy", self.steps)
+        actions = self.actions()
+        now = time.time()
+        for i, (slot, action) in enumerate(zip(self.slots, actions)):
+            obs, reward, terminated, truncated, info = slot.env.step(action)
+            slot.ret += float(reward)
+            slot.length += int(info.get("inner_steps", 1))
+            start_obs = None
+            if terminated or truncated:
+                self.end_episode(i, slot, float(info.get("distance", 0.0)))
+                start_obs = slot.obs
+            else:
+                slot.obs = obs
+            if self.episode_logger is not None:
+                self.episode_logger.step(i, action, reward, info)
+            if not self.config.evaluate:
+                self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now)
+        self.steps += len(self.slots)
+        self.flush()
+
+    def end_episode(self, i: int, slot: EnvSlot, final_x: float) -> None:
+        summary = EpisodeSummary(
+            actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
+            distance=final_x - slot.start_x, length=slot.length,
+            policy_version=max(self.weights.version, 0) if not self.random_phase else -1,
+            difficulty=self.config.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
+            time=time.time())
+        self.summaries.put(encode(summary))
+        if self.episode_logger is not None:
+            self.episode_logger.end_episode(i, summary)
+        self.episodes += 1
+        slot.episode += 1
+        slot.seed = episode_seed(self.config, i, slot.episode)
+        slot.ret, slot.length = 0.0, 0
+        slot.obs, info = slot.env.reset(seed=slot.seed)
+        slot.start_x = float(info.get("distance", 0.0))
+        if self.episode_logger is not None:
+            self.episode_logger.begin_episode(i, slot.seed, self.weights.version)
+
+    def flush(self, force: bool = False) -> None:
+        """Send every chunk that is full, older than the delay, or any at all when forced."""
+        deadline = time.time() - self.config.chunk_delay
+        for builder in self.builders:
+            if builder and (force or builder.full or builder.started_at < deadline):
+                chunk = builder.take(self.seq, max(self.weights.version, 0))
+                self.experience.put(encode(chunk))
+                self.seq += 1
+                self.chunks_sent += 1
+
+    # -- evaluation rounds -------------------------------------------------------------------
+
+    def ready_for_round(self) -> bool:
+        """An evaluation round starts when the interval has passed and the policy is new."""
+        version = self.weights.version
+        if version < 0 or version == self._round_version or time.monotonic() < self._next_round:
+            return False
+        self._round_version = version
+        self._next_round = time.monotonic() + self.config.eval_interval
+        return True
+
+    def run_round(self, stop: threading.Event) -> None:
+        """`eval_episodes` deterministic episodes with one policy version, spread over the envs."""
+        version, n, distances = self.weights.version, len(self.slots), []
+        for start in range(0, self.config.eval_episodes, n):
+            seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
+            results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop)
+            for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
+                self.summaries.put(encode(EpisodeSummary(
+                    actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
+                    length=length, policy_version=version, difficulty=self.config.difficulty, seed=seed,
+                    evaluation=True, time=time.time())))
+                self.episodes += 1
+                distances.append(distance)
+        if distances:
+            log.info("evaluation of policy v%d: mean distance %.2f m over %d episodes",
+                     version, float(np.mean(distances)), len(distances))
+
+    # -- stats -------------------------------------------------------------------------------
+
+    def publish_stats(self) -> None:
+        now = time.monotonic()
+        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
+        self._rate_steps, self._rate_time = self.steps, now
+        values = {
+            "env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
+            "chunks_sent": self.chunks_sent, "policy_version": self.weights.version,
+            "newest_version": self.weights.newest_seen, "staleness": self.weights.staleness,
+            "weight_swaps": self.weights.swaps, "rejected_weights": self.weights.rejections.total,
+            "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
+            "num_envs": len(self.slots),
+        }
+        self.stats.put(encode(Stats(self.config.role, str(self.config.actor_id), time.time(), values)))
+
+    def close(self) -> None:
+        if not self.config.evaluate:
+            self.flush(force=True)
+        if self.episode_logger is not None:
+            self.episode_logger.close()
+        self.weights.close()
+        for slot in self.slots:
+            slot.env.close()
+
+
+def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
+                      stop: threading.Event | None = None) -> list[tuple[float, float, int]]:
+    """Run one deterministic episode per env (batched policy calls); (return, distance, steps) each.
+
+    Shared by the evaluation role and `l2r eval`."""
+    obs, start_x = [], []
+    for env, seed in zip(envs, seeds):
+        o, info = env.reset(seed=seed)
+        obs.append(o)
+        start_x.append(float(info.get("distance", 0.0)))
+    results: list = [None] * len(envs)
+    returns = [0.0] * len(envs)
+    lengths = [0] * len(envs)
+    running = list(range(len(envs)))
+    while running and not (stop is not None and stop.is_set()):
+        actions = act(policy, np.stack([obs[i] for i in running]), deterministic=True)
+        still = []
+        for i, action in zip(running, actions):
+            o, reward, terminated, truncated, info = envs[i].step(action)
+            returns[i] += float(reward)
+            lengths[i] += int(info.get("inner_steps", 1))
+            obs[i] = o
+            if terminated or truncated:
+                results[i] = (returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i])
+            else:
+                still.append(i)
+        running = still
+    return [r for r in results if r is not None]
+
+
+def make_episode_logger(config: ActorConfig):
+    """The MCAP episode logger the config asks for, or None."""
+    if not config.episode_log:
+        return None
+    from l2r.actors.episode_log import EpisodeLogger
+    return EpisodeLogger(run=config.run, actor_id=config.actor_id, **config.episode_log)
+
+
+def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event | None = None) -> int:
+    """Run the actor until ``stop`` is set (or ``config.max_steps`` is reached)."""
+    stop = stop or threading.Event()
+    torch.set_num_threads(config.torch_threads)
+    with zenoh.open(zenoh_config) as session:
+        keys = Keys(config.run)
+        token = session.liveliness().declare_token(keys.alive(config.role, config.actor_id))
+        actor = Actor(config, session)
+        log.info("%s %d up: %d x %s (difficulty %d, action repeat %d), run %r", config.role,
+                 config.actor_id, config.num_envs, config.env_id, config.difficulty,
+                 config.action_repeat, config.run)
+        next_stats = 0.0
+        waited_since = None
+        try:
+            while not stop.is_set():
+                if config.max_steps and actor.steps >= config.max_steps:
+                    break
+                if time.monotonic() >= next_stats:
+                    actor.publish_stats()
+                    next_stats = time.monotonic() + config.stats_interval
+                if config.evaluate:
+                    actor.weights.poll()
+                    if actor.ready_for_round():
+                        actor.run_round(stop)
+                    else:
+                        stop.wait(0.2)
+                    continue
+                if not actor.replay.any_alive:
+                    # Without a replay shard the experience would be lost: wait for one.
+                    if waited_since is None:
+                        waited_since = time.monotonic()
+                        actor.waiting_for_replay = True
+                        log.info("no replay server alive; waiting")
+                    actor.weights.poll()
+                    stop.wait(0.2)
+                    continue
+                if waited_since is not None:
+                    log.info("replay server alive again after %.1f s; going on", time.monotonic() - waited_since)
+                    waited_since = None
+                    actor.waiting_for_replay = False
+                actor.step()
+        finally:
+            actor.close()
+            actor.publish_stats()
+            token.undeclare()
+            log.info("%s %d stopped after %d steps, %d episodes, %d chunks", config.role,
+                     config.actor_id, actor.steps, actor.episodes, actor.chunks_sent)
+    return 0

@@ -1,0 +1,81 @@
+"""Cutting one environment's stream of transitions into `ExperienceChunk`s.
+
+A chunk holds T steps and T+1 observations: consecutive steps share their observation rows.
+When an episode ends inside a chunk, the step's true next observation goes to ``final_obs``
+and the chunk continues from the first observation of the next episode.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from l2r.protocol import ExperienceChunk
+
+
+class ChunkBuilder:
+    """Accumulates the steps of one environment; `take` hands them over as a chunk."""
+
+    def __init__(self, actor_id: int, env_id: int, epoch: int, capacity: int):
+        self.actor_id, self.env_id, self.epoch = actor_id, env_id, epoch
+        self.capacity = capacity
+        self._obs: list[np.ndarray] = []
+        self._actions: list[np.ndarray] = []
+        self._rewards: list[float] = []
+        self._terminated: list[bool] = []
+        self._truncated: list[bool] = []
+        self._final_obs: list[np.ndarray] = []
+        self.started_at = 0.0  # wall-clock time of the chunk's first step
+
+    def __len__(self) -> int:
+        return len(self._actions)
+
+    @property
+    def full(self) -> bool:
+        return len(self._actions) >= self.capacity
+
+    def begin(self, obs: np.ndarray) -> None:
+        """The observation the next step starts from (after a reset, or after `take`)."""
+        self._obs = [np.asarray(obs, np.float32)]
+
+    def add(self, action: np.ndarray, reward: float, terminated: bool, truncated: bool,
+            next_obs: np.ndarray, start_obs: np.ndarray | None, now: float) -> None:
+        """One step. ``start_obs`` is the first observation of the next episode when this step
+        ended one (the env was reset), else None."""
+        if not self._actions:
+            self.started_at = now
+        self._actions.append(np.asarray(action, np.float32))
+        self._rewards.append(float(reward))
+        self._terminated.append(bool(terminated))
+        self._truncated.append(bool(truncated))
+        if start_obs is None:
+            self._obs.append(np.asarray(next_obs, np.float32))
+        else:
+            self._final_obs.append(np.asarray(next_obs, np.float32))
+            self._obs.append(np.asarray(start_obs, np.float32))
+
+    def take(self, seq: int, policy_version: int) -> ExperienceChunk | None:
+        """The steps so far as one chunk (None if there are none); the builder starts afresh
+        from the current observation."""
+        if not self._actions:
+            return None
+        obs = np.stack(self._obs)
+        final_obs = self._final_obs
+        if self._terminated[-1] or self._truncated[-1]:
+            # The last step ended an episode: its true next observation closes the chunk and
+            # the first observation of the next episode opens the next chunk.
+            obs[-1] = final_obs[-1]
+            final_obs = final_obs[:-1]
+        width = obs.shape[1]
+        chunk = ExperienceChunk(
+            actor_id=self.actor_id, env_id=self.env_id, epoch=self.epoch, seq=seq,
+            policy_version=policy_version, obs=obs,
+            actions=np.stack(self._actions),
+            rewards=np.asarray(self._rewards, np.float32),
+            terminated=np.asarray(self._terminated, bool),
+            truncated=np.asarray(self._truncated, bool),
+            final_obs=np.stack(final_obs) if final_obs else np.zeros((0, width), np.float32),
+        )
+        current = self._obs[-1]
+        self._actions, self._rewards, self._terminated, self._truncated, self._final_obs = [], [], [], [], []
+        self._obs = [current]
+        return chunk

@@ -1,0 +1,30 @@
+"""A tiny stand-in with the runner's shapes (41 observations, 18 excitations), for fast tests."""
+
+import gymnasium
+import numpy as np
+
+
+class StandIn(gymnasium.Env):
+    def __init__(self, difficulty: int = 0, seed: int | None = None, length: int = 40):
+        self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (41,), np.float32)
+        self.action_space = gymnasium.spaces.Box(0.0, 1.0, (18,), np.float32)
+        self.length = length
+        self._x = 0.0
+        self._t = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self._x, self._t = 0.0, 0
+        return self.np_random.normal(size=41).astype(np.float32), {"distance": 0.0}
+
+    def step(self, action):
+        action = np.asarray(action)
+        assert action.shape == (18,) and np.isfinite(action).all()
+        self._t += 1
+        reward = float(action.mean() - 0.5) * 0.01
+        self._x += reward
+        obs = self.np_random.normal(size=41).astype(np.float32)
+        return obs, reward, False, self._t >= self.length, {"distance": self._x}
+
+
+gymnasium.register("StandIn-v0", entry_point=StandIn)
