@@ -1,0 +1,163 @@
+"""The deployment's security, through a real `l2r router` running deploy/zenoh/router.json5.
+
+Every session uses the role configs deploy/make-secrets.sh renders (mutual TLS, user/password);
+the router's access control must let each role do its part of the data flow and nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+import uuid
+
+import pytest
+import zenoh
+
+from l2r.protocol.keys import Keys
+
+from .zenoh_helpers import free_port, make_secrets, role_config, start_router, stop, wait_for
+
+pytestmark = pytest.mark.skipif(not shutil.which("openssl"), reason="needs the openssl CLI")
+
+SETTLE_S = 0.5  # after the allowed message arrived, how long a forbidden one gets to show up
+
+
+@pytest.fixture(scope="module")
+def secure_router(tmp_path_factory):
+    """A router with the deployment's router config, listening on a loopback port; its keys."""
+    tmp = tmp_path_factory.mktemp("secure")
+    secrets = make_secrets(tmp / "secrets")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    proc = start_router(["-c", str(secrets / "router" / "zenoh.json5"), "-l", endpoint], tmp / "router.log")
+    yield secrets, endpoint, tmp / "router.log"
+    stop(proc)
+
+
+@pytest.fixture
+def open_as(secure_router):
+    """Open a session as a role: ``open_as("actor")``, or with another role's password."""
+    secrets, endpoint, _ = secure_router
+    sessions = []
+
+    def _open(role: str, password_of: str | None = None, **overrides) -> zenoh.Session:
+        if password_of:
+            other = zenoh.Config.from_file(str(secrets / password_of / "zenoh.json5"))
+            overrides["transport__auth__usrpwd"] = json.loads(other.get_json("transport/auth/usrpwd"))
+        session = zenoh.open(role_config(secrets, role, endpoint, **overrides))
+        sessions.append(session)
+        return session
+
+    yield _open
+    for session in sessions:
+        session.close()
+
+
+@pytest.fixture
+def keys():
+    return Keys(f"sec-{uuid.uuid4().hex[:8]}")
+
+
+class Inbox:
+    """Payloads a subscriber received, by text."""
+
+    def __init__(self):
+        self.items: list[str] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.items.append(sample.payload.to_string())
+
+    def got(self, text: str) -> bool:
+        with self._lock:
+            return text in self.items
+
+
+def assert_only_allowed_arrive(inbox: Inbox, forbidden: dict[str, zenoh.Session], allowed, key: str) -> None:
+    """Send from every forbidden session, then from the allowed one; only the allowed one arrives."""
+    for name, session in forbidden.items():
+        session.put(key, f"from-{name}")
+    allowed.put(key, "from-allowed")
+    assert wait_for(lambda: inbox.got("from-allowed")), "the allowed publisher's message never arrived"
+    time.sleep(SETTLE_S)
+    assert inbox.items == ["from-allowed"], f"forbidden messages got through: {inbox.items}"
+
+
+@pytest.mark.parametrize(
+    "what, overrides",
+    [
+        ("no client certificate", {"transport__link__tls__enable_mtls": False,
+                                   "transport__link__tls__connect_certificate": None,
+                                   "transport__link__tls__connect_private_key": None}),
+        ("wrong password", {"transport__auth__usrpwd": {"user": "actor", "password": "guess"}}),
+        ("no user name", {"transport__auth__usrpwd": {"user": None, "password": None}}),
+        ("plain tcp", {"transport__link__protocols": ["tcp"]}),
+    ],
+)
+def test_a_peer_without_credentials_cannot_connect(secure_router, what, overrides):
+    secrets, endpoint, _ = secure_router
+    if what == "plain tcp":
+        endpoint = endpoint.replace("tls/", "tcp/")
+    # The same role config with every credential in place connects: the refusals below are real.
+    zenoh.open(role_config(secrets, "actor", secure_router[1])).close()
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(role_config(secrets, "actor", endpoint, timeout_ms=500, **overrides)).close()
+
+
+def test_the_router_logs_who_connects_and_as_whom(secure_router, open_as):
+    _, _, log = secure_router
+    open_as("learner")
+    assert wait_for(lambda: "as learner" in log.read_text()), log.read_text()[-2000:]
+
+
+def test_only_actors_may_publish_experience(open_as, keys):
+    inbox = Inbox()
+    replay = open_as("replay")
+    sub = replay.declare_subscriber(keys.experience_of_shard(0), inbox)
+    forbidden = {"learner": open_as("learner"), "replay": open_as("replay"),
+                 "actor-cert-with-learner-password": open_as("actor", password_of="learner")}
+    time.sleep(SETTLE_S)  # let the subscription reach every session through the router
+    assert_only_allowed_arrive(inbox, forbidden, open_as("actor"), keys.experience(actor_id=3))
+    sub.undeclare()
+
+
+def test_only_learners_may_publish_weights(open_as, keys):
+    inbox = Inbox()
+    actor = open_as("actor")
+    sub = actor.declare_subscriber(keys.weights, inbox)
+    forbidden = {"actor": open_as("actor"), "replay": open_as("replay"),
+                 "learner-cert-with-actor-password": open_as("learner", password_of="actor")}
+    time.sleep(SETTLE_S)
+    assert_only_allowed_arrive(inbox, forbidden, open_as("learner"), keys.weights)
+    sub.undeclare()
+
+
+def test_only_learners_may_query_the_replay_server(open_as, keys):
+    replay = open_as("replay")
+    queryable = replay.declare_queryable(keys.sample(0), lambda q: q.reply(q.key_expr, b"batch"))
+    queriers = {"learner": open_as("learner"), "actor": open_as("actor"),
+                "replay": open_as("replay"), "learner-cert-with-replay-password": open_as("learner", password_of="replay")}
+    time.sleep(SETTLE_S)
+    answered = {
+        name: [r.ok.payload.to_bytes() for r in session.get(keys.sample(0), timeout=2.0) if r.ok is not None]
+        for name, session in queriers.items()
+    }
+    assert answered == {"learner": [b"batch"], "actor": [], "replay": [], "learner-cert-with-replay-password": []}
+    queryable.undeclare()
+
+
+def test_a_session_that_matches_no_role_gets_nothing(open_as, keys):
+    """Valid certificate and valid password, but of two different roles: no subject matches."""
+    stranger = open_as("actor", password_of="learner")
+    inbox = Inbox()
+    subs = [stranger.declare_subscriber(k, inbox) for k in (keys.experience_of_shard(0), keys.weights, keys.all_stats)]
+    time.sleep(SETTLE_S)
+    open_as("actor").put(keys.experience(actor_id=0), "experience")
+    open_as("learner").put(keys.weights, "weights")
+    open_as("replay").put(keys.stats("replay", 0), "stats")
+    time.sleep(2 * SETTLE_S)
+    assert inbox.items == []
+    for sub in subs:
+        sub.undeclare()
