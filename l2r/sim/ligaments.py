@@ -96,18 +96,23 @@ def ligament_forces(q: np.ndarray, qdot: np.ndarray, params: LimitParams | None 
 
 
 class LigamentKernel:
-    """`ligament_forces` for a single state in plain Python floats.
+    """`ligament_forces` for a single state, in plain Python floats.
 
-    The simulation calls this every physics substep; for six scalars, float arithmetic is
-    several times faster than numpy's per-call overhead. Agrees with `ligament_forces` to
-    rounding (a test checks it).
+    The simulation calls this every physics substep, where numpy's per-call overhead on six
+    numbers would cost several times the arithmetic. `qpos_adr` and `qvel_adr` locate the
+    limited coordinates (in `params.coordinates` order) in the sequences passed to `__call__`.
+    Agrees with `ligament_forces` to rounding (a test checks it).
     """
 
-    def __init__(self, params: LimitParams | None = None):
+    def __init__(self, qpos_adr: list[int], qvel_adr: list[int], params: LimitParams | None = None):
         p = default_limits() if params is None else params
+        if not len(qpos_adr) == len(qvel_adr) == len(p.names):
+            raise ValueError(f"need {len(p.names)} position and velocity addresses")
         self.params = p
         self._rows = list(
             zip(
+                [int(i) for i in qpos_adr],
+                [int(i) for i in qvel_adr],
                 p.upper.tolist(),
                 p.lower.tolist(),
                 p.k_upper.tolist(),
@@ -117,10 +122,11 @@ class LigamentKernel:
             )
         )
 
-    def __call__(self, q: list[float], qdot: list[float]) -> list[float]:
-        """Forces for one state; `q`, `qdot` are sequences of six floats in `LIGAMENTS` order."""
+    def __call__(self, qpos: list[float], qvel: list[float]) -> list[float]:
+        """Force of each ligament (N·m) for the state (qpos, qvel)."""
         forces = []
-        for (upper, lower, k_up, k_low, damping, inv_tr), x, v in zip(self._rows, q, qdot):
+        for qa, va, upper, lower, k_up, k_low, damping, inv_tr in self._rows:
+            x = qpos[qa]
             if x > upper:
                 over, k = x - upper, k_up
             elif x < lower:
@@ -129,5 +135,5 @@ class LigamentKernel:
                 forces.append(0.0)
                 continue
             s = min(abs(over) * inv_tr, 1.0)
-            forces.append(-s * s * s * (10.0 + s * (-15.0 + 6.0 * s)) * (k * over + damping * v))
+            forces.append(-s * s * s * (10.0 + s * (-15.0 + 6.0 * s)) * (k * over + damping * qvel[va]))
         return forces
