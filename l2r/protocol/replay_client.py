@@ -67,7 +67,9 @@ class ReplayClient:
 
     def sample(self, timeout: float | None = None) -> SampleBatch:
         """The next batch; waits while replay is empty or rate-limited. ``queue.Empty`` on timeout."""
-        return self._ready.get(timeout=timeout)
+        batch = self._ready.get(timeout=timeout)
+        self._events.put(("consumed",))  # a free slot: the pump asks for another batch
+        return batch
 
     def __iter__(self):
         while not self._closed.is_set():
@@ -140,17 +142,20 @@ class ReplayClient:
             except ProtocolError as e:
                 self.rejections.add(str(e), f"shard {shard}")
                 return
-            state["answered"] = True
             if isinstance(message, NotReady):
                 self.waits += 1
                 self._events.put(("wait", shard, message.retry_after))
             else:
                 self._ready.put(message)
+            if not state["answered"]:  # the reply frees the slot; the query's end may come later
+                state["answered"] = True
+                self._events.put(("done",))
 
         def on_done() -> None:
             if not state["answered"]:  # timeout, error or shard gone: back off a little
+                state["answered"] = True
                 self._events.put(("wait", shard, 0.2))
-            self._events.put(("done",))
+                self._events.put(("done",))
 
-        self._session.get(self.keys.sample(shard), zenoh.handlers.Callback(on_reply, on_done),
+        self._session.get(self.keys.sample(shard), zenoh.handlers.Callback(on_reply, on_done, indirect=False),
                           payload=encode(request), timeout=self._timeout, **SAMPLE_QOS.put())

@@ -1,0 +1,269 @@
+"""The ``l2r-replay`` daemon: stores actors' experience and serves learners' sample queries.
+
+One shard of a run: it subscribes to ``experience/<shard>/*``, answers
+``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, publishes its stats,
+holds the liveliness token ``alive/replay/<shard>`` and logs who joins and leaves.
+Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from l2r.protocol import (
+    STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
+    PriorityUpdate, ProtocolError, Rejections, SampleRequest, Stats, decode, encode,
+)
+from l2r.replay import snapshot
+from l2r.replay.rate_limiter import RateLimiter
+from l2r.replay.sequences import SequenceTracker
+from l2r.replay.storage import ChunkRejected, Storage, StorageConfig
+
+log = logging.getLogger("l2r.replay")
+
+
+@dataclass
+class ServerConfig:
+    """Where the shard lives and how often it reports and saves."""
+
+    run: str = "default"
+    shard: int = 0
+    num_shards: int = 1
+    snapshot_dir: Path | None = None
+    """Directory for snapshots; None keeps everything in memory only."""
+    snapshot_interval: float = 120.0
+    """Seconds between snapshots: the most stored data a crash can lose."""
+    restore: bool = True
+    """Load the shard's snapshot from snapshot_dir at start."""
+    stats_interval: float = 10.0
+
+
+class ReplayServer:
+    """The shard's state and its message handlers (see the module docstring)."""
+
+    def __init__(self, config: ServerConfig, storage: Storage, limiter: RateLimiter):
+        self.config = config
+        self.keys = Keys(config.run)
+        self.storage = storage
+        self.limiter = limiter
+        self.sequences = SequenceTracker()
+        self.rejections = Rejections(log)
+        self.lock = threading.Lock()
+        self.learner_version = -1
+        self.sampled_batches = 0
+        self.not_ready_replies = 0
+        self.priority_updates = [0, 0]  # applied, stale
+        self.lag_sum = 0.0
+        self.lag_batches = 0
+        self.snapshot_pause = 0.0
+        self._last = (time.monotonic(), 0, 0)  # time, inserted, sampled batches at the last report
+
+    # -- handlers -----------------------------------------------------------------------
+    def on_experience(self, sample: zenoh.Sample) -> None:
+        try:
+            chunk = decode(sample.payload, ExperienceChunk)
+            self.storage.check(chunk)
+        except (ProtocolError, ChunkRejected) as e:
+            self.rejections.add(str(e), str(sample.key_expr))
+            return
+        with self.lock:
+            if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
+                return
+            stored = self.storage.insert(chunk)
+            self.sequences.stored(chunk.actor_id, stored)
+            self.limiter.inserted += stored
+
+    def on_sample_query(self, query: zenoh.Query) -> None:
+        try:
+            request = decode(query.payload if query.payload is not None else b"", SampleRequest)
+        except ProtocolError as e:
+            self.rejections.add(str(e), "sample query")
+            query.reply_err(str(e))
+            return
+        with self.lock:
+            self.learner_version = max(self.learner_version, request.learner_version)
+            size = self.storage.live
+            ok, reason = self.limiter.can_sample(size, request.batch_size * request.count)
+            if ok:
+                batches = [self.storage.sample(request.batch_size, request.prioritized, self.config.shard)
+                           for _ in range(request.count)]
+                self.limiter.sampled += request.batch_size * request.count
+                self.sampled_batches += request.count
+                if self.learner_version >= 0:
+                    self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b in batches)
+                    self.lag_batches += len(batches)
+            else:
+                self.not_ready_replies += 1
+                delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(
+                    request.batch_size * request.count, self._insert_rate())
+        if not ok:
+            query.reply(query.key_expr, encode(NotReady(self.config.shard, reason, size, delay)))
+            return
+        for batch in batches:
+            query.reply(query.key_expr, encode(batch))
+
+    def on_priorities(self, sample: zenoh.Sample) -> None:
+        try:
+            update = decode(sample.payload, PriorityUpdate)
+        except ProtocolError as e:
+            self.rejections.add(str(e), str(sample.key_expr))
+            return
+        with self.lock:
+            applied = self.storage.update_priorities(update.indices, update.generations, update.priorities)
+        self.priority_updates[0] += applied
+        self.priority_updates[1] += len(update.indices) - applied
+
+    def on_learner_version(self, sample: zenoh.Sample) -> None:
+        try:
+            beacon = decode(sample.payload, LearnerVersion)
+        except ProtocolError as e:
+            self.rejections.add(str(e), str(sample.key_expr))
+            return
+        self.learner_version = max(self.learner_version, beacon.version)
+
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        who = str(sample.key_expr).split("/alive/", 1)[-1]
+        if who == f"replay/{self.config.shard}":
+            return
+        log.info("%s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
+
+    # -- reporting ------------------------------------------------------------------------
+    def _insert_rate(self) -> float:
+        t, inserted, _ = self._last
+        return (self.limiter.inserted - inserted) / max(1e-3, time.monotonic() - t)
+
+    def stats(self) -> dict[str, float]:
+        """Current figures; rates are over the time since the previous call."""
+        with self.lock:
+            now = time.monotonic()
+            t, inserted, sampled = self._last
+            dt = max(1e-6, now - t)
+            values = {
+                "size": self.storage.live,
+                "capacity": self.storage.capacity,
+                "inserted": self.limiter.inserted,
+                "inserts_per_s": (self.limiter.inserted - inserted) / dt,
+                "sampled_batches": self.sampled_batches,
+                "samples_per_s": (self.sampled_batches - sampled) / dt,
+                "not_ready_replies": self.not_ready_replies,
+                "rejected": self.rejections.total,
+                "duplicates": self.sequences.duplicates,
+                "gaps": self.sequences.gaps,
+                "actor_restarts": self.sequences.restarts,
+                "priority_updates": self.priority_updates[0],
+                "stale_priority_updates": self.priority_updates[1],
+                "learner_version": self.learner_version,
+                "policy_lag": self.lag_sum / self.lag_batches if self.lag_batches else float("nan"),
+                "snapshot_pause_s": self.snapshot_pause,
+            }
+            for actor, record in self.sequences.actors.items():
+                values[f"actor.{actor}.transitions"] = record.transitions
+                values[f"actor.{actor}.gaps"] = record.gaps
+            self._last = (now, self.limiter.inserted, self.sampled_batches)
+            self.lag_sum, self.lag_batches = 0.0, 0
+        return values
+
+    # -- persistence ----------------------------------------------------------------------
+    def capture(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Copy the state under the lock (the only pause inserts and samples see)."""
+        start = time.perf_counter()
+        with self.lock:
+            arrays = self.storage.state()
+            meta = {"sequences": self.sequences.state(), "inserted": self.limiter.inserted,
+                    "sampled": self.limiter.sampled, "learner_version": self.learner_version,
+                    "shard": self.config.shard, "time": time.time()}
+        self.snapshot_pause = time.perf_counter() - start
+        return arrays, meta
+
+    def restore(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
+        self.storage.restore(arrays)
+        self.sequences.restore(meta["sequences"])
+        self.limiter.inserted, self.limiter.sampled = meta["inserted"], meta["sampled"]
+        self.learner_version = meta["learner_version"]
+
+
+def _save(server: ReplayServer, path: Path) -> None:
+    arrays, meta = server.capture()
+    start = time.perf_counter()
+    size = snapshot.write(path, arrays, meta)
+    log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts/samples paused %.1f ms)",
+             server.storage.live, size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
+
+
+def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimiter,
+         zenoh_config: zenoh.Config, stop: threading.Event | None = None) -> int:
+    """Run one replay shard until ``stop`` is set or SIGINT/SIGTERM arrives."""
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+
+    storage = Storage(storage_config)
+    server = ReplayServer(config, storage, limiter)
+    log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/transition)",
+             config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
+             storage.nbytes / storage.capacity)
+    path = snapshot.snapshot_path(config.snapshot_dir, config.shard) if config.snapshot_dir else None
+    if path and config.restore:
+        loaded = snapshot.read(path)
+        if loaded:
+            try:
+                server.restore(*loaded)
+                log.info("restored %d transitions from %s", storage.live, path)
+            except (ValueError, KeyError) as e:
+                log.error("cannot restore %s: %s. Start with matching flags, or move the file away.", path, e)
+                return 2
+    if path:
+        log.info("snapshots every %.0f s to %s: a crash loses at most that much experience",
+                 config.snapshot_interval, path)
+
+    keys = server.keys
+    with zenoh.open(zenoh_config) as session:
+        token = session.liveliness().declare_token(keys.alive("replay", config.shard))
+        entities = [
+            session.declare_subscriber(keys.experience_of_shard(config.shard), server.on_experience),
+            session.declare_queryable(keys.sample(config.shard), server.on_sample_query),
+            session.declare_subscriber(keys.priorities(config.shard), server.on_priorities),
+            session.declare_subscriber(keys.learner_version, server.on_learner_version),
+        ]
+        watcher = session.liveliness().declare_subscriber(keys.alive_all, server.on_alive, history=True)
+        stats_key = keys.stats("replay", config.shard)
+        log.info("serving: experience on %s, samples on %s", keys.experience_of_shard(config.shard),
+                 keys.sample(config.shard))
+
+        writer: threading.Thread | None = None
+        next_stats = time.monotonic() + config.stats_interval
+        next_snapshot = time.monotonic() + config.snapshot_interval
+        while not stop.wait(0.2):
+            now = time.monotonic()
+            if now >= next_stats:
+                next_stats = now + config.stats_interval
+                values = server.stats()
+                session.put(stats_key, encode(Stats("replay", str(config.shard), time.time(), values)), **STATS_QOS.put())
+                log.info("size %d | %.0f inserts/s | %.1f batches/s | lag %.1f | rejected %d | dup %d | gaps %d",
+                         values["size"], values["inserts_per_s"], values["samples_per_s"], values["policy_lag"],
+                         values["rejected"], values["duplicates"], values["gaps"])
+            if path and now >= next_snapshot and not (writer and writer.is_alive()):
+                next_snapshot = now + config.snapshot_interval
+                writer = threading.Thread(target=_save, args=(server, path), name="snapshot")
+                writer.start()
+
+        log.info("stopping: no more inserts or samples")
+        for entity in entities:
+            entity.undeclare()
+        watcher.undeclare()
+        token.undeclare()
+    if writer:
+        writer.join()
+    if path:
+        _save(server, path)  # the final snapshot, after the last insert
+    log.info("stopped")
+    return 0

@@ -1,0 +1,218 @@
+"""Preallocated FIFO transition storage with uniform and prioritized sampling.
+
+Transitions of one chunk go to consecutive slots of a ring, so the next observation of a
+slot is usually the observation of the slot after it and is not stored twice. Only a step
+that ends a chunk or an episode keeps its own next observation, in a smaller side ring.
+When that side ring wraps over a row a live slot still points to, the slot is evicted
+(priority 0, not sampled); size it so this stays rare (default: capacity / 8 rows).
+
+Every write gives a slot a new generation (the running count of transitions stored), so a
+priority update computed for an overwritten slot is recognised and ignored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from l2r.protocol import ExperienceChunk, SampleBatch
+from l2r.replay.sumtree import SumTree
+
+
+@dataclass
+class StorageConfig:
+    """What is stored and how it is sampled."""
+
+    capacity: int = 1_000_000
+    """Transitions kept; the oldest are evicted first."""
+    obs_dim: int = 41
+    """Observation width; chunks of another width are rejected."""
+    act_dim: int = 18
+    """Action width; chunks of another width are rejected."""
+    side_fraction: float = 0.125
+    """Rows for next observations at chunk and episode ends, as a fraction of capacity."""
+    priority_exponent: float = 0.6
+    """alpha of prioritized replay: stored priority = (priority + eps) ** alpha."""
+    seed: int = 0
+
+
+class ChunkRejected(ValueError):
+    """A well-formed chunk this storage cannot hold (wrong widths, longer than capacity)."""
+
+
+class Storage:
+    """See the module docstring. Not thread-safe: the server serialises access."""
+
+    ARRAYS = ("obs", "actions", "rewards", "terminated", "truncated", "versions", "generation",
+              "next_row", "side_obs", "side_owner", "side_owner_generation")
+
+    def __init__(self, config: StorageConfig):
+        c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
+        self.config = config
+        self.capacity, self.side_capacity = c, s
+        # ring rows [0, c) then side rows [c, c + s): one gather fetches any next observation
+        self.all_obs = np.zeros((c + s, config.obs_dim), np.float32)
+        self.obs, self.side_obs = self.all_obs[:c], self.all_obs[c:]
+        self.actions = np.zeros((c, config.act_dim), np.float32)
+        self.rewards = np.zeros(c, np.float32)
+        self.terminated = np.zeros(c, bool)
+        self.truncated = np.zeros(c, bool)
+        self.versions = np.zeros(c, np.int64)
+        self.generation = np.full(c, -1, np.int64)  # -1: empty or evicted
+        self.next_row = np.full(c, -1, np.int64)  # side row of the next obs; -1: next slot's obs
+        self.side_owner = np.full(s, -1, np.int64)
+        self.side_owner_generation = np.full(s, -1, np.int64)
+        self.tree = SumTree(c)
+        self.rng = np.random.default_rng(config.seed)
+        self.written = 0  # transitions ever stored; also the next generation
+        self.side_written = 0
+        self.live = 0  # slots holding a sampleable transition
+        self.max_priority = 1.0
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, name).nbytes for name in self.ARRAYS) + self.tree.tree.nbytes
+
+    def check(self, chunk: ExperienceChunk) -> None:
+        """Raise ChunkRejected if ``chunk`` does not fit this storage."""
+        if chunk.obs.shape[1] != self.config.obs_dim or chunk.actions.shape[1] != self.config.act_dim:
+            raise ChunkRejected(f"experience widths obs {chunk.obs.shape[1]}, actions {chunk.actions.shape[1]}; "
+                                f"this replay stores obs {self.config.obs_dim}, actions {self.config.act_dim}")
+        if chunk.size > self.capacity or len(chunk.final_obs) + 1 > self.side_capacity:
+            raise ChunkRejected(f"chunk of {chunk.size} transitions exceeds capacity {self.capacity} "
+                                f"or side rows {self.side_capacity}")
+
+    def insert(self, chunk: ExperienceChunk) -> int:
+        """Store all transitions of ``chunk``; return how many."""
+        self.check(chunk)
+        t = chunk.size
+        ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
+        slots = (self.written + np.arange(t)) % self.capacity
+        self._evict(slots)
+        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(ends) else chunk.obs[-1:]
+        side_slots = np.append(slots[ends], slots[-1])
+        rows = self._side_write(side_values, side_slots)
+        generations = self.written + np.arange(t, dtype=np.int64)
+
+        for name, values in (("obs", chunk.obs[:-1]), ("actions", chunk.actions), ("rewards", chunk.rewards),
+                             ("terminated", chunk.terminated), ("truncated", chunk.truncated)):
+            _ring_put(getattr(self, name), self.written % self.capacity, values)
+        self.versions[slots] = chunk.policy_version
+        self.generation[slots] = generations
+        self.next_row[slots] = -1
+        self.next_row[side_slots] = rows
+        self.side_owner_generation[rows] = self.generation[side_slots]
+
+        priority = self.max_priority
+        start = self.written % self.capacity
+        first = min(t, self.capacity - start)
+        self.tree.set_range(start, np.full(first, priority))
+        if first < t:
+            self.tree.set_range(0, np.full(t - first, priority))
+        self.written += t
+        self.live += t
+        return t
+
+    def _evict(self, slots: np.ndarray) -> None:
+        self.live -= int(np.count_nonzero(self.generation[slots] >= 0))
+        self.generation[slots] = -1
+
+    def _side_write(self, values: np.ndarray, owners: np.ndarray) -> np.ndarray:
+        n = len(values)
+        rows = (self.side_written + np.arange(n)) % self.side_capacity
+        old_owner, old_gen = self.side_owner[rows], self.side_owner_generation[rows]
+        valid = old_owner >= 0
+        stale = valid & (self.generation[np.maximum(old_owner, 0)] == old_gen)
+        if stale.any():  # live slots whose next observation is about to be overwritten
+            victims = old_owner[stale]
+            self._evict(victims)
+            self.tree.set(victims, np.zeros(len(victims)))
+        self.side_obs[rows] = values
+        self.side_owner[rows] = owners
+        self.side_written += n
+        return rows
+
+    def sample(self, batch_size: int, prioritized: bool, shard: int = 0) -> SampleBatch:
+        """A batch of live transitions; requires ``live > 0``."""
+        if prioritized:
+            slots, probabilities = self._sample_prioritized(batch_size)
+        else:
+            slots = self._sample_uniform(batch_size)
+            probabilities = np.full(batch_size, 1.0 / self.live)
+        side = self.next_row[slots]
+        next_rows = np.where(side < 0, (slots + 1) % self.capacity, self.capacity + side)
+        return SampleBatch(
+            shard=shard, size=self.live, prioritized=prioritized, obs=self.obs[slots],
+            actions=self.actions[slots], rewards=self.rewards[slots], next_obs=self.all_obs[next_rows],
+            terminated=self.terminated[slots], truncated=self.truncated[slots], indices=slots,
+            generations=self.generation[slots], probabilities=probabilities, policy_versions=self.versions[slots])
+
+    def _sample_uniform(self, n: int) -> np.ndarray:
+        high = min(self.written, self.capacity)
+        slots = self.rng.integers(0, high, n)
+        dead = self.generation[slots] < 0
+        while dead.any():  # evicted slots are rare; draw again for those
+            slots[dead] = self.rng.integers(0, high, int(dead.sum()))
+            dead = self.generation[slots] < 0
+        return slots
+
+    def _sample_prioritized(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        total = self.tree.total
+        # stratified: one draw per equal segment of the total priority mass
+        targets = (np.arange(n) + self.rng.random(n)) * (total / n)
+        slots = np.minimum(self.tree.find(np.minimum(targets, np.nextafter(total, 0))), self.capacity - 1)
+        priorities = self.tree.get(slots)
+        bad = (priorities <= 0) | (self.generation[slots] < 0)
+        if bad.any():  # rounding at a boundary can land on an empty leaf: fall back to any good one
+            good = slots[~bad] if (~bad).any() else self._sample_uniform(1)
+            slots[bad] = good[0]
+            priorities = self.tree.get(slots)
+        return slots, priorities / total
+
+    def update_priorities(self, slots: np.ndarray, generations: np.ndarray, priorities: np.ndarray) -> int:
+        """Apply priorities to slots still holding the sampled generation; return how many applied."""
+        ok = (slots >= 0) & (slots < self.capacity)
+        slots, generations, priorities = slots[ok], generations[ok], priorities[ok]
+        current = (self.generation[slots] == generations) & (generations >= 0)
+        if not current.any():
+            return 0
+        values = (priorities[current].astype(np.float64) + 1e-6) ** self.config.priority_exponent
+        self.tree.set(slots[current], values)
+        self.max_priority = max(self.max_priority, float(values.max()))
+        return int(current.sum())
+
+    # -- snapshots ------------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """Copies of everything needed to rebuild this storage (taken under the server's lock)."""
+        filled = min(self.written, self.capacity)
+        side_filled = min(self.side_written, self.side_capacity)
+        state = {name: getattr(self, name)[:side_filled if name.startswith("side") else filled].copy()
+                 for name in self.ARRAYS}
+        state["priorities"] = self.tree.get(np.arange(filled)).copy()
+        state["counters"] = np.array([self.written, self.side_written, self.live, self.capacity,
+                                      self.side_capacity, self.config.obs_dim, self.config.act_dim], np.int64)
+        state["max_priority"] = np.array(self.max_priority)
+        return state
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Load a ``state()``; raise ValueError if it was taken with other dimensions."""
+        written, side_written, live, capacity, side_capacity, obs_dim, act_dim = (int(x) for x in state["counters"])
+        mine = (self.capacity, self.side_capacity, self.config.obs_dim, self.config.act_dim)
+        if (capacity, side_capacity, obs_dim, act_dim) != mine:
+            raise ValueError(f"snapshot has capacity/side rows/obs/action dims {(capacity, side_capacity, obs_dim, act_dim)}, "
+                             f"this server is configured for {mine}")
+        for name in self.ARRAYS:
+            values = state[name]
+            getattr(self, name)[:len(values)] = values
+        if len(state["priorities"]):
+            self.tree.set_range(0, state["priorities"])
+        self.written, self.side_written, self.live = written, side_written, live
+        self.max_priority = float(state["max_priority"])
+
+
+def _ring_put(ring: np.ndarray, start: int, values: np.ndarray) -> None:
+    first = min(len(values), len(ring) - start)
+    ring[start:start + first] = values[:first]
+    if first < len(values):
+        ring[:len(values) - first] = values[first:]
