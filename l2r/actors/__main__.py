@@ -54,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     m = p.add_argument_group("episode logs (MCAP)")
     m.add_argument("--episode-log-dir", type=Path, default=None,
                    help="write logged episodes as MCAP files here (default: no logs)")
-    m.add_argument("--log-every", type=int, default=10, help="log every Nth episode of each environment")
+    m.add_argument("--log-every", type=int, default=10,
+                   help="log every Nth training episode (0: none); evaluation episodes are always logged")
+    m.add_argument("--log-budget-mb", type=float, default=1024, help="disk budget of this actor's logs, oldest removed first")
     add_daemon_arguments(p)
     return p
 
@@ -65,7 +67,8 @@ def config_from(args: argparse.Namespace) -> ActorConfig:
             raise SystemExit(f"l2r-actor: --{name.replace('_', '-')} must be at least 1")
     episode_log = {}
     if args.episode_log_dir is not None:
-        episode_log = {"directory": args.episode_log_dir, "every": args.log_every}
+        episode_log = {"directory": args.episode_log_dir, "every": args.log_every,
+                       "disk_budget_bytes": int(args.log_budget_mb * 2**20)}
     return ActorConfig(
         run=args.run, actor_id=args.actor_id, num_envs=args.num_envs, env_id=args.env_id,
         difficulty=args.difficulty, action_repeat=args.action_repeat, random_steps=args.random_steps,

@@ -115,6 +115,7 @@ class EnvSlot:
     ret: float = 0.0
     length: int = 0
     start_x: float = 0.0
+    recorder: object = None  # MCAP recorder of the episode (a no-op one when not logged)
 
 
 class Actor:
@@ -148,6 +149,8 @@ class Actor:
         self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
         self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
         self.episode_logger = make_episode_logger(config)
+        for slot in self.slots:
+            self.begin_record(slot)
         self._rate_steps, self._rate_time = 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
@@ -182,20 +185,32 @@ class Actor:
             obs, reward, terminated, truncated, info = slot.env.step(action)
             slot.ret += float(reward)
             slot.length += int(info.get("inner_steps", 1))
+            if slot.recorder is not None:
+                slot.recorder.log_step(obs, action, reward, info)
             start_obs = None
             if terminated or truncated:
-                self.end_episode(i, slot, float(info.get("distance", 0.0)))
+                self.end_episode(i, slot, float(info.get("distance", 0.0)), terminated, truncated)
                 start_obs = slot.obs
             else:
                 slot.obs = obs
-            if self.episode_logger is not None:
-                self.episode_logger.step(i, action, reward, info)
             if not self.config.evaluate:
                 self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now)
         self.steps += len(self.slots)
         self.flush()
 
-    def end_episode(self, i: int, slot: EnvSlot, final_x: float) -> None:
+    def begin_record(self, slot: EnvSlot) -> None:
+        if self.episode_logger is not None:
+            slot.recorder = self.episode_logger.begin_episode({
+                "seed": slot.seed, "difficulty": self.config.difficulty, "evaluation": False,
+                "policy_version": self.weights.version if not self.random_phase else -1,
+                "obstacles": getattr(slot.env.unwrapped, "obstacles", [])})
+
+    def record_evaluation(self, env: gymnasium.Env, seed: int):
+        return self.episode_logger.begin_episode({
+            "seed": seed, "difficulty": self.config.difficulty, "evaluation": True,
+            "policy_version": self.weights.version, "obstacles": getattr(env.unwrapped, "obstacles", [])})
+
+    def end_episode(self, i: int, slot: EnvSlot, final_x: float, terminated: bool, truncated: bool) -> None:
         summary = EpisodeSummary(
             actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
             distance=final_x - slot.start_x, length=slot.length,
@@ -203,16 +218,16 @@ class Actor:
             difficulty=self.config.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
             time=time.time())
         self.summaries.put(encode(summary))
-        if self.episode_logger is not None:
-            self.episode_logger.end_episode(i, summary)
+        if slot.recorder is not None:
+            slot.recorder.end({"return": summary.episode_return, "distance": summary.distance,
+                               "length": summary.length, "terminated": terminated, "truncated": truncated})
         self.episodes += 1
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
         slot.obs, info = slot.env.reset(seed=slot.seed)
         slot.start_x = float(info.get("distance", 0.0))
-        if self.episode_logger is not None:
-            self.episode_logger.begin_episode(i, slot.seed, self.weights.version)
+        self.begin_record(slot)
 
     def flush(self, force: bool = False) -> None:
         """Send every chunk that is full, older than the delay, or any at all when forced."""
@@ -240,7 +255,8 @@ class Actor:
         version, n, distances = self.weights.version, len(self.slots), []
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
-            results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop)
+            results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
+                                        self.record_evaluation if self.episode_logger is not None else None)
             for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
                 self.summaries.put(encode(EpisodeSummary(
                     actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
@@ -279,15 +295,17 @@ class Actor:
 
 
 def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
-                      stop: threading.Event | None = None) -> list[tuple[float, float, int]]:
+                      stop: threading.Event | None = None, record=None) -> list[tuple[float, float, int]]:
     """Run one deterministic episode per env (batched policy calls); (return, distance, steps) each.
 
-    Shared by the evaluation role and `l2r eval`."""
-    obs, start_x = [], []
+    ``record(env, seed)``, if given, is called after each reset and returns an episode
+    recorder (see `episode_log`). Shared by the evaluation role and `l2r eval`."""
+    obs, start_x, recorders = [], [], []
     for env, seed in zip(envs, seeds):
         o, info = env.reset(seed=seed)
         obs.append(o)
         start_x.append(float(info.get("distance", 0.0)))
+        recorders.append(record(env, seed) if record else None)
     results: list = [None] * len(envs)
     returns = [0.0] * len(envs)
     lengths = [0] * len(envs)
@@ -300,8 +318,13 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
             returns[i] += float(reward)
             lengths[i] += int(info.get("inner_steps", 1))
             obs[i] = o
+            if recorders[i] is not None:
+                recorders[i].log_step(o, action, reward, info)
             if terminated or truncated:
                 results[i] = (returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i])
+                if recorders[i] is not None:
+                    recorders[i].end({"return": returns[i], "distance": results[i][1], "length": lengths[i],
+                                      "terminated": terminated, "truncated": truncated})
             else:
                 still.append(i)
         running = still
@@ -312,8 +335,12 @@ def make_episode_logger(config: ActorConfig):
     """The MCAP episode logger the config asks for, or None."""
     if not config.episode_log:
         return None
-    from l2r.actors.episode_log import EpisodeLogger
-    return EpisodeLogger(run=config.run, actor_id=config.actor_id, **config.episode_log)
+    # Imported here: it loads the body model, which an actor without logs does not need.
+    from l2r.actors.episode_log import EpisodeLogger, LogPolicy
+    options = dict(config.episode_log)
+    policy = LogPolicy(every=options.pop("every", 10), evaluation=True)
+    return EpisodeLogger(run=config.run, actor_id=config.actor_id, policy=policy,
+                         step_seconds=0.01 * config.action_repeat, **options)
 
 
 def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event | None = None) -> int:
