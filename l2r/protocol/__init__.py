@@ -12,7 +12,7 @@ from l2r.protocol.messages import (
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
     Rejections, add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args,
-    session_config,
+    session_config, wait_alive,
 )
 
 __all__ = [
@@ -22,5 +22,5 @@ __all__ = [
     "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "SampleBatch",
     "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient", "Rejections",
     "add_daemon_arguments", "config_from_args", "configure_logging", "parse_daemon_args",
-    "session_config",
+    "session_config", "wait_alive",
 ]

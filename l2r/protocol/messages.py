@@ -288,7 +288,7 @@ def _pack_array(a: np.ndarray) -> dict:
     a = np.ascontiguousarray(a)
     if a.dtype.byteorder == ">":
         a = a.astype(a.dtype.newbyteorder("<"))
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": memoryview(a).cast("B")}
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.reshape(-1).view(np.uint8).data}
 
 
 # -- decoding -----------------------------------------------------------------------------
@@ -350,12 +350,12 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
         return value
     if spec == "numbers":
         if not isinstance(value, dict) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value.values()
+            isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool) for k, v in value.items()
         ):
             raise ProtocolError(f"{where}: expected a map of names to numbers")
         return value
     if spec == "arrays":
-        if not isinstance(value, dict):
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
             raise ProtocolError(f"{where}: expected a map of names to arrays")
         return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
     return _unpack_array(where, value, spec[:-2])

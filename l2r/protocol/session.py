@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import threading
+import time
 import tomllib
 from collections import Counter
 from pathlib import Path
@@ -117,3 +118,13 @@ class Rejections:
             n = self.by_reason[head]
         if n == 1 or n % self._every == 0:
             self._log.warning("rejected message%s (%d so far like this): %s", f" from {source}" if source else "", n, reason)
+
+
+def wait_alive(session: zenoh.Session, key_expr: str, timeout: float = 10.0) -> list[str]:
+    """Wait until a liveliness token matches ``key_expr``; return the matching keys ([] on timeout)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        found = [str(r.ok.key_expr) for r in session.liveliness().get(key_expr, timeout=1.0) if r.ok]
+        if found or time.monotonic() >= deadline:
+            return found
+        time.sleep(0.05)

@@ -227,7 +227,6 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
 
     keys = server.keys
     with zenoh.open(zenoh_config) as session:
-        token = session.liveliness().declare_token(keys.alive("replay", config.shard))
         entities = [
             session.declare_subscriber(keys.experience_of_shard(config.shard), server.on_experience),
             session.declare_queryable(keys.sample(config.shard), server.on_sample_query),
@@ -235,6 +234,8 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
             session.declare_subscriber(keys.learner_version, server.on_learner_version),
         ]
         watcher = session.liveliness().declare_subscriber(keys.alive_all, server.on_alive, history=True)
+        # declared last, so a peer that sees the token finds the handlers above in place
+        token = session.liveliness().declare_token(keys.alive("replay", config.shard))
         stats_key = keys.stats("replay", config.shard)
         log.info("serving: experience on %s, samples on %s", keys.experience_of_shard(config.shard),
                  keys.sample(config.shard))

@@ -1,0 +1,48 @@
+"""Messages of every kind with recognisable contents, for protocol and replay tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from l2r.protocol import (
+    EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate, SampleBatch,
+    SampleRequest, Stats, Weights,
+)
+
+
+def make_chunk(actor_id: int = 0, seq: int = 0, steps: int = 10, ends: tuple[int, ...] = (), epoch: int = 1,
+               version: int = 0, obs_dim: int = 41, act_dim: int = 18, truncate: tuple[int, ...] = ()) -> ExperienceChunk:
+    """A chunk whose observation rows say where they come from: row t of chunk seq holds
+    ``seq * 1000 + t`` (an episode's final observation after step t holds its negative)."""
+    base = seq * 1000 + actor_id * 1_000_000
+    obs = np.repeat(np.arange(base, base + steps + 1, dtype=np.float32)[:, None], obs_dim, axis=1)
+    terminated = np.zeros(steps, bool)
+    terminated[list(ends)] = True
+    truncated = np.zeros(steps, bool)
+    truncated[list(truncate)] = True
+    inner = [t for t in range(steps - 1) if terminated[t] or truncated[t]]
+    final_obs = np.array([np.full(obs_dim, -(base + t + 1), np.float32) for t in inner], np.float32).reshape(-1, obs_dim)
+    actions = np.repeat(np.arange(base, base + steps, dtype=np.float32)[:, None], act_dim, axis=1) / 1e6
+    rewards = np.arange(base, base + steps, dtype=np.float32)
+    return ExperienceChunk(actor_id, 0, epoch, seq, version, obs, actions, rewards, terminated, truncated, final_obs)
+
+
+def every_message() -> list:
+    rng = np.random.default_rng(0)
+    b = 8
+    return [
+        make_chunk(3, 7, steps=12, ends=(4,), truncate=(11,)),
+        Weights(5, {"pi.0.weight": rng.random((4, 41), np.float32), "pi.0.bias": np.zeros(4, np.float16)},
+                {"hidden": [512, 512], "activation": "elu"}),
+        SampleRequest(256, 2, True, 9),
+        SampleBatch(1, 1000, True, rng.random((b, 41), np.float32), rng.random((b, 18), np.float32),
+                    rng.random(b, np.float32), rng.random((b, 41), np.float32), np.zeros(b, bool), np.ones(b, bool),
+                    np.arange(b, dtype=np.int64), np.arange(b, dtype=np.int64) + 5, np.full(b, 1e-3),
+                    np.arange(b, dtype=np.int64)),
+        NotReady(0, "waiting for data", 12, 0.05),
+        PriorityUpdate(np.arange(4, dtype=np.int64), np.arange(4, dtype=np.int64), np.ones(4, np.float32)),
+        EpisodeSummary(1, 2, 12.5, 3.25, 300, 7, 1, 42, evaluation=True, time=1.5),
+        Stats("replay", "0", 123.0, {"size": 10, "inserts_per_s": 2.5}),
+        LearnerVersion(11, 2200, 5.0),
+        Frame(1, 0, 3, 17, {"xpos": rng.random((12, 3))}, {"reward": 0.5}),
+    ]

@@ -1,0 +1,102 @@
+"""Session configuration, the daemons' shared flags, key expressions, and messages over real Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+
+import pytest
+import zenoh
+
+from l2r.protocol import (
+    Keys, add_daemon_arguments, config_from_args, decode, encode, parse_alive, parse_daemon_args,
+    session_config, shard_of, wait_alive,
+)
+from tests.protocol.factories import every_message
+from tests.protocol.test_messages import assert_same
+
+
+def test_explicit_endpoints_turn_scouting_off():
+    conf = session_config(connect=["tcp/127.0.0.1:7000"], listen=["tcp/127.0.0.1:7001"])
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7000"]
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7001"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("mode")) == "peer"
+
+
+def test_zenoh_config_file_is_passed_through_with_flags_on_top(tmp_path):
+    path = tmp_path / "z.json5"
+    path.write_text('{ mode: "client", // Zenoh\'s own JSON5\n  connect: { endpoints: ["tcp/10.0.0.1:7447"] } }')
+    conf = session_config(listen=["tcp/127.0.0.1:7002"], mode=None, config_file=path)
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447"]
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7002"]
+
+
+def daemon_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="l2r-test")
+    add_daemon_arguments(parser)
+    parser.add_argument("--capacity", type=int, default=10)
+    return parser
+
+
+def test_toml_config_gives_defaults_and_flags_win(tmp_path):
+    path = tmp_path / "d.toml"
+    path.write_text('run = "exp1"\ncapacity = 99\nconnect = ["tcp/127.0.0.1:1"]\nlog-level = "DEBUG"\n')
+    args = parse_daemon_args(daemon_parser(), ["--config", str(path), "--capacity", "5"])
+    assert (args.run, args.capacity, args.connect, args.log_level) == ("exp1", 5, ["tcp/127.0.0.1:1"], "DEBUG")
+    assert json.loads(config_from_args(args).get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
+
+
+@pytest.mark.parametrize("text, message", [("bogus = 1\n", "unknown key 'bogus'"), ("run = \n", "cannot read")])
+def test_bad_toml_config_is_a_clear_error(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(SystemExit):
+        parse_daemon_args(daemon_parser(), ["--config", str(path)])
+    assert message in capsys.readouterr().err
+
+
+def test_run_names_that_would_break_keys_are_refused(capsys):
+    with pytest.raises(SystemExit):
+        parse_daemon_args(daemon_parser(), ["--run", "a/b"])
+    assert "invalid run name" in capsys.readouterr().err
+    with pytest.raises(ValueError):
+        Keys("runs/*")
+
+
+def test_keys_are_scoped_by_run_and_shard():
+    a, b = Keys("a"), Keys("b")
+    assert a.experience(7, num_shards=3) == "l2r/a/experience/1/7" and shard_of(7, 3) == 1
+    assert zenoh.KeyExpr(a.experience_of_shard(1)).intersects(zenoh.KeyExpr(a.experience(7, 3)))
+    assert not zenoh.KeyExpr(b.experience_of_shard(1)).intersects(zenoh.KeyExpr(a.experience(7, 3)))
+    assert not zenoh.KeyExpr(a.experience_of_shard(0)).intersects(zenoh.KeyExpr(a.experience(7, 3)))
+    assert parse_alive(a.alive("actor", 4)) == ("actor", "4")
+    assert zenoh.KeyExpr(a.viewers).intersects(zenoh.KeyExpr(a.alive("viewer", "me")))
+    with pytest.raises(ValueError):
+        a.alive("wizard", 1)
+
+
+def test_every_message_crosses_real_zenoh(endpoint, run_name):
+    keys = Keys(run_name)
+    received, done = [], threading.Event()
+    messages = every_message()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        received.append(decode(sample.payload))
+        if len(received) == len(messages):
+            done.set()
+
+    with zenoh.open(session_config(listen=[endpoint])) as listener, \
+            zenoh.open(session_config(connect=[endpoint])) as sender:
+        sub = listener.declare_subscriber(keys.all_stats, on_sample)
+        token = listener.liveliness().declare_token(keys.alive("replay", 0))
+        assert [parse_alive(k) for k in wait_alive(sender, keys.alive_role("replay"))] == [("replay", "0")]
+        for message in messages:
+            sender.put(keys.stats("actor", 0), encode(message))
+        assert done.wait(10), f"{len(received)} of {len(messages)} arrived"
+        sub.undeclare()
+        token.undeclare()
+    for sent, got in zip(messages, received):
+        assert_same(got, sent)
