@@ -1,0 +1,267 @@
+"""The learner process: batches in from replay, SAC updates, weights, metrics and checkpoints out.
+
+The algorithm lives in `l2r.learner.sac`; this module only hosts it. Steady state:
+
+    replay client (several sample queries in flight) -> batch -> update x update_repeat
+        -> priorities back to replay (prioritized sampling only)
+        -> every K updates: weights (new version) published, and kept for queries
+        -> every T seconds: checkpoint (rank 0); every few seconds: metrics
+
+SIGTERM and SIGINT stop the loop; the checkpoint is written last.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import zenoh
+
+from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
+from l2r.learner.sac import SACConfig, TrainState, batch_from_numpy, broadcast_state, init_state, update
+from l2r.policy import policy_state
+from l2r.protocol import (
+    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ReplayClient, SampleBatch, Stats, Weights,
+    encode,
+)
+
+log = logging.getLogger("l2r.learner")
+
+
+@dataclass
+class LearnerConfig:
+    """Run and infrastructure settings of one learner process (the algorithm's are in SACConfig)."""
+
+    run: str = "default"
+    run_dir: Path | None = None
+    """Where the checkpoint goes (<run_dir>/learner/checkpoint.pt); default runs/<run>."""
+    resume: bool = False
+    device: str = "auto"
+    threads: int = 0
+    """torch CPU threads; 0 keeps torch's default."""
+    obs_dim: int = 41
+    act_dim: int = 18
+    prioritized: bool = False
+    priority_beta: float = 0.4
+    in_flight: int = 4
+    publish_every: int = 50
+    checkpoint_interval: float = 60.0
+    metrics_interval: float = 5.0
+    max_updates: int = 0
+    """Stop (and checkpoint) after this many updates in total; 0 = run until stopped."""
+    seed: int | None = None
+    world_size: int = 1
+    rank: int = 0
+    dist_url: str | None = None
+
+    @property
+    def checkpoint(self) -> Path:
+        return checkpoint_path(self.run_dir or Path("runs") / self.run)
+
+
+class WeightsOutlet:
+    """Publishes versioned policy weights and answers queries for the latest ones."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys):
+        self._latest: bytes | None = None
+        self._lock = threading.Lock()
+        self._weights = session.declare_publisher(keys.weights, **WEIGHTS_QOS.publisher())
+        self._version = session.declare_publisher(keys.learner_version, **VERSION_QOS.publisher())
+        self._queryable = session.declare_queryable(keys.weights_query, self._answer)
+
+    def publish(self, state: TrainState) -> None:
+        state.version += 1
+        payload = encode(Weights(state.version, policy_state(state.actor), dict(state.actor.spec)))
+        with self._lock:
+            self._latest = payload
+        self._weights.put(payload)
+        self._version.put(encode(LearnerVersion(state.version, state.updates, time.time())))
+
+    def _answer(self, query: zenoh.Query) -> None:
+        with self._lock:
+            payload = self._latest
+        if payload is not None:
+            query.reply(query.key_expr, payload)
+
+
+class Meter:
+    """Averages metrics over a reporting interval without reading tensors back every update."""
+
+    def __init__(self) -> None:
+        self.reset(time.monotonic())
+
+    def reset(self, now: float) -> None:
+        self.sums: dict[str, torch.Tensor] = {}
+        self.updates = self.samples = 0
+        self.lag_sum = 0.0
+        self.batches = 0
+        self.since = now
+
+    def add(self, metrics: dict[str, torch.Tensor], updates: int, samples: int, lag: float) -> None:
+        for name, value in metrics.items():
+            if value.dim() == 0:
+                self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
+        self.updates += updates
+        self.samples += samples
+        self.lag_sum += lag
+        self.batches += 1
+
+    def report(self, now: float) -> dict[str, float]:
+        elapsed = max(now - self.since, 1e-9)
+        values = {name: float(total) / max(self.batches, 1) for name, total in self.sums.items()}
+        values |= {"updates_per_s": self.updates / elapsed, "samples_per_s": self.samples / elapsed,
+                   "policy_lag": self.lag_sum / max(self.batches, 1)}
+        self.reset(now)
+        return values
+
+
+def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
+    """Run a learner until SIGTERM/SIGINT or `max_updates`; returns the exit status."""
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame) -> None:
+        log.info("%s: finishing the current update, then checkpointing", signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, on_signal)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    device = select_device(config.device, config.rank)
+    init_distributed(config.world_size, config.rank, config.dist_url, device)
+    try:
+        state = _initial_state(config, sac, device)
+    except CheckpointError as e:
+        log.error("%s", e)
+        close_distributed()
+        return 1
+    broadcast_state(state)
+    leader = config.rank == 0
+    keys = Keys(config.run)
+    log.info("rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", config.rank, device,
+             "bfloat16" if state.bfloat16 else "float32", torch.get_num_threads(), state.version, state.updates)
+    try:
+        with zenoh.open(conf) as session:
+            token = session.liveliness().declare_token(keys.alive("learner", config.rank))
+            metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
+            outlet = WeightsOutlet(session, keys) if leader else None
+            with ReplayClient(session, config.run, sac.batch_size, config.prioritized, config.in_flight) as replay:
+                if outlet:
+                    outlet.publish(state)
+                replay.learner_version = state.version
+                _train(config, sac, state, replay, outlet, metrics_out, device, stop)
+            token.undeclare()
+    finally:
+        if leader:
+            _checkpoint(config, sac, state)
+        close_distributed()
+    return 0
+
+
+def _initial_state(config: LearnerConfig, sac: SACConfig, device: torch.device) -> TrainState:
+    if config.seed is not None:
+        torch.manual_seed(config.seed + config.rank)
+    state = init_state(sac, config.obs_dim, config.act_dim, device)
+    if not config.resume:
+        return state
+    if not config.checkpoint.is_file():
+        log.info("--resume: no checkpoint at %s yet, starting fresh", config.checkpoint)
+        return state
+    saved = load_checkpoint(config.checkpoint, map_location=device)
+    if (saved.policy_spec != state.actor.spec or saved.config.hidden != sac.hidden
+            or saved.config.layer_norm != sac.layer_norm or saved.config.activation != sac.activation):
+        raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
+                              f"{state.actor.spec}: use the same architecture flags, or a new run directory")
+    state.load_state_dict(saved.train_state)
+    # The command line's learning rates apply to a resumed run, not the saved ones.
+    for opt, lr in ((state.actor_opt, sac.actor_lr), (state.critic_opt, sac.critic_lr), (state.alpha_opt, sac.alpha_lr)):
+        for group in opt.param_groups:
+            group["lr"] = lr
+    log.info("resumed from %s: version %d, %d updates", saved.path, state.version, state.updates)
+    return state
+
+
+def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: ReplayClient,
+           outlet: WeightsOutlet | None, metrics_out: zenoh.Publisher, device: torch.device,
+           stop: threading.Event) -> None:
+    meter = Meter()
+    last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None
+    while True:
+        batch = _next_batch(replay, config, stop)
+        if batch is None and not stop.is_set():
+            waiting_since = waiting_since or time.monotonic()
+            if time.monotonic() - waiting_since > 10.0:
+                log.info("waiting for replay (shards alive: %s, not-ready replies: %d)", replay.shards, replay.waits)
+                waiting_since = time.monotonic()
+            continue
+        waiting_since = None
+        done = config.max_updates and state.updates >= config.max_updates
+        if any_rank(stop.is_set() or bool(done), device):
+            return
+        tensors = batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
+                                   batch.importance_weights(config.priority_beta) if batch.prioritized else None,
+                                   device)
+        for _ in range(sac.update_repeat):
+            metrics = update(state, tensors, sac)
+        if batch.prioritized:
+            replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
+        lag = float(state.version - np.mean(batch.policy_versions))
+        meter.add(metrics, sac.update_repeat, len(batch.obs), lag)
+
+        now = time.monotonic()
+        if outlet and state.updates - last_publish >= config.publish_every:
+            outlet.publish(state)
+            replay.learner_version = state.version
+            last_publish = state.updates
+        if now - meter.since >= config.metrics_interval:
+            _report(config, state, meter.report(now), metrics_out)
+        if outlet and now - last_checkpoint >= config.checkpoint_interval:
+            _checkpoint(config, sac, state)
+            last_checkpoint = now
+
+
+def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Event) -> SampleBatch | None:
+    """The next well-shaped batch, or None after a short wait (so stop requests are seen)."""
+    if stop.is_set():
+        return None
+    try:
+        batch = replay.sample(timeout=0.5)
+    except queue.Empty:
+        return None
+    if batch.obs.shape[1] != config.obs_dim or batch.actions.shape[1] != config.act_dim:
+        replay.rejections.add(f"batch of obs {batch.obs.shape} / actions {batch.actions.shape}, this learner "
+                              f"trains on {config.obs_dim} / {config.act_dim}", f"shard {batch.shard}")
+        return None
+    return batch
+
+
+def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
+    values |= {"updates": state.updates, "version": state.version}
+    log.info("updates %d (%.1f/s), samples %.0f/s, version %d, lag %.1f, critic %.4g, actor %.4g, "
+             "alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"], values["samples_per_s"],
+             state.version, values["policy_lag"], values.get("critic_loss", math.nan),
+             values.get("actor_loss", math.nan), values.get("alpha", math.nan), values.get("q_mean", math.nan),
+             values.get("entropy", math.nan))
+    out.put(encode(Stats("learner", str(config.rank), time.time(), values)))
+
+
+def _checkpoint(config: LearnerConfig, sac: SACConfig, state: TrainState) -> None:
+    """Save, unless training has diverged: a NaN state never replaces a good checkpoint."""
+    tensors = [*state.actor.parameters(), *state.critic.parameters(), state.log_alpha]
+    if not all(bool(torch.isfinite(t).all()) for t in tensors):
+        log.error("training state holds NaN or infinity: checkpoint NOT written, %s keeps the last good one",
+                  config.checkpoint)
+        return
+    started = time.monotonic()
+    path = save_checkpoint(config.checkpoint, state, sac, config.obs_dim, config.act_dim)
+    log.info("checkpoint %s (version %d, %d updates) in %.2f s", path, state.version, state.updates,
+             time.monotonic() - started)

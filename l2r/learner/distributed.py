@@ -1,0 +1,59 @@
+"""Device choice and data-parallel set-up for learners (`torch.distributed`).
+
+Every rank samples its own batches; `sac.update` averages gradients over ranks before each
+optimizer step, so ranks that start identical stay identical. Rank 0 publishes weights and
+writes checkpoints. Backend: gloo on CPU, NCCL on CUDA.
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+
+import torch
+import torch.distributed as dist
+
+log = logging.getLogger("l2r.learner")
+
+
+class DeviceUnavailable(RuntimeError):
+    """The requested device does not exist here."""
+
+
+def select_device(name: str, local_rank: int = 0) -> torch.device:
+    """'auto' -> CUDA if present, else CPU; 'cuda' without CUDA is an error, not a silent CPU run."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu or cuda, got {name!r}")
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise DeviceUnavailable("--device cuda, but this torch sees no CUDA device "
+                           f"(torch {torch.__version__}, CUDA build: {torch.version.cuda or 'no'})")
+    return torch.device("cuda", local_rank % torch.cuda.device_count())
+
+
+def init_distributed(world_size: int, rank: int, dist_url: str | None, device: torch.device,
+                     timeout_s: float = 600.0) -> None:
+    """Join the process group of `world_size` learners (a no-op when training alone)."""
+    if world_size <= 1:
+        return
+    if not 0 <= rank < world_size:
+        raise ValueError(f"rank {rank} not in [0, world size {world_size})")
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    log.info("rank %d/%d joining %s via %s", rank, world_size, backend, dist_url or "env://")
+    dist.init_process_group(backend, init_method=dist_url or "env://", world_size=world_size, rank=rank,
+                            timeout=datetime.timedelta(seconds=timeout_s))
+
+
+def any_rank(flag: bool, device: torch.device) -> bool:
+    """True if `flag` is true on any rank (all ranks must call this together)."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
+def close_distributed() -> None:
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
