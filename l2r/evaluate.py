@@ -1,0 +1,76 @@
+"""`l2r eval`: deterministic episodes of a trained policy, distance per episode."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import gymnasium
+import torch
+
+import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
+from l2r.actors.actor import run_deterministic
+from l2r.learner.checkpoint import CheckpointError, load_checkpoint
+from l2r.sim.wrappers import ActionRepeat
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="l2r eval",
+        description="Run deterministic episodes (the policy's mean action) of a learner checkpoint "
+                    "and print the distance the runner's pelvis travelled in each.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("checkpoint", metavar="CHECKPOINT_OR_RUN_DIR",
+                   help="a checkpoint file, or a run directory of `l2r up` (uses its learner checkpoint)")
+    p.add_argument("--episodes", type=int, default=5, help="episodes to run, on seeds S, S+1, ...")
+    p.add_argument("--seed", type=int, default=0, help="seed S of the first episode")
+    p.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0,
+                   help="0 flat, 1 obstacles, 2 obstacles and random psoas strengths")
+    p.add_argument("--action-repeat", type=int, default=3, help="0.01 s steps per action (as in training)")
+    p.add_argument("--env-id", default="l2r/Run-v0", help="gymnasium id of the environment")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of lines")
+    return p
+
+
+def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: int,
+             env_id: str = "l2r/Run-v0") -> list[tuple[float, float, int]]:
+    """(return, distance, steps) of ``episodes`` deterministic episodes, all stepped as one batch."""
+    envs = [gymnasium.make(env_id, difficulty=difficulty) for _ in range(episodes)]
+    if action_repeat > 1:
+        envs = [ActionRepeat(env, action_repeat) for env in envs]
+    try:
+        return run_deterministic(policy, envs, [seed + i for i in range(episodes)])
+    finally:
+        for env in envs:
+            env.close()
+
+
+def cli(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.episodes < 1 or args.action_repeat < 1:
+        print("l2r eval: --episodes and --action-repeat must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        checkpoint = load_checkpoint(args.checkpoint)
+    except CheckpointError as e:
+        print(f"l2r eval: {e}", file=sys.stderr)
+        return 1
+    torch.set_num_threads(1)
+    results = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, args.action_repeat, args.env_id)
+    distances = [r[1] for r in results]
+    if args.json:
+        print(json.dumps({
+            "checkpoint": str(checkpoint.path), "version": checkpoint.version, "updates": checkpoint.updates,
+            "difficulty": args.difficulty, "seeds": [args.seed + i for i in range(args.episodes)],
+            "distances": distances, "returns": [r[0] for r in results], "lengths": [r[2] for r in results],
+            "mean_distance": sum(distances) / len(distances),
+        }))
+        return 0
+    print(f"{checkpoint.path}: policy version {checkpoint.version}, {checkpoint.updates} updates, "
+          f"difficulty {args.difficulty}")
+    for i, (ret, distance, length) in enumerate(results):
+        print(f"episode {i} (seed {args.seed + i}): distance {distance:7.3f} m  return {ret:8.3f}  steps {length}")
+    print(f"mean distance {sum(distances) / len(distances):.3f} m over {len(distances)} episodes")
+    return 0
