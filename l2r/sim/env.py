@@ -114,16 +114,15 @@ class RunEnv(gym.Env):
         self._obstacle_geoms = [_id(m, mujoco.mjtObj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(NUM_OBSTACLES)]
         self._parked = [(m.geom_pos[g].copy(), float(m.geom_size[g, 0])) for g in self._obstacle_geoms]
 
-        # Contact force on each foot sphere = MuJoCo's external force on the sphere's body, which
-        # holds only while the sphere is its body's one colliding geom.
-        self._foot_bodies = []
-        for name in FOOT_SPHERES:
-            g = _id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
-            b = m.geom_bodyid[g]
-            colliding = np.flatnonzero((m.geom_bodyid == b) & ((m.geom_contype | m.geom_conaffinity) != 0))
-            if colliding.tolist() != [g]:
-                raise ValueError(f"contact sphere {name} must be the only colliding geom of its body")
-            self._foot_bodies.append(int(b))
+        # Contact forces are decoded for condim-3 contacts (normal and two friction directions).
+        colliding = (m.geom_contype | m.geom_conaffinity) != 0
+        if np.any(m.geom_condim[colliding] != 3):
+            raise ValueError("every colliding geom must have condim 3")
+        self._pyramidal = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+        self._foot_slot = np.full(m.ngeom, -1)  # geom id -> foot sphere index, -1 for others
+        for slot, name in enumerate(FOOT_SPHERES):
+            self._foot_slot[_id(m, mujoco.mjtObj.mjOBJ_GEOM, name)] = slot
+        self._contact_force = np.zeros((len(FOOT_SPHERES), 3))
 
         self.action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_SIZE,), dtype=np.float32)
@@ -176,8 +175,8 @@ class RunEnv(gym.Env):
         m.actuator_biasprm[:, 2] = force
 
         body.reset_to_default(m, d)  # the .osim default pose, at rest (includes mj_forward)
-        mujoco.mj_rnePostConstraint(m, d)
         mujoco.mj_subtreeVel(m, d)
+        self._contact_force = self._foot_forces()
         self._lig_force = self._lig_kernel(d.qpos.tolist(), d.qvel.tolist())
         self._lig_applied = [0.0] * len(LIGAMENTS)  # the reset cleared qfrc_applied
         self._x = float(d.qpos[self._x_adr])
@@ -193,8 +192,8 @@ class RunEnv(gym.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (NUM_MUSCLES,):
             raise ValueError(f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}")
-        # a @ a is finite for every sane action; only otherwise is the element-wise test needed.
-        if not math.isfinite(a @ a) and not np.isfinite(a).all():
+        # The sum is finite for every sane action; only otherwise is the element-wise test needed.
+        if not math.isfinite(a.sum()) and not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a.tolist()}")
         m, d = self._m, self._d
         np.minimum(np.maximum(a, 0.0, out=self._clipped), 1.0, out=d.ctrl)
@@ -212,7 +211,7 @@ class RunEnv(gym.Env):
                 applied = forces
             mujoco.mj_step2(m, d)
             if i == last:
-                mujoco.mj_rnePostConstraint(m, d)  # this substep's contact forces, per body
+                self._contact_force = self._foot_forces()  # before step1 replaces the contacts
             mujoco.mj_step1(m, d)
             qpos = d.qpos.tolist()
             forces = kernel(qpos, d.qvel.tolist())
@@ -232,6 +231,27 @@ class RunEnv(gym.Env):
         self._running = not (terminated or truncated)
         return self._observe(), reward, terminated, truncated, info
 
+    def _foot_forces(self) -> np.ndarray:
+        """World-frame force (N) on each foot sphere from the current contacts, shape (4, 3)."""
+        d = self._d
+        out = np.zeros((len(FOOT_SPHERES), 3))
+        n = d.ncon
+        if n == 0:
+            return out
+        con = d.contact
+        rows = con.efc_address[:, None] + np.arange(4 if self._pyramidal else 3)
+        f = d.efc_force[rows]
+        if self._pyramidal:  # four pyramid edges -> normal and two friction components
+            mu = con.friction
+            f = np.stack([f.sum(1), (f[:, 0] - f[:, 1]) * mu[:, 0], (f[:, 2] - f[:, 3]) * mu[:, 1]], axis=1)
+        world = np.einsum("ni,nij->nj", f, con.frame.reshape(n, 3, 3))  # force of geom1 on geom2
+        slots = self._foot_slot[con.geom]
+        for side, sign in ((0, -1.0), (1, 1.0)):
+            hit = slots[:, side] >= 0
+            if hit.any():
+                np.add.at(out, slots[hit, side], sign * world[hit])
+        return out
+
     def _observe(self) -> np.ndarray:
         d = self._d
         state = np.concatenate((d.qpos, d.qvel, d.subtree_com[0], d.subtree_linvel[0], d.xpos.reshape(-1)))
@@ -250,7 +270,7 @@ class RunEnv(gym.Env):
             "muscle_length": d.actuator_length.copy(),
             "muscle_force": -d.actuator_force,
             "ligament_force": np.array(self._lig_force),
-            "contact_force": d.cfrc_ext[self._foot_bodies, 3:],
+            "contact_force": self._contact_force,
         }
 
 

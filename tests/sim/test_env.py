@@ -1,0 +1,367 @@
+"""RunEnv: the 2017 observation, reward, done rules, episode generation and determinism."""
+
+import json
+import math
+from pathlib import Path
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+
+import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
+from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE, RunEnv, draw_episode, next_obstacle
+from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
+from l2r.sim.wrappers import ActionRepeat
+
+REFERENCE = Path(__file__).parents[2] / "l2r" / "sim" / "assets" / "opensim_reference.json"
+TRACKED = ("head", "pelvis", "torso", "toes_l", "toes_r", "talus_l", "talus_r")
+JOINTS = ("hip_flexion_r", "knee_angle_r", "ankle_angle_r", "hip_flexion_l", "knee_angle_l", "ankle_angle_l")
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return json.loads(REFERENCE.read_text())
+
+
+def random_actions(n, seed=0):
+    return np.random.default_rng(seed).uniform(0.0, 1.0, (n, 18))
+
+
+def rollout(env, actions, seed):
+    """Observations, rewards and flags of an episode, stopping at its end."""
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        assert "diverged" not in info
+        out.append(np.append(obs, [reward, terminated, truncated]))
+        if terminated or truncated:
+            break
+    return out
+
+
+def expected_observation(env):
+    """The 2017 observation rebuilt from MuJoCo by name, independently of the env's gather."""
+    m, d = env.model, env.data
+    q = {j: d.qpos[m.joint(j).qposadr[0]] for j in ("pelvis_tilt", "pelvis_tx", "pelvis_ty") + JOINTS}
+    v = {j: d.qvel[m.joint(j).dofadr[0]] for j in q}
+    mass = m.body_mass[1:]
+    com = (mass[:, None] * d.xipos[1:]).sum(0) / mass.sum()
+    jac = np.zeros((3, m.nv))
+    mujoco.mj_jacSubtreeCom(m, d, jac, 0)
+    com_vel = jac @ d.qvel
+    obs = [q["pelvis_tilt"], q["pelvis_tx"], q["pelvis_ty"], v["pelvis_tilt"], v["pelvis_tx"], v["pelvis_ty"]]
+    obs += [q[j] for j in JOINTS] + [v[j] for j in JOINTS]
+    obs += [com[0], com[1], com_vel[0], com_vel[1]]
+    for b in TRACKED:
+        obs += list(d.xpos[m.body(b).id][:2])
+    obs += list(env.psoas) + list(next_obstacle(env.obstacles, q["pelvis_tx"]))
+    return np.array(obs)
+
+
+# ------------------------------------------------------------------------------ observation
+
+
+def test_reset_observation_matches_opensim_within_a_millimetre(reference):
+    env = RunEnv()
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (41,) and obs.dtype == np.float32
+    assert env.observation_space.contains(obs)
+    for rollout_ in reference["rollouts"]:
+        np.testing.assert_allclose(obs, rollout_["reset_observation"], rtol=0, atol=1e-3)
+    assert tuple(obs[38:]) == NO_OBSTACLE and tuple(obs[36:38]) == (1.0, 1.0)
+
+
+def test_observation_layout_along_a_rollout():
+    env = RunEnv(difficulty=2)
+    obs, _ = env.reset(seed=3)
+    np.testing.assert_allclose(obs, expected_observation(env), rtol=1e-5, atol=1e-6)
+    for a in random_actions(40):
+        obs, _, terminated, truncated, _ = env.step(a)
+        np.testing.assert_allclose(obs, expected_observation(env), rtol=1e-5, atol=1e-5)
+        if terminated or truncated:
+            break
+    assert np.any(obs[3:18] != 0.0), "velocities should be observed"
+
+
+def test_next_obstacle_is_the_first_not_yet_passed():
+    course = [(1.0, 0.01, 0.1), (2.0, -0.02, 0.2)]
+    assert next_obstacle(course, 0.5) == pytest.approx((0.5, 0.01, 0.1))
+    assert next_obstacle(course, 1.1) == pytest.approx((-0.1, 0.01, 0.1))  # still over it
+    assert next_obstacle(course, 1.15) == pytest.approx((0.85, -0.02, 0.2))
+    assert next_obstacle(course, 2.3) == NO_OBSTACLE
+    assert next_obstacle([], 0.0) == NO_OBSTACLE
+
+
+# ------------------------------------------------------------------------------ reward, ligaments
+
+
+def test_reward_is_distance_minus_ligament_penalty():
+    env = RunEnv()
+    env.reset(seed=1)
+    m, d = env.model, env.data
+    lig_q = [m.joint(c).qposadr[0] for c in default_limits().coordinates]
+    lig_v = [m.joint(c).dofadr[0] for c in default_limits().coordinates]
+    x = d.qpos[m.joint("pelvis_tx").qposadr[0]]
+    # Hip extensors at full excitation drive the hips past their -30 degree limit.
+    extend_hips = np.array([name.startswith(("glut_max", "hamstrings")) for name in env.muscle_names], float)
+    strained = 0
+    for a in [extend_hips] * 100:
+        _, reward, terminated, truncated, info = env.step(a)
+        forces = ligament_forces(d.qpos[lig_q], d.qvel[lig_v])
+        np.testing.assert_allclose(info["ligament_force"], forces, rtol=1e-12, atol=1e-9)
+        new_x = d.qpos[m.joint("pelvis_tx").qposadr[0]]
+        assert reward == pytest.approx(new_x - x - math.sqrt(np.sum(forces**2)) * 1e-7, rel=1e-12, abs=1e-15)
+        assert info["distance"] == new_x
+        strained += np.any(forces != 0)
+        x = new_x
+        if terminated or truncated:
+            break
+    assert strained, "random excitation should push some joint past a ligament limit"
+
+
+def test_ligaments_act_on_the_joints_every_substep():
+    """The env's trajectory equals a plain MuJoCo loop applying the ligaments before each mj_step."""
+    env = RunEnv()
+    env.reset(seed=0)
+    m = env.model
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, m.keyframe("default").id)
+    lig_q = [m.joint(c).qposadr[0] for c in default_limits().coordinates]
+    lig_v = [m.joint(c).dofadr[0] for c in default_limits().coordinates]
+    strained = 0
+    for a in random_actions(60, seed=2):
+        _, _, terminated, truncated, _ = env.step(a)
+        d.ctrl[:] = a
+        for _ in range(env.substeps):
+            forces = ligament_forces(d.qpos[lig_q], d.qvel[lig_v])
+            strained += np.any(forces != 0)
+            d.qfrc_applied[lig_v] = forces
+            mujoco.mj_step(m, d)
+        np.testing.assert_allclose(env.data.qpos, d.qpos, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(env.data.qvel, d.qvel, rtol=0, atol=1e-6)
+        if terminated or truncated:
+            break
+    assert strained
+
+
+# ------------------------------------------------------------------------------ done rules
+
+
+def test_terminates_when_the_pelvis_drops_below_065():
+    env = RunEnv()
+    env.reset(seed=0)
+    for step in range(1, 400):
+        obs, _, terminated, truncated, info = env.step(np.zeros(18))
+        assert "diverged" not in info and not truncated
+        if terminated:
+            break
+        assert obs[2] >= FALL_HEIGHT
+    assert terminated and obs[2] < FALL_HEIGHT
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(18))
+
+
+def test_truncates_at_max_steps():
+    assert RunEnv().max_steps == MAX_STEPS == 1000
+    env = RunEnv(max_steps=3)
+    env.reset(seed=0)
+    flags = [env.step(np.full(18, 0.05))[3] for _ in range(3)]
+    assert flags == [False, False, True]
+    with pytest.raises(RuntimeError):
+        env.step(np.zeros(18))
+
+
+def test_step_before_reset_is_an_error():
+    with pytest.raises(RuntimeError, match="reset"):
+        RunEnv().step(np.zeros(18))
+
+
+# ------------------------------------------------------------------------------ difficulty
+
+
+def test_episode_distributions():
+    rng = np.random.default_rng(0)
+    assert draw_episode(rng, 0) == ([], (1.0, 1.0))
+    courses = [draw_episode(rng, 1) for _ in range(3000)]
+    assert all(psoas == (1.0, 1.0) for _, psoas in courses)
+    obstacles = np.array([c for c, _ in courses])  # (n, 3, 3)
+    x, y, r = obstacles[..., 0], obstacles[..., 1], obstacles[..., 2]
+    assert np.all(np.diff(x, axis=1) >= 0), "sorted by x"
+    assert x.min() >= 1.0 and x.max() <= 5.0 and abs(x.mean() - 3.0) < 0.05
+    assert r.min() >= 0.05 and abs((r - 0.05).mean() - 0.05) < 0.003
+    ratio = y / r
+    assert ratio.min() >= -0.25 and ratio.max() <= 0.25 and abs(ratio.std() - 0.5 / math.sqrt(12)) < 0.005
+    strengths = np.array([draw_episode(rng, 2)[1] for _ in range(3000)])
+    assert strengths.min() >= 0.5 and strengths.max() < 1.6
+    assert abs(strengths.mean() - 1.0) < 0.01 and abs(strengths.std() - 0.1) < 0.01
+
+
+def test_difficulty_places_obstacles_and_scales_the_psoas():
+    env = RunEnv(difficulty=2)
+    m = env.model
+    base = m.actuator_gainprm[:, 2].copy()
+    obs, _ = env.reset(seed=7)
+    assert len(env.obstacles) == 3 and env.psoas != (1.0, 1.0)
+    for i, (x, y, r) in enumerate(env.obstacles):
+        g = m.geom(f"obstacle_{i}")
+        np.testing.assert_allclose(g.pos, [x, y, 0.0])
+        assert g.size[0] == r and m.geom_rbound[g.id] == r
+    np.testing.assert_allclose(obs[38:], [env.obstacles[0][0], env.obstacles[0][1], env.obstacles[0][2]], rtol=1e-6)
+    np.testing.assert_allclose(obs[36:38], env.psoas, rtol=1e-6)
+    left, right = env.psoas
+    scale = np.ones(18)
+    scale[env.muscle_names.index("iliopsoas_r")] = right
+    scale[env.muscle_names.index("glut_max_l")] = left  # the 2017 code's index 11
+    np.testing.assert_allclose(m.actuator_gainprm[:, 2], base * scale)
+    np.testing.assert_allclose(m.actuator_biasprm[:, 2], base * scale)
+
+    fixed = RunEnv(difficulty=2, left_psoas="iliopsoas_l")
+    fixed.reset(seed=7)
+    assert fixed.psoas == env.psoas
+    scale = np.ones(18)
+    scale[3], scale[12] = right, left
+    np.testing.assert_allclose(fixed.model.actuator_gainprm[:, 2], base * scale)
+
+    # Back to flat ground: obstacles parked, strengths restored.
+    obs, _ = env.reset(seed=7, options={"difficulty": 0})
+    assert env.obstacles == [] and tuple(obs[38:]) == NO_OBSTACLE
+    np.testing.assert_allclose(m.actuator_gainprm[:, 2], base)
+    assert all(m.geom(f"obstacle_{i}").pos[0] < -10 for i in range(3))
+
+
+def test_feet_collide_with_obstacles():
+    env = RunEnv(difficulty=1)
+    env.reset(seed=0)
+    m, d = env.model, env.data
+    heel = m.geom("r_heel")
+    # Put the first obstacle where the right heel is and ask MuJoCo for contacts.
+    env.obstacles[0] = (*d.geom_xpos[heel.id][:2], 0.1)
+    m.geom_pos[m.geom("obstacle_0").id] = (*d.geom_xpos[heel.id][:2], 0.0)
+    mujoco.mj_forward(m, d)
+    pairs = {tuple(sorted((m.geom(g1).name, m.geom(g2).name))) for g1, g2 in d.contact.geom}
+    assert ("obstacle_0", "r_heel") in pairs
+
+
+def test_bad_difficulty_and_options():
+    with pytest.raises(ValueError, match="difficulty"):
+        RunEnv(difficulty=3)
+    with pytest.raises(ValueError, match="left_psoas"):
+        RunEnv(left_psoas="psoas")
+    with pytest.raises(ValueError, match="difficulty"):
+        RunEnv().reset(options={"difficulty": -1})
+
+
+# ------------------------------------------------------------------------------ determinism, actions
+
+
+def test_same_seed_and_actions_give_the_same_trajectory_bit_for_bit():
+    actions = random_actions(80, seed=5)
+    first = rollout(RunEnv(difficulty=2), actions, seed=11)
+    second = rollout(RunEnv(difficulty=2, seed=11), actions, seed=None)  # constructor seed
+    assert len(first) == len(second) > 1
+    for a, b in zip(first, second):
+        assert np.array_equal(a, b)
+    other = rollout(RunEnv(difficulty=2), actions, seed=12)
+    assert not np.array_equal(first[0], other[0])  # another course, other psoas
+
+
+def test_bad_actions_raise_clear_errors():
+    env = RunEnv()
+    env.reset(seed=0)
+    for bad in (np.full(18, np.nan), np.r_[np.zeros(17), np.inf], np.r_[-np.inf, np.zeros(17)]):
+        with pytest.raises(ValueError, match="NaN or inf"):
+            env.step(bad)
+    for shape in ((17,), (19,), (1, 18), ()):
+        with pytest.raises(ValueError, match="shape"):
+            env.step(np.zeros(shape))
+    with pytest.raises(ValueError):
+        env.step(["a"] * 18)
+    env.step([0.1] * 18)  # a list is fine
+    env.step(np.full(18, 1e200))  # huge but finite: clipped, not rejected
+
+
+def test_out_of_range_excitations_are_clipped():
+    raw = np.linspace(-2.0, 3.0, 18)
+    clipped_env, raw_env = RunEnv(), RunEnv()
+    clipped_env.reset(seed=0)
+    raw_env.reset(seed=0)
+    for _ in range(3):
+        a = clipped_env.step(np.clip(raw, 0, 1))[0]
+        b = raw_env.step(raw)[0]
+        assert np.array_equal(a, b)
+    assert raw_env.data.ctrl.min() == 0.0 and raw_env.data.ctrl.max() == 1.0
+
+
+# ------------------------------------------------------------------------------ info, wrappers
+
+
+def test_info_carries_what_a_logger_needs():
+    env = RunEnv()
+    _, info = env.reset(seed=0)
+    m, d = env.model, env.data
+    shapes = {
+        "body_pos": (m.nbody, 3), "body_quat": (m.nbody, 4), "muscle_activation": (18,),
+        "muscle_length": (18,), "muscle_force": (18,), "ligament_force": (len(LIGAMENTS),), "contact_force": (4, 3),
+    }  # fmt: skip
+    for _ in range(5):
+        _, _, _, _, info = env.step(np.full(18, 0.3))
+    assert set(info) == set(shapes) | {"distance"}
+    for key, shape in shapes.items():
+        assert info[key].shape == shape, key
+    assert len(env.body_names) == m.nbody and env.body_names[m.body("pelvis").id] == "pelvis"
+    np.testing.assert_array_equal(info["body_pos"], d.xpos)
+    np.testing.assert_allclose(np.linalg.norm(info["body_quat"], axis=1), 1.0)
+    np.testing.assert_array_equal(info["muscle_length"], d.actuator_length)
+    assert np.all(info["muscle_activation"] > 0) and np.all(info["muscle_force"] >= 0)
+    info["body_pos"][:] = 0.0  # a copy: the logger may keep it
+    assert np.any(d.xpos != 0.0)
+
+
+def test_contact_forces_per_foot_sphere_match_mujoco():
+    """At reset the body stands on the ground: compare with MuJoCo's per-contact forces."""
+    env = RunEnv()
+    _, info = env.reset(seed=0)
+    m, d = env.model, env.data
+    expected = np.zeros((4, 3))
+    names = ["r_heel", "r_toe", "l_heel", "l_toe"]
+    for i, con in enumerate(d.contact):
+        local = np.zeros(6)
+        mujoco.mj_contactForce(m, d, i, local)
+        world = local[:3] @ con.frame.reshape(3, 3)  # the force of geom1 on geom2
+        for geom, sign in ((con.geom1, -1.0), (con.geom2, 1.0)):
+            if m.geom(geom).name in names:
+                expected[names.index(m.geom(geom).name)] += sign * world
+    assert expected[:, 1].sum() > 0, "the feet should carry the body at reset"
+    np.testing.assert_allclose(info["contact_force"], expected, rtol=1e-9, atol=1e-6)
+
+
+def test_action_repeat_sums_rewards_and_stops_at_the_end():
+    actions = random_actions(6, seed=3)
+    env = RunEnv(max_steps=4)
+    env.reset(seed=0)
+    single = [env.step(a)[1] for a in np.repeat(actions[:1], 4, axis=0)]
+    wrapped = ActionRepeat(RunEnv(max_steps=4), repeat=3)
+    wrapped.reset(seed=0)
+    _, reward, _, truncated, info = wrapped.step(actions[0])
+    assert reward == pytest.approx(sum(single[:3]), rel=1e-12, abs=1e-15) and not truncated
+    assert info["inner_steps"] == 3
+    _, reward, _, truncated, info = wrapped.step(actions[0])
+    assert truncated and info["inner_steps"] == 1 and reward == pytest.approx(single[3], rel=1e-12, abs=1e-15)
+    with pytest.raises(ValueError):
+        ActionRepeat(RunEnv(), repeat=0)
+
+
+def test_gymnasium_make():
+    env = gymnasium.make("l2r/Run-v0", difficulty=1)
+    assert isinstance(env.unwrapped, RunEnv) and env.unwrapped.difficulty == 1
+    assert env.spec.max_episode_steps is None  # RunEnv truncates itself; no TimeLimit on top
+    wrapper = env
+    while wrapper is not env.unwrapped:
+        assert not isinstance(wrapper, gymnasium.wrappers.TimeLimit)
+        wrapper = wrapper.env
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (41,)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert np.isfinite(reward) and "contact_force" in info
