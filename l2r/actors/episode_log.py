@@ -1,0 +1,405 @@
+"""MCAP episode logs, written by actors without slowing their environments down.
+
+Usage (one logger per actor process, one recorder per running episode)::
+
+    logger = EpisodeLogger(run_dir / "episodes", run="exp1", actor_id=3,
+                           policy=LogPolicy(every=10, evaluation=True, best=False),
+                           disk_budget_bytes=2 << 30, step_seconds=0.01 * action_repeat)
+    episode = logger.begin_episode({"seed": 7, "difficulty": 2, "policy_version": 41,
+                                    "evaluation": False, "obstacles": env.unwrapped.obstacles})
+    ...
+    obs, reward, terminated, truncated, info = env.step(action)
+    episode.log_step(obs, action, reward, info)      # the env's own info dict
+    ...
+    episode.end({"return": ret, "distance": info["distance"], "length": n,
+                 "terminated": terminated, "truncated": truncated})
+    logger.close()                                   # on shutdown: flushes what is queued
+
+``begin_episode`` always returns a recorder (a no-op one for episodes not logged), so the
+actor never branches. Recorders of different environments are independent.
+
+Which episodes: every ``every``-th training episode (0: none), every evaluation episode
+(``evaluation``), and with ``best`` each training episode whose return beats the best so far
+(kept in memory until it ends, then written; this costs a copy of every step).
+
+Files: one per episode, ``<run>-a<actor>-<UTC start>-e<n>-<train|eval|best>.mcap`` in
+``directory``, written as ``….mcap.part`` and renamed when complete, so a ``.mcap`` is
+always whole; a crash leaves a ``.part`` that ``python -m l2r.episodes.recover`` repairs.
+After each file the actor's own files beyond ``disk_budget_bytes`` are removed, oldest
+first (never the newest, nor the current best). The format is in ``l2r.episodes.schema``
+and docs/episodes.md.
+
+Cost: ``log_step`` copies the step into a preallocated block (a few microseconds); a
+background thread encodes blocks and writes zstd chunks. The queue between them is bounded:
+when the disk falls behind, the episode being logged is dropped and counted
+(``stats["episodes_skipped"]``) instead of blocking the environment.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import build_file_descriptor_set
+
+import l2r
+from l2r.episodes import schema
+from l2r.episodes.body import BodyModel
+from l2r.episodes.encode import StepLayout, TransformEncoder, cdr_string
+from l2r.sim.env import FOOT_SPHERES
+from l2r.sim.ligaments import LIGAMENTS
+from l2r.sim.model import MODEL_PATH, load_model
+
+log = logging.getLogger(__name__)
+
+BLOCK_STEPS = 100  # steps per hand-over to the writer thread
+CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression
+INFO_VECTORS = ("muscle_activation", "muscle_force", "muscle_length", "ligament_force", "contact_force")
+
+
+@dataclass(frozen=True)
+class LogPolicy:
+    """Which episodes an actor logs."""
+
+    every: int = 10  # every N-th training episode, counting from the first; 0: none
+    evaluation: bool = True  # every evaluation episode
+    best: bool = False  # each training episode that beats the best return so far
+
+
+class EpisodeLogger:
+    """Writes selected episodes of one actor to MCAP files, off the stepping thread."""
+
+    def __init__(
+        self,
+        directory: str | Path,
+        run: str,
+        actor_id: int,
+        policy: LogPolicy = LogPolicy(),
+        disk_budget_bytes: int = 1 << 30,
+        step_seconds: float = 0.01,
+        queue_blocks: int = 64,
+        body: BodyModel | None = None,
+    ):
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.run, self.actor_id, self.policy = run, int(actor_id), policy
+        self.disk_budget_bytes = int(disk_budget_bytes)
+        self.step_seconds = float(step_seconds)
+        self.body = body or BodyModel.from_model(load_model())
+        self.model_version = _model_version(MODEL_PATH)
+        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "files_removed": 0, "write_errors": 0}
+        self._layouts: dict[tuple, StepLayout] = {}
+        self._transforms = TransformEncoder(self.body.bodies)
+        self._pelvis = self.body.bodies.index("pelvis") + 1 if "pelvis" in self.body.bodies else None
+        self._training_episodes = 0
+        self._episodes = 0
+        self._best_return = -np.inf
+        self._best_file: Path | None = None
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_blocks)
+        self._thread = threading.Thread(target=self._write_loop, name=f"episode-log-{actor_id}", daemon=True)
+        self._thread.start()
+
+    # ----------------------------------------------------------------- stepping thread side
+
+    def begin_episode(self, meta: dict[str, Any]) -> Recorder | NullRecorder:
+        """Start an episode. ``meta``: seed, difficulty, policy_version, evaluation (bool),
+        obstacles [(x, y, r)], and any other str/number values to keep."""
+        evaluation = bool(meta.get("evaluation", False))
+        n, self._episodes = self._episodes, self._episodes + 1
+        if evaluation:
+            kind = "eval" if self.policy.evaluation else None
+        else:
+            every = self.policy.every
+            kind = "train" if every and self._training_episodes % every == 0 else None
+            self._training_episodes += 1
+            if kind is None and self.policy.best:
+                kind = "best"
+        if kind is None:
+            return NULL_RECORDER
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+        path = self.directory / f"{self.run}-a{self.actor_id}-{stamp}-e{n:06d}-{kind}.mcap"
+        return Recorder(self, path, kind, dict(meta))
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Write what is queued, abandon episodes still running (their .part files are
+        removed), and stop the writer thread."""
+        if self._thread.is_alive():
+            self._queue.put(("stop",))
+            self._thread.join(timeout)
+
+    def layout(self, sizes: dict[str, int]) -> StepLayout:
+        key = tuple(sorted(sizes.items()))
+        if key not in self._layouts:
+            self._layouts[key] = StepLayout(sizes)
+        return self._layouts[key]
+
+    def _submit(self, item: tuple) -> bool:
+        try:
+            self._queue.put_nowait(item)
+            return True
+        except queue.Full:
+            return False
+
+    def _finished(self, recorder: Recorder, summary: dict[str, Any]) -> bool:
+        """Whether a finished episode's file is kept; tracks the best training return."""
+        ret = float(summary.get("return", -np.inf))
+        if recorder.kind == "eval":
+            return True
+        is_best = ret > self._best_return
+        if is_best:
+            self._best_return = ret
+        return recorder.kind == "train" or is_best
+
+    # ---------------------------------------------------------------------- writer thread
+
+    def _write_loop(self) -> None:
+        open_files: dict[Recorder, _EpisodeFile] = {}
+        while True:
+            item = self._queue.get()
+            what, recorder = item[0], item[1] if len(item) > 1 else None
+            try:
+                if what == "stop":
+                    break
+                if recorder.dropped:
+                    _discard(open_files.pop(recorder, None))
+                elif what == "begin":
+                    open_files[recorder] = _EpisodeFile(self, recorder)
+                elif what == "block":
+                    open_files[recorder].write_block(*item[2:])
+                elif what == "end":
+                    done = open_files.pop(recorder)
+                    done.finish(item[2])
+                    self.stats["episodes_written"] += 1
+                    if recorder.kind == "best":
+                        self._best_file = recorder.path
+                    self._enforce_budget(keep=recorder.path)
+            except Exception:
+                log.exception("episode log %s: write failed; the episode is dropped", recorder.path)
+                self.stats["write_errors"] += 1
+                _discard(open_files.pop(recorder, None))
+            for rec in [r for r in open_files if r.dropped]:
+                _discard(open_files.pop(rec))
+        for episode_file in open_files.values():
+            _discard(episode_file)
+
+    def _enforce_budget(self, keep: Path) -> None:
+        files = []
+        for p in self.directory.glob(f"{self.run}-a{self.actor_id}-*.mcap"):
+            try:
+                files.append((p.stat().st_mtime, p.stat().st_size, p))
+            except FileNotFoundError:
+                continue
+        total = sum(size for _, size, _ in files)
+        for _, size, p in sorted(files):
+            if total <= self.disk_budget_bytes:
+                break
+            if p in (keep, self._best_file):
+                continue
+            p.unlink(missing_ok=True)
+            total -= size
+            self.stats["files_removed"] += 1
+
+
+class NullRecorder:
+    """The recorder of an episode that is not logged."""
+
+    def log_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
+        pass
+
+    def end(self, summary: dict[str, Any]) -> None:
+        pass
+
+
+NULL_RECORDER = NullRecorder()
+
+
+class Recorder:
+    """Collects one episode's steps into blocks and hands them to the writer thread.
+
+    A ``train``/``eval`` episode streams its blocks as they fill; a ``best`` candidate keeps
+    them until ``end`` shows whether it beat the best return.
+    """
+
+    def __init__(self, logger: EpisodeLogger, path: Path, kind: str, meta: dict[str, Any]):
+        self.logger, self.path, self.kind, self.meta = logger, path, kind, meta
+        self.start_ns = time.time_ns()
+        self.dropped = False
+        self.ended = False
+        self._streaming = kind != "best"
+        self._held: list[tuple] = []
+        self._step = 0
+        self._row = 0
+        self._block: np.ndarray | None = None
+        if self._streaming:
+            self._send(("begin", self))
+
+    def log_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
+        if self.dropped or self.ended:
+            return
+        if self._block is None:
+            self._new_block(obs, action, info)
+        i, c = self._row, self._columns
+        c["observation"][i] = obs
+        c["action"][i] = action
+        c["reward"][i] = reward
+        c["time"][i] = (self._step + 1) * self.logger.step_seconds
+        c["distance"][i] = info.get("distance", np.nan)
+        for name in self._info_vectors:
+            c[name][i] = np.ravel(info[name])
+        pos = info["body_pos"]
+        self._pos[i] = pos[1:]
+        self._quat[i] = info["body_quat"][1:]
+        pelvis = self.logger._pelvis
+        c["pelvis_height"][i] = pos[pelvis, 1] if pelvis is not None else np.nan
+        self._step += 1
+        self._row += 1
+        if self._row == BLOCK_STEPS:
+            self._flush_block()
+
+    def end(self, summary: dict[str, Any]) -> None:
+        if self.ended:
+            return
+        self.ended = True
+        if self.dropped:
+            return
+        if self._block is not None and self._row:
+            self._flush_block()
+        summary = {"length": self._step, **summary}
+        if not self.logger._finished(self, summary):
+            self._held.clear()
+            return
+        if not self._streaming:
+            self._send(("begin", self))
+            for block in self._held:
+                self._send(block)
+            self._held.clear()
+        self._send(("end", self, summary))
+
+    # ------------------------------------------------------------------------------ blocks
+
+    def _new_block(self, obs: Any, action: Any, info: dict[str, Any]) -> None:
+        logger = self.logger
+        sizes = {"observation": np.size(obs), "action": np.size(action)}
+        self._info_vectors = [name for name in INFO_VECTORS if name in info]
+        sizes.update({name: np.size(info[name]) for name in self._info_vectors})
+        self.layout = logger.layout(sizes)
+        self._block = self.layout.new_block(BLOCK_STEPS)
+        self._columns = {name: self._block[name] for name in self._block.dtype.names if not name.startswith("_")}
+        n = len(logger.body.bodies)
+        self._pos = np.empty((BLOCK_STEPS, n, 3))
+        self._quat = np.empty((BLOCK_STEPS, n, 4))
+
+    def _flush_block(self) -> None:
+        item = ("block", self, self._block, self._pos, self._quat, self._step - self._row, self._row)
+        if self._streaming:
+            self._send(item)
+        else:
+            self._held.append(item)
+        self._row = 0
+        if not self.dropped:
+            self._block = self.layout.new_block(BLOCK_STEPS)
+            self._columns = {name: self._block[name] for name in self._columns}
+            self._pos = np.empty_like(self._pos)
+            self._quat = np.empty_like(self._quat)
+
+    def _send(self, item: tuple) -> None:
+        if not self.dropped and not self.logger._submit(item):
+            self.dropped = True
+            self.logger.stats["episodes_skipped"] += 1
+            log.warning("episode log %s: writer behind, episode skipped", self.path.name)
+
+
+class _EpisodeFile:
+    """One episode's MCAP file while the writer thread fills it."""
+
+    def __init__(self, logger: EpisodeLogger, recorder: Recorder):
+        self.logger, self.recorder = logger, recorder
+        self.part = recorder.path.with_name(recorder.path.name + ".part")
+        self.file = open(self.part, "wb")
+        w = self.writer = Writer(self.file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        w.start(profile=schema.PROFILE, library=f"l2r {l2r.__version__}")
+        body, meta = logger.body, recorder.meta
+        obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]
+        t0 = recorder.start_ns
+        w.add_metadata(schema.METADATA_EPISODE, _episode_metadata(logger, recorder))
+        w.add_metadata("body", {"json": body.to_json()})
+
+        string = w.register_schema(schema.STRING_SCHEMA_NAME, "ros2msg", schema.STRING_SCHEMA)
+        robot = w.register_channel(schema.TOPIC_ROBOT, "cdr", string)
+        w.add_message(robot, t0, cdr_string(body.urdf(obstacles)), t0)
+        scene_update = body.scene_update(t0, obstacles)
+        scene = w.register_channel(schema.TOPIC_SCENE, "protobuf", _register(w, type(scene_update)))
+        w.add_message(scene, t0, scene_update.SerializeToString(), t0)
+        self.tf = w.register_channel(schema.TOPIC_TF, "protobuf", _register(w, FrameTransforms))
+        self.step = None  # registered with the first block, when the vector sizes are known
+        self.file.flush()
+
+    def write_block(self, block, pos, quat, first_step: int, count: int) -> None:
+        w, rec = self.writer, self.recorder
+        if self.step is None:
+            self.step = self._register_step(rec.layout)
+        times = rec.start_ns + np.rint(block["time"][:count] * 1e9).astype(np.int64)
+        encode = self.logger._transforms.encode
+        for i, message in enumerate(rec.layout.messages(block, first_step, count)):
+            t = int(times[i])
+            w.add_message(self.tf, t, encode(t, pos[i], quat[i]), t, sequence=first_step + i)
+            w.add_message(self.step, t, message, t, sequence=first_step + i)
+        self.file.flush()
+
+    def finish(self, summary: dict[str, Any]) -> None:
+        self.writer.add_metadata(schema.METADATA_RESULT, {k: _text(v) for k, v in summary.items()})
+        self.writer.finish()
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.part, self.recorder.path)
+
+    def _register_step(self, layout: StepLayout) -> int:
+        w, body = self.writer, self.logger.body
+        sid = w.register_schema(schema.STEP_MESSAGE, "protobuf", schema.step_schema())
+        names = {"muscles": body.muscles, "ligaments": LIGAMENTS, "contacts": FOOT_SPHERES, "bodies": body.bodies}
+        return w.register_channel(schema.TOPIC_STEP, "protobuf", sid, {k: ",".join(v) for k, v in names.items()})
+
+
+def _register(writer: Writer, message_class: type) -> int:
+    fds = build_file_descriptor_set(message_class).SerializeToString()
+    return writer.register_schema(message_class.DESCRIPTOR.full_name, "protobuf", fds)
+
+
+def _episode_metadata(logger: EpisodeLogger, recorder: Recorder) -> dict[str, str]:
+    meta = {k: _text(v) for k, v in recorder.meta.items() if k != "obstacles"}
+    meta.update(
+        run=logger.run, actor=str(logger.actor_id), kind=recorder.kind, format=schema.FORMAT_VERSION,
+        env_version=l2r.__version__, model=logger.model_version, step_seconds=_text(logger.step_seconds),
+        obstacles=";".join(",".join(_text(float(v)) for v in o) for o in recorder.meta.get("obstacles", ())),
+    )  # fmt: skip
+    return meta
+
+
+def _model_version(path: Path) -> str:
+    """The model file's content hash: two logs share a model exactly when these agree."""
+    return "runner.xml sha256:" + hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    return str(value)
+
+
+def _discard(episode_file: _EpisodeFile | None) -> None:
+    if episode_file is not None:
+        episode_file.file.close()
+        episode_file.part.unlink(missing_ok=True)
