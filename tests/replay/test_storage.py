@@ -1,0 +1,136 @@
+"""Storage, sum-tree, sequence tracking and the rate limiter, as plain functions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from l2r.replay.rate_limiter import RateLimiter
+from l2r.replay.sequences import SequenceTracker
+from l2r.replay.storage import ChunkRejected, Storage, StorageConfig
+from l2r.replay.sumtree import SumTree
+from tests.protocol.factories import make_chunk
+
+
+def expected_next(obs_value: float, final_steps: set[float]) -> float:
+    return -(obs_value + 1) if obs_value in final_steps else obs_value + 1
+
+
+def check_batch(batch, finals: set[float]) -> None:
+    """Every sampled transition's next observation is the one its chunk said."""
+    obs, nxt = batch.obs[:, 0], batch.next_obs[:, 0]
+    want = np.array([expected_next(o, finals) for o in obs])
+    np.testing.assert_array_equal(nxt, want)
+    np.testing.assert_array_equal(batch.rewards, obs)  # reward t of a chunk was written as obs t
+
+
+def test_next_observations_across_chunks_episodes_and_wrap_around():
+    storage = Storage(StorageConfig(capacity=50, side_fraction=0.5))
+    finals = set()
+    for seq in range(12):  # 12 chunks of 7: the ring wraps around several times
+        chunk = make_chunk(seq=seq, steps=7, ends=(2,), truncate=(5,))
+        finals |= {float(seq * 1000 + t) for t in (2, 5)}
+        storage.insert(chunk)
+    assert storage.live == 50 and storage.written == 84
+    for prioritized in (False, True):
+        check_batch(storage.sample(500, prioritized), finals)
+
+
+def test_fifo_keeps_the_newest():
+    storage = Storage(StorageConfig(capacity=30))
+    for seq in range(10):
+        storage.insert(make_chunk(seq=seq, steps=10))
+    seqs = set((storage.sample(1000, False).obs[:, 0] // 1000).astype(int))
+    assert seqs == {7, 8, 9}
+
+
+def test_side_ring_overflow_evicts_instead_of_corrupting():
+    # many episode ends and a tiny side ring: old slots lose their next observation
+    storage = Storage(StorageConfig(capacity=100, side_fraction=0.1))
+    finals = set()
+    for seq in range(30):
+        storage.insert(make_chunk(seq=seq, steps=5, ends=(0, 1, 2)))
+        finals |= {float(seq * 1000 + t) for t in (0, 1, 2)}
+    assert storage.live < 100
+    check_batch(storage.sample(400, False), finals)
+    check_batch(storage.sample(400, True), finals)
+
+
+def test_wrong_widths_are_rejected():
+    storage = Storage(StorageConfig(capacity=100, obs_dim=41, act_dim=18))
+    with pytest.raises(ChunkRejected, match="this replay stores obs 41"):
+        storage.insert(make_chunk(obs_dim=40))
+    with pytest.raises(ChunkRejected, match="exceeds capacity"):
+        storage.insert(make_chunk(steps=101))
+    assert storage.live == 0
+
+
+def test_prioritized_sampling_follows_priorities():
+    storage = Storage(StorageConfig(capacity=1000, priority_exponent=1.0))
+    storage.insert(make_chunk(steps=4))
+    batch = storage.sample(4, True)
+    order = np.argsort(batch.indices)
+    storage.update_priorities(batch.indices[order], batch.generations[order], np.array([1.0, 2.0, 3.0, 4.0]))
+    sampled = np.concatenate([storage.sample(256, True).indices for _ in range(40)])
+    share = np.bincount(sampled, minlength=4)[:4] / len(sampled)
+    np.testing.assert_allclose(share, np.array([1, 2, 3, 4]) / 10, atol=0.02)
+    probs = storage.sample(8, True)
+    np.testing.assert_allclose(probs.probabilities, (probs.indices + 1 + 1e-6) / (10 + 4e-6), rtol=1e-5)
+
+
+def test_stale_priority_updates_are_ignored():
+    storage = Storage(StorageConfig(capacity=10, side_fraction=0.5, priority_exponent=1.0))
+    storage.insert(make_chunk(seq=0, steps=10))
+    old = storage.sample(10, True)
+    storage.insert(make_chunk(seq=1, steps=5))  # overwrites slots 0..4
+    applied = storage.update_priorities(old.indices, old.generations, np.full(10, 100.0))
+    still_there = old.indices >= 5
+    assert applied == len(np.unique(old.indices[still_there]))
+    assert np.all(storage.tree.get(np.arange(5)) == 1.0)  # new data keeps its initial priority
+
+
+def test_state_round_trip():
+    storage = Storage(StorageConfig(capacity=40, side_fraction=0.5))
+    for seq in range(7):
+        storage.insert(make_chunk(seq=seq, steps=9, ends=(3,)))
+    copy = Storage(StorageConfig(capacity=40, side_fraction=0.5))
+    copy.restore(storage.state())
+    for name in Storage.ARRAYS:
+        np.testing.assert_array_equal(getattr(copy, name), getattr(storage, name))
+    np.testing.assert_array_equal(copy.tree.tree, storage.tree.tree)
+    with pytest.raises(ValueError, match="configured for"):
+        Storage(StorageConfig(capacity=41)).restore(storage.state())
+
+
+def test_sumtree_matches_a_cumulative_sum():
+    rng = np.random.default_rng(1)
+    tree = SumTree(37)
+    values = rng.random(37)
+    tree.set_range(0, values[:20])
+    tree.set(np.arange(20, 37), values[20:])
+    assert tree.total == pytest.approx(values.sum())
+    targets = rng.random(1000) * values.sum()
+    np.testing.assert_array_equal(tree.find(targets), np.searchsorted(np.cumsum(values), targets, side="right"))
+
+
+def test_sequences_drop_duplicates_and_count_gaps():
+    seqs = SequenceTracker()
+    assert [seqs.accept(1, 10, s) for s in (0, 1, 1, 4, 2)] == [True, True, False, True, True]
+    assert (seqs.duplicates, seqs.gaps) == (1, 1)  # 3 is still missing
+    assert seqs.accept(1, 10, 3) and seqs.gaps == 0
+    assert not seqs.accept(1, 9, 50)  # an older incarnation of the actor
+    assert seqs.accept(1, 11, 0) and seqs.restarts == 1  # restarted actor counts again from 0
+    copy = SequenceTracker()
+    copy.restore(seqs.state())
+    assert copy.state() == seqs.state()
+
+
+def test_rate_limiter_reverb_semantics():
+    limiter = RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64)
+    assert not limiter.can_sample(size=99, batch_size=32)[0]
+    limiter.inserted = 100
+    assert limiter.can_sample(100, 64)[0] and not limiter.can_sample(100, 65)[0]
+    limiter.sampled = 64
+    limiter.inserted = 116  # 16 more inserts allow 32 more samples
+    assert limiter.can_sample(116, 32)[0] and not limiter.can_sample(116, 33)[0]
+    assert RateLimiter(min_size=10).can_sample(10, 10**6)[0]  # ratio off: only the minimum size
