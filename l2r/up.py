@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 import threading
@@ -87,7 +88,7 @@ class ProcessGroup:
             # stops the children in order.
             child.process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                              start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        log.info("started %s (pid %d)%s", child.name, child.process.pid, " resuming" if resume else "")
+        log.info("started %s (pid %d)%s", child.name, child.process.pid, " with --resume" if resume and child.resume_args else "")
 
     def start(self) -> None:
         for child in self.children:
@@ -222,7 +223,7 @@ class StatusBoard:
                 "updates": int(total(learners, "updates")),
                 "updates_per_s": total(learners, "updates_per_s"),
                 "version": max([self.version] + [int(v.get("version", -1)) for v in learners]),
-                "policy_lag": max([float(v.get("policy_lag", 0.0)) for v in replays] or [0.0]),
+                "policy_lag": max([lag for v in replays + learners if math.isfinite(lag := float(v.get("policy_lag", 0.0)))] or [0.0]),
                 "actor_staleness": max([float(v.get("staleness", 0.0)) for v in actors] or [0.0]),
                 "replay_size": int(total(replays, "size")),
                 "episodes": self.episodes,
@@ -300,6 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--log-every", type=int, default=10,
                    help="actors log every Nth training episode as MCAP under episodes/ (0: none); "
                         "evaluation episodes are always logged")
+    a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"), help="learner device")
     le.add_argument("--batch-size", type=int, default=256, help="learner batch size")
@@ -343,12 +345,12 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                       "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
                                            "--device", args.device, "--batch-size", str(args.batch_size),
-                                           "--run-dir", str(run_dir / "learner"), *args.learner_arg],
+                                           "--run-dir", str(run_dir), *args.learner_arg],
                           resume_args=["--resume"]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
               "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
-    logs = ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
+    logs = [] if args.no_episode_logs else ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
         children.append(Child(f"actor-{i}", tier=2, argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
                                                   "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
