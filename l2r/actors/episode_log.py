@@ -62,8 +62,8 @@ from l2r.sim.model import MODEL_PATH, load_model
 
 log = logging.getLogger(__name__)
 
-BLOCK_STEPS = 100  # steps per hand-over to the writer thread
-CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression
+BLOCK_STEPS = 100  # steps per hand-over to the writer thread (what a crash can lose at most)
+CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression (about 130 steps)
 INFO_VECTORS = ("muscle_activation", "muscle_force", "muscle_length", "ligament_force", "contact_force")
 
 
@@ -88,6 +88,8 @@ class EpisodeLogger:
         disk_budget_bytes: int = 1 << 30,
         step_seconds: float = 0.01,
         queue_blocks: int = 64,
+        block_steps: int = BLOCK_STEPS,
+        chunk_bytes: int = CHUNK_BYTES,
         body: BodyModel | None = None,
     ):
         self.directory = Path(directory)
@@ -95,6 +97,7 @@ class EpisodeLogger:
         self.run, self.actor_id, self.policy = run, int(actor_id), policy
         self.disk_budget_bytes = int(disk_budget_bytes)
         self.step_seconds = float(step_seconds)
+        self.block_steps, self.chunk_bytes = int(block_steps), int(chunk_bytes)
         self.body = body or BodyModel.from_model(load_model())
         self.model_version = _model_version(MODEL_PATH)
         self.stats = {"episodes_written": 0, "episodes_skipped": 0, "files_removed": 0, "write_errors": 0}
@@ -263,7 +266,7 @@ class Recorder:
         c["pelvis_height"][i] = pos[pelvis, 1] if pelvis is not None else np.nan
         self._step += 1
         self._row += 1
-        if self._row == BLOCK_STEPS:
+        if self._row == self.logger.block_steps:
             self._flush_block()
 
     def end(self, summary: dict[str, Any]) -> None:
@@ -293,11 +296,12 @@ class Recorder:
         self._info_vectors = [name for name in INFO_VECTORS if name in info]
         sizes.update({name: np.size(info[name]) for name in self._info_vectors})
         self.layout = logger.layout(sizes)
-        self._block = self.layout.new_block(BLOCK_STEPS)
+        rows = logger.block_steps
+        self._block = self.layout.new_block(rows)
         self._columns = {name: self._block[name] for name in self._block.dtype.names if not name.startswith("_")}
         n = len(logger.body.bodies)
-        self._pos = np.empty((BLOCK_STEPS, n, 3))
-        self._quat = np.empty((BLOCK_STEPS, n, 4))
+        self._pos = np.empty((rows, n, 3))
+        self._quat = np.empty((rows, n, 4))
 
     def _flush_block(self) -> None:
         item = ("block", self, self._block, self._pos, self._quat, self._step - self._row, self._row)
@@ -307,7 +311,7 @@ class Recorder:
             self._held.append(item)
         self._row = 0
         if not self.dropped:
-            self._block = self.layout.new_block(BLOCK_STEPS)
+            self._block = self.layout.new_block(self.logger.block_steps)
             self._columns = {name: self._block[name] for name in self._columns}
             self._pos = np.empty_like(self._pos)
             self._quat = np.empty_like(self._quat)
@@ -326,7 +330,7 @@ class _EpisodeFile:
         self.logger, self.recorder = logger, recorder
         self.part = recorder.path.with_name(recorder.path.name + ".part")
         self.file = open(self.part, "wb")
-        w = self.writer = Writer(self.file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        w = self.writer = Writer(self.file, chunk_size=logger.chunk_bytes, compression=CompressionType.ZSTD)
         w.start(profile=schema.PROFILE, library=f"l2r {l2r.__version__}")
         body, meta = logger.body, recorder.meta
         obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]

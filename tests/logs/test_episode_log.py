@@ -1,0 +1,207 @@
+"""Episode files written by a real process: schemas, summary, metadata, values, recovery, budget."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from l2r.actors import episode_log
+from l2r.actors.episode_log import EpisodeLogger, LogPolicy
+from l2r.episodes import schema
+from l2r.episodes.read import read_episode
+from l2r.sim.env import RunEnv
+from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
+
+WRITER = Path(__file__).with_name("episode_writer.py")
+STEPS = 40
+
+
+def run_writer(directory: Path, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
+    return subprocess.Popen([sys.executable, str(WRITER), str(directory), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)  # fmt: skip
+
+
+class Collect:
+    """A recorder that keeps nothing: ``play`` returns what the env produced."""
+
+    def log_step(self, *args) -> None:
+        pass
+
+
+def expected(seed: int, steps: int, across_resets: bool = False) -> dict:
+    env = RunEnv(difficulty=DIFFICULTY, max_steps=steps)
+    env.reset(seed=seed)
+    return play(env, Collect(), seed, steps, across_resets)
+
+
+def assert_steps_equal(episode, want: dict, n: int) -> None:
+    s = episode.steps
+    assert np.array_equal(s["step"], np.arange(n))
+    assert np.array_equal(s["observation"], np.array(want["obs"][:n], dtype=np.float64))
+    assert np.array_equal(s["action"], np.array(want["action"][:n]))
+    assert np.array_equal(s["reward"], np.array(want["reward"][:n]))
+    info = want["info"][:n]
+    for name in episode_log.INFO_VECTORS:
+        assert np.array_equal(s[name], np.array([np.ravel(i[name]) for i in info])), name
+    assert np.array_equal(s["distance"], [i["distance"] for i in info])
+    assert np.array_equal(episode.pos, np.array([i["body_pos"][1:] for i in info]))
+    assert np.array_equal(episode.quat, np.array([i["body_quat"][1:] for i in info]))
+    pelvis = episode.names["bodies"].index("pelvis")
+    assert np.array_equal(s["pelvis_height"], episode.pos[:, pelvis, 1])
+
+
+@pytest.mark.slow
+def test_a_writer_process_leaves_complete_self_describing_files(tmp_path):
+    proc = run_writer(tmp_path, "--episodes", "2", "--steps", str(STEPS), "--block-steps", "16")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) == 2 and not list(tmp_path.glob("*.part"))
+
+    for seed, path in enumerate(files):
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            summary = reader.get_summary()
+            schemas = {s.name: s.encoding for s in summary.schemas.values()}
+            assert schemas == {"std_msgs/msg/String": "ros2msg", "foxglove.SceneUpdate": "protobuf",
+                               "foxglove.FrameTransforms": "protobuf", schema.STEP_MESSAGE: "protobuf"}  # fmt: skip
+            topics = {c.topic: c for c in summary.channels.values()}
+            want = expected(seed, STEPS)
+            n = len(want["reward"])
+            counts = summary.statistics.channel_message_counts
+            assert counts[topics[schema.TOPIC_STEP].id] == n and counts[topics[schema.TOPIC_TF].id] == n
+            assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
+            assert topics[schema.TOPIC_STEP].metadata["muscles"].split(",")[0] == "hamstrings_r"
+            metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+            info = metadata[schema.METADATA_EPISODE]
+            assert (info["run"], info["actor"], info["seed"], info["difficulty"]) == (RUN, "0", str(seed), "1")
+            assert info["policy_version"] == "7" and info["model"].startswith("runner.xml sha256:") and info["env_version"]
+            result = metadata[schema.METADATA_RESULT]
+            assert float(result["return"]) == pytest.approx(float(np.sum(want["reward"])))
+            assert int(result["length"]) == n and float(result["distance"]) == want["info"][-1]["distance"]
+            # Decoded with the schemas in the file alone: the first step's numbers are the env's.
+            step = next(m for _, c, _, m in reader.iter_decoded_messages(topics=[schema.TOPIC_STEP]))
+            assert list(step.action) == want["action"][0].tolist() and step.reward == want["reward"][0]
+            tf = next(m for _, c, _, m in reader.iter_decoded_messages(topics=[schema.TOPIC_TF]))
+            pelvis = next(t for t in tf.transforms if t.child_frame_id == "pelvis")
+            assert pelvis.parent_frame_id == schema.GROUND_FRAME
+            assert pelvis.translation.x == want["info"][0]["body_pos"][1][0]
+
+        episode = read_episode(path)
+        assert episode.complete
+        assert_steps_equal(episode, want, n)
+
+
+@pytest.mark.slow
+def test_a_killed_writer_leaves_a_part_file_that_recovers(tmp_path):
+    steps = 90
+    proc = run_writer(tmp_path, "--episodes", "1", "--steps", str(steps), "--block-steps", "10",
+                      "--chunk-bytes", "8192", "--hang")  # fmt: skip
+    try:
+        assert proc.stdout.readline().strip() == "hanging"
+        part = next(tmp_path.glob("*.mcap.part"))
+        deadline = time.monotonic() + 10  # the writer thread may still be writing the last block
+        while part.stat().st_size < 40_000 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not list(tmp_path.glob("*.mcap")), "an unfinished episode must never look complete"
+    with open(part, "rb") as f, pytest.raises(Exception):
+        make_reader(f).get_summary()  # no footer: the standard reader needs recovery first
+
+    result = subprocess.run([sys.executable, "-m", "l2r.episodes.recover", str(part)],
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    recovered = part.with_name(part.name.removesuffix(".mcap.part") + ".recovered.mcap")
+    with open(recovered, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_summary().statistics.message_count > 0
+        assert schema.METADATA_EPISODE in {m.name for m in reader.iter_metadata()}
+    episode = read_episode(recovered)
+    n = len(episode)
+    assert 10 <= n <= steps and episode.result == {}
+    assert_steps_equal(episode, expected(0, steps, across_resets=True), n)
+
+
+def small_logger(tmp_path: Path, **kwargs) -> EpisodeLogger:
+    return EpisodeLogger(tmp_path, RUN, actor_id=1, block_steps=5, **kwargs)
+
+
+def log_episode(logger: EpisodeLogger, env: RunEnv, seed: int, steps: int = 8, evaluation: bool = False,
+                ret: float | None = None) -> None:  # fmt: skip
+    env.reset(seed=seed)
+    recorder = logger.begin_episode({**meta(env, seed), "evaluation": evaluation})
+    out = play(env, recorder, seed, steps)
+    recorder.end({"return": float(np.sum(out["reward"])) if ret is None else ret, "distance": 0.0})
+
+
+def kinds(directory: Path) -> list[str]:
+    return [p.name.removesuffix(".mcap").rsplit("-", 1)[1] for p in sorted(directory.glob("*.mcap"))]
+
+
+def test_every_nth_evaluation_and_best_episodes_are_chosen(tmp_path):
+    env = RunEnv(difficulty=DIFFICULTY)
+    logger = small_logger(tmp_path, policy=LogPolicy(every=3, evaluation=True, best=True))
+    for seed, ret in enumerate([1.0, 0.5, 2.0, 1.5, 0.1, 3.0, 0.2]):
+        log_episode(logger, env, seed, ret=ret)
+    log_episode(logger, env, 99, evaluation=True)
+    logger.close()
+    # training episodes 0, 3, 6 by count; 2 and 5 beat the best return so far; then the evaluation one
+    names = sorted(tmp_path.glob("*.mcap"))
+    assert [int(p.name.split("-e")[1][:6]) for p in names] == [0, 2, 3, 5, 6, 7]
+    assert kinds(tmp_path) == ["train", "best", "train", "best", "train", "eval"]
+    assert logger.stats["episodes_written"] == 6
+
+
+def test_the_disk_budget_removes_the_oldest_files_first(tmp_path):
+    env = RunEnv(difficulty=DIFFICULTY)
+    probe = small_logger(tmp_path / "probe", policy=LogPolicy(every=1))
+    log_episode(probe, env, 0)
+    probe.close()
+    size = next((tmp_path / "probe").glob("*.mcap")).stat().st_size
+
+    logger = small_logger(tmp_path / "logs", policy=LogPolicy(every=1), disk_budget_bytes=int(2.5 * size))
+    for seed in range(5):
+        log_episode(logger, env, seed)
+        time.sleep(0.01)  # distinct modification times
+    logger.close()
+    left = sorted((tmp_path / "logs").glob("*.mcap"))
+    assert [int(p.name.split("-e")[1][:6]) for p in left] == [3, 4]
+    assert sum(p.stat().st_size for p in left) <= 2.5 * size
+    assert logger.stats["files_removed"] == 3
+
+
+def test_a_slow_disk_skips_the_episode_instead_of_blocking(tmp_path, monkeypatch):
+    write_block = episode_log._EpisodeFile.write_block
+
+    def slow_write_block(self, *args):
+        time.sleep(0.2)
+        write_block(self, *args)
+
+    monkeypatch.setattr(episode_log._EpisodeFile, "write_block", slow_write_block)
+    env = RunEnv(difficulty=DIFFICULTY)
+    logger = EpisodeLogger(tmp_path, RUN, actor_id=2, policy=LogPolicy(every=1), block_steps=1, queue_blocks=2)
+    env.reset(seed=0)
+    recorder = logger.begin_episode(meta(env, 0))
+    obs, info = env.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(10):
+        recorder.log_step(obs, np.zeros(18), 0.0, info)
+    elapsed = time.perf_counter() - start
+    recorder.end({"return": 0.0})
+    logger.close()
+    assert elapsed < 0.2, "log_step waited for the disk"
+    assert logger.stats["episodes_skipped"] == 1
+    assert not list(tmp_path.glob("*.mcap")) and not list(tmp_path.glob("*.part"))
