@@ -1,5 +1,8 @@
 """Single-core speed of `RunEnv` against raw MuJoCo and OpenSim; prints one JSON line.
 
+Rates are per second of this process's CPU time on one core (`time.thread_time`), so other work
+on a shared machine does not distort them; `wall_*` gives the same figures by the wall clock.
+
 env_steps_per_s_d0 / _d2: env steps (0.01 s each) per second with uniform random excitations,
     resets included (random excitations make the body fall within ~1-2 s).
 mj_steps_per_s: raw `mujoco.mj_step` rate on the same model and controls, no Python in the loop.
@@ -25,36 +28,51 @@ from l2r.sim.env import RunEnv
 REFERENCE = Path(__file__).resolve().parents[1] / "l2r" / "sim" / "assets" / "opensim_reference.json"
 
 
-def env_rate(difficulty: int, seconds: float, seed: int = 0) -> float:
+class Clock:
+    """CPU and wall time since construction."""
+
+    def __init__(self):
+        self.cpu, self.wall = time.thread_time(), time.perf_counter()
+
+    def elapsed(self) -> tuple[float, float]:
+        return time.thread_time() - self.cpu, time.perf_counter() - self.wall
+
+
+def env_rate(difficulty: int, seconds: float, seed: int = 0) -> tuple[float, float]:
+    """(CPU, wall) env steps per second with random excitations, resets included."""
     env = RunEnv(difficulty=difficulty, seed=seed)
     actions = np.random.default_rng(seed).uniform(0.0, 1.0, (4096, env.action_space.shape[0]))
     env.reset()
     for a in actions[:50]:  # warm-up
         if any(env.step(a)[2:4]):
             env.reset()
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        for a in actions[steps % 3072 : steps % 3072 + 1024]:
+    steps, clock = 0, Clock()
+    while clock.elapsed()[0] < seconds:
+        start = steps % 3072
+        for a in actions[start : start + 1024]:
             _, _, terminated, truncated, _ = env.step(a)
             if terminated or truncated:
                 env.reset()
         steps += 1024
-    return steps / (time.perf_counter() - start)
+    cpu, wall = clock.elapsed()
+    return steps / cpu, steps / wall
 
 
-def mj_rate(seconds: float, seed: int = 0) -> tuple[float, int]:
-    """Raw mj_step rate on the env's model (obstacles parked), 100 substeps per call."""
+def mj_rate(seconds: float, seed: int = 0) -> tuple[float, float, int]:
+    """(CPU, wall) raw mj_step rate on the env's model, 100 substeps per call, and the substeps
+    per env step. Random controls, restarting from the default pose every 100 substeps."""
     env = RunEnv(difficulty=0, seed=seed)
     env.reset()
     m, d = env.model, env.data
     rng = np.random.default_rng(seed)
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        mujoco.mj_resetData(m, d)
+    steps, clock = 0, Clock()
+    while clock.elapsed()[0] < seconds:
+        mujoco.mj_resetDataKeyframe(m, d, m.keyframe("default").id)
         d.ctrl[:] = rng.uniform(0.0, 1.0, m.nu)
         mujoco.mj_step(m, d, 100)
         steps += 100
-    return steps / (time.perf_counter() - start), env.substeps
+    cpu, wall = clock.elapsed()
+    return steps / cpu, steps / wall, env.substeps
 
 
 def opensim_rates() -> tuple[float, float]:
@@ -72,9 +90,9 @@ def main() -> None:
     if hasattr(os, "sched_setaffinity"):  # one core, as the goal is stated
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
-    mj, substeps = mj_rate(seconds)
-    d0 = env_rate(0, seconds)
-    d2 = env_rate(2, seconds)
+    mj, wall_mj, substeps = mj_rate(seconds)
+    d0, wall_d0 = env_rate(0, seconds)
+    d2, wall_d2 = env_rate(2, seconds)
     slow, fast = opensim_rates()
     print(
         json.dumps(
@@ -88,6 +106,10 @@ def main() -> None:
                 "opensim_steps_per_s": [round(slow, 1), round(fast, 1)],
                 "speedup_vs_opensim_low": round(d0 / fast, 1),
                 "speedup_vs_opensim_high": round(d0 / slow, 1),
+                "wall_env_steps_per_s_d0": round(wall_d0, 1),
+                "wall_env_steps_per_s_d2": round(wall_d2, 1),
+                "wall_mj_steps_per_s": round(wall_mj, 1),
+                "load_average_1min": round(os.getloadavg()[0], 2),
                 "mujoco": mujoco.__version__,
                 "machine": f"{platform.machine()} {platform.processor() or platform.node()}",
                 "seconds_per_figure": seconds,
