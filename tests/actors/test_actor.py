@@ -1,0 +1,152 @@
+"""A real `l2r-actor` process, with this test playing the learner and the replay server over
+loopback Zenoh. The environment is a stand-in with the runner's shapes (tests/actors/standin.py),
+so these tests are about the actor; the real runner is exercised in tests/system."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from l2r.policy import build_policy, policy_state
+from l2r.protocol import EpisodeSummary, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
+from l2r.up import free_port
+
+ROOT = Path(__file__).resolve().parents[2]
+STANDIN = "tests.actors.standin:StandIn-v0"
+SPEC = {"obs_dim": 41, "act_dim": 18, "hidden": [32], "activation": "elu", "layer_norm": False}
+
+
+def wait_for(predicate, timeout=15.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class Peer:
+    """This test's side: replay token (optional), weights queryable, and recorders of what the actor sends."""
+
+    def __init__(self, run: str):
+        self.port = free_port()
+        self.keys = Keys(run)
+        self.session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{self.port}"]))
+        self.chunks: list[ExperienceChunk] = []
+        self.episodes: list[EpisodeSummary] = []
+        self.stats: list[Stats] = []
+        self.latest = Weights(3, policy_state(build_policy(SPEC)), SPEC)
+        self.token = None
+        s = self.session
+        self._subs = [
+            s.declare_subscriber(self.keys.experience_of_shard(0), lambda x: self.chunks.append(decode(x.payload))),
+            s.declare_subscriber(self.keys.all_episodes, lambda x: self.episodes.append(decode(x.payload))),
+            s.declare_subscriber(self.keys.all_stats, lambda x: self.stats.append(decode(x.payload))),
+            s.declare_queryable(self.keys.weights_query, lambda q: q.reply(self.keys.weights_query, encode(self.latest))),
+        ]
+
+    def replay_up(self, up: bool) -> None:
+        if up and self.token is None:
+            self.token = self.session.liveliness().declare_token(self.keys.alive("replay", 0))
+        elif not up and self.token is not None:
+            self.token.undeclare()
+            self.token = None
+
+    def publish(self, payload: bytes) -> None:
+        self.session.put(self.keys.weights, payload)
+
+    def last_stats(self) -> dict:
+        return self.stats[-1].values if self.stats else {}
+
+    def actor(self, *args: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "l2r.actors", "--run", self.keys.run, "--connect", f"tcp/127.0.0.1:{self.port}",
+             "--env-id", STANDIN, "--num-envs", "3", "--chunk-size", "16", "--stats-interval", "0.2", *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+@pytest.fixture
+def peer():
+    p = Peer(f"test-actor-{uuid.uuid4().hex[:8]}")
+    yield p
+    p.close()
+
+
+def stop(proc: subprocess.Popen) -> str:
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0, out
+    return out
+
+
+def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
+    peer.replay_up(True)
+    proc = peer.actor("--random-steps", "0", "--seed", "4")
+    try:
+        # The weights it asked for on join drive its first chunks.
+        wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks), what="chunks acted by version 3")
+        alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
+        assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
+
+        # Garbage, then weights that do not fit the network: counted, not fatal.
+        peer.publish(b"\x00not msgpack")
+        peer.publish(encode(Weights(4, {"trunk.0.weight": np.zeros((2, 2), np.float32)}, SPEC)))
+        wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 2, what="two rejections counted")
+        assert proc.poll() is None
+
+        # A published update is swapped in; its chunks carry the new version.
+        peer.publish(encode(Weights(5, policy_state(build_policy(SPEC)), SPEC)))
+        wait_for(lambda: any(c.policy_version == 5 for c in peer.chunks), what="chunks acted by version 5")
+        wait_for(lambda: peer.last_stats().get("policy_version") == 5 and peer.last_stats().get("staleness") == 0,
+                 what="stats at version 5")
+
+        # Without a replay server the actor waits instead of sending into the void.
+        peer.replay_up(False)
+        wait_for(lambda: peer.last_stats().get("waiting_for_replay") == 1, what="actor waiting")
+        time.sleep(0.3)
+        n = len(peer.chunks)
+        time.sleep(0.5)
+        assert len(peer.chunks) == n
+        peer.replay_up(True)
+        wait_for(lambda: len(peer.chunks) > n, what="chunks after replay came back")
+    finally:
+        out = stop(proc)
+    assert "rejected message" in out
+
+    versions = [c.policy_version for c in peer.chunks]
+    assert versions == sorted(versions)  # a chunk never mixes or reverts versions
+    seqs = [c.seq for c in peer.chunks]
+    assert seqs == list(range(len(seqs)))  # one sequence across the actor's environments, none lost
+    assert {c.env_id for c in peer.chunks} == {0, 1, 2}
+    assert len({c.epoch for c in peer.chunks}) == 1
+    train = [e for e in peer.episodes if not e.evaluation]
+    assert train and all(e.length == 40 and e.actor_id == 0 for e in train)  # stand-in: 40 steps of 0.01 s
+
+
+def test_evaluation_role_runs_fixed_seeds_and_sends_no_experience(peer):
+    peer.replay_up(True)
+    proc = peer.actor("--evaluate", "--actor-id", "9", "--eval-episodes", "4", "--seed", "100", "--eval-interval", "0")
+    try:
+        wait_for(lambda: len(peer.episodes) >= 4, what="one evaluation round")
+        peer.publish(encode(Weights(8, policy_state(build_policy(SPEC)), SPEC)))
+        wait_for(lambda: any(e.policy_version == 8 for e in peer.episodes) and len(peer.episodes) >= 8,
+                 what="a round for the new version")
+    finally:
+        stop(proc)
+    assert not peer.chunks
+    assert all(e.evaluation and e.actor_id == 9 for e in peer.episodes)
+    assert sorted(e.seed for e in peer.episodes[:4]) == [100, 101, 102, 103]
+    assert [e.policy_version for e in peer.episodes[:4]] == [3] * 4
+    # Deterministic: the same seeds give the same episodes under the same weights.
+    first = {e.seed: e.episode_return for e in peer.episodes[:4]}
+    assert len(first) == 4
