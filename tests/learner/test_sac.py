@@ -1,0 +1,149 @@
+"""The SAC update on small networks: what each part of the algorithm must do."""
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.learner.sac import Batch, SACConfig, TwinCritic, batch_from_numpy, init_state, update
+from l2r.policy import act, build_policy, default_spec, load_policy_state, policy_state
+
+OBS, ACT = 5, 3
+
+
+def small_config(**overrides) -> SACConfig:
+    base = dict(hidden=(32, 32), batch_size=64, precision="float32", initial_alpha=0.1)
+    return SACConfig(**(base | overrides))
+
+
+def random_batch(n: int = 64, seed: int = 0, reward: float | None = None, terminated: float = 0.0) -> Batch:
+    rng = np.random.default_rng(seed)
+    rewards = rng.normal(size=n) if reward is None else np.full(n, reward)
+    return batch_from_numpy(rng.normal(size=(n, OBS)), rng.random((n, ACT)), rewards, rng.normal(size=(n, OBS)),
+                            np.full(n, terminated))
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+@pytest.mark.parametrize("layer_norm", [True, False])
+def test_update_gives_finite_metrics_and_moves_every_network(precision, layer_norm):
+    config = small_config(precision=precision, layer_norm=layer_norm)
+    state = init_state(config, OBS, ACT, seed=0)
+    before = copy.deepcopy([state.actor.state_dict(), state.critic.state_dict(), state.target_critic.state_dict()])
+    metrics = update(state, random_batch(), config)
+    for name, value in metrics.items():
+        assert torch.isfinite(value).all(), name
+    assert metrics["priorities"].shape == (64,)
+    after = [state.actor.state_dict(), state.critic.state_dict(), state.target_critic.state_dict()]
+    for old, new in zip(before, after):
+        assert any(not torch.equal(old[k], new[k]) for k in old)
+    assert state.updates == 1
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_critic_learns_the_value_of_a_constant_reward(precision):
+    # Every step pays 1 and every episode ends at once: Q = reward_scale * 1 everywhere.
+    config = small_config(precision=precision, reward_scale=2.0, critic_lr=3e-3, tau=0.05)
+    state = init_state(config, OBS, ACT, seed=1)
+    for step in range(300):
+        metrics = update(state, random_batch(seed=step, reward=1.0, terminated=1.0), config)
+    assert float(metrics["q_mean"]) == pytest.approx(2.0, abs=0.1)
+
+
+def test_bootstrap_is_cut_by_termination_only():
+    config = small_config(gamma=0.5, reward_scale=1.0)
+    state = init_state(config, OBS, ACT, seed=2)
+    with torch.no_grad():  # a critic whose every output is 10: last layer zero, bias 10
+        for target in (state.critic, state.target_critic):
+            target.weights[-1].zero_()
+            target.biases[-1].fill_(10.0)
+    terminal = update(copy.deepcopy(state), random_batch(reward=1.0, terminated=1.0), config)
+    truncated = update(copy.deepcopy(state), random_batch(reward=1.0, terminated=0.0), config)
+    assert float(terminal["target_mean"]) == pytest.approx(1.0)
+    # 1 + 0.5 * (10 - alpha * log_prob): bootstraps from the next state.
+    expected = 1.0 + 0.5 * (10.0 + 0.1 * float(truncated["entropy"]))
+    assert float(truncated["target_mean"]) == pytest.approx(expected, rel=0.05)
+
+
+def test_target_critics_follow_by_polyak_averaging():
+    config = small_config(tau=0.25)
+    state = init_state(config, OBS, ACT, seed=3)
+    old_target = copy.deepcopy(state.target_critic.state_dict())
+    update(state, random_batch(), config)
+    for name, online in state.critic.state_dict().items():
+        expected = 0.75 * old_target[name] + 0.25 * online
+        torch.testing.assert_close(state.target_critic.state_dict()[name], expected)
+
+
+def test_alpha_rises_when_entropy_is_below_target_and_falls_above():
+    high = small_config(target_entropy=50.0)  # far above what 3 squashed dims can reach
+    low = small_config(target_entropy=-50.0)
+    for config, direction in ((high, 1), (low, -1)):
+        state = init_state(config, OBS, ACT, seed=4)
+        for step in range(5):
+            update(state, random_batch(seed=step), config)
+        assert direction * (float(state.log_alpha.detach()) - math.log(0.1)) > 0
+
+
+def test_fixed_alpha_stays():
+    config = small_config(autotune_alpha=False)
+    state = init_state(config, OBS, ACT, seed=5)
+    update(state, random_batch(), config)
+    assert float(state.log_alpha.detach().exp()) == pytest.approx(0.1)
+
+
+def test_priorities_are_absolute_td_errors_and_weights_scale_the_critic_loss():
+    config = small_config()
+    state = init_state(config, OBS, ACT, seed=6)
+    batch = random_batch()
+    torch.manual_seed(0)
+    uniform = update(copy.deepcopy(state), batch, config)
+    batch.weights = torch.full((64,), 0.5)
+    torch.manual_seed(0)
+    halved = update(copy.deepcopy(state), batch, config)
+    assert (uniform["priorities"] >= 0).all()
+    torch.testing.assert_close(halved["critic_loss"], uniform["critic_loss"] * 0.5)
+    # Zero weight on a sample removes it from the critic loss.
+    batch.weights = torch.zeros(64)
+    assert float(update(copy.deepcopy(state), batch, config)["critic_loss"]) == 0.0
+
+
+def test_twin_critic_equals_two_separate_networks():
+    critic = TwinCritic(OBS, ACT, (16, 16), "elu", layer_norm=True)
+    obs, action = torch.randn(7, OBS), torch.randn(7, ACT)
+    q = critic(obs, action)
+    for i in range(2):
+        x = torch.cat([obs, action], -1)
+        for layer in range(2):
+            x = x @ critic.weights[layer][i] + critic.biases[layer][i]
+            x = torch.nn.functional.layer_norm(x, (16,)) * critic.norm_scales[layer][i] + critic.norm_shifts[layer][i]
+            x = torch.nn.functional.elu(x)
+        torch.testing.assert_close(q[i], (x @ critic.weights[2][i] + critic.biases[2][i]).squeeze(-1))
+
+
+def test_policy_acts_in_unit_box_and_weights_round_trip():
+    spec = default_spec(OBS, ACT) | {"hidden": [16, 16]}
+    policy, copy_ = build_policy(spec), build_policy(spec)
+    obs = np.random.default_rng(0).normal(size=(10, OBS)) * 100
+    actions = act(policy, obs)
+    assert actions.shape == (10, ACT) and actions.dtype == np.float32
+    assert (actions >= 0).all() and (actions <= 1).all()
+    load_policy_state(copy_, policy_state(policy))
+    np.testing.assert_array_equal(act(policy, obs, deterministic=True), copy_.act(obs, deterministic=True))
+    bad = policy_state(policy)
+    bad["head.weight"] = bad["head.weight"][:, :3]
+    with pytest.raises(ValueError, match="head.weight"):
+        load_policy_state(copy_, bad)
+
+
+def test_log_prob_matches_the_change_of_variables():
+    policy = build_policy(default_spec(OBS, ACT) | {"hidden": [8]})
+    obs = torch.randn(4, OBS)
+    torch.manual_seed(0)
+    action, log_prob = policy.sample(obs)
+    mean, log_std = policy(obs)
+    pre_tanh = torch.atanh(action.clamp(-0.999999, 0.999999))
+    gauss = torch.distributions.Normal(mean, log_std.exp()).log_prob(pre_tanh)
+    expected = (gauss - torch.log1p(-action.pow(2) + 1e-12)).sum(-1)
+    torch.testing.assert_close(log_prob, expected, rtol=1e-3, atol=1e-3)
