@@ -95,7 +95,9 @@ class RunEnv(gym.Env):
         muscles = [_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in self.muscle_names]
         if len(muscles) != NUM_MUSCLES or muscles != list(range(m.nu)):
             raise ValueError(f"the model's actuators must be the {NUM_MUSCLES} muscles, in action order")
-        self._act_adr = m.actuator_actadr.copy()
+        adr = m.actuator_actadr
+        contiguous = np.array_equal(adr, np.arange(adr[0], adr[0] + NUM_MUSCLES))
+        self._act = slice(int(adr[0]), int(adr[0]) + NUM_MUSCLES) if contiguous else adr.copy()
         self._psoas = (self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT))
         self._max_force = m.actuator_gainprm[:, 2].copy()
 
@@ -234,32 +236,36 @@ class RunEnv(gym.Env):
     def _foot_forces(self) -> np.ndarray:
         """World-frame force (N) on each foot sphere from the current contacts, shape (4, 3).
 
-        Plain floats: a handful of contacts costs less this way than numpy's call overhead.
+        Plain floats: for a handful of contacts this costs a fraction of numpy's call overhead.
         """
         d = self._d
-        out = [[0.0, 0.0, 0.0] for _ in FOOT_SPHERES]
-        if d.ncon == 0:
-            return np.array(out)
-        con, efc, slot = d.contact, d.efc_force, self._foot_slot
-        for (g1, g2), adr, frame, mu in zip(
-            con.geom.tolist(), con.efc_address.tolist(), con.frame.tolist(), con.friction.tolist()
-        ):
-            s1, s2 = slot[g1], slot[g2]
-            if s1 < 0 and s2 < 0:
-                continue
-            if self._pyramidal:  # four pyramid edges -> normal and two friction components
-                f0, f1, f2, f3 = efc[adr : adr + 4].tolist()
-                n, t1, t2 = f0 + f1 + f2 + f3, (f0 - f1) * mu[0], (f2 - f3) * mu[1]
-            else:
-                n, t1, t2 = efc[adr : adr + 3].tolist()
-            # The frame's rows are the normal and the two tangents; this is geom1's force on geom2.
-            force = [n * frame[k] + t1 * frame[k + 3] + t2 * frame[k + 6] for k in range(3)]
-            for side, sign in ((s2, 1.0), (s1, -1.0)):
-                if side >= 0:
-                    total = out[side]
-                    for k in range(3):
-                        total[k] += sign * force[k]
-        return np.array(out)
+        out = [0.0] * (3 * len(FOOT_SPHERES))
+        if d.ncon:
+            con, efc, slot, pyramidal = d.contact, d.efc_force.tolist(), self._foot_slot, self._pyramidal
+            for (g1, g2), adr, fr, mu in zip(
+                con.geom.tolist(), con.efc_address.tolist(), con.frame.tolist(), con.friction.tolist()
+            ):
+                s1, s2 = slot[g1], slot[g2]
+                if s1 < 0 and s2 < 0:
+                    continue
+                if pyramidal:  # four pyramid edges -> normal and two friction components
+                    f0, f1, f2, f3 = efc[adr : adr + 4]
+                    n, t1, t2 = f0 + f1 + f2 + f3, (f0 - f1) * mu[0], (f2 - f3) * mu[1]
+                else:
+                    n, t1, t2 = efc[adr : adr + 3]
+                # Rows of the frame: normal, tangent 1, tangent 2. This is geom1's force on geom2.
+                fx = n * fr[0] + t1 * fr[3] + t2 * fr[6]
+                fy = n * fr[1] + t1 * fr[4] + t2 * fr[7]
+                fz = n * fr[2] + t1 * fr[5] + t2 * fr[8]
+                if s2 >= 0:
+                    out[3 * s2] += fx
+                    out[3 * s2 + 1] += fy
+                    out[3 * s2 + 2] += fz
+                if s1 >= 0:
+                    out[3 * s1] -= fx
+                    out[3 * s1 + 1] -= fy
+                    out[3 * s1 + 2] -= fz
+        return np.array(out).reshape(len(FOOT_SPHERES), 3)
 
     def _observe(self) -> np.ndarray:
         d = self._d
@@ -275,7 +281,7 @@ class RunEnv(gym.Env):
             "distance": self._x,
             "body_pos": d.xpos.copy(),
             "body_quat": d.xquat.copy(),
-            "muscle_activation": d.act[self._act_adr],
+            "muscle_activation": d.act[self._act].copy(),
             "muscle_length": d.actuator_length.copy(),
             "muscle_force": -d.actuator_force,
             "ligament_force": np.array(self._lig_force),
