@@ -1,0 +1,86 @@
+"""Checkpoints restore training exactly; broken files give clear errors; device choice."""
+
+import copy
+from unittest import mock
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.distributed import DeviceUnavailable, select_device
+from l2r.learner.sac import SACConfig, batch_from_numpy, init_state, update
+from l2r.policy import act
+
+OBS, ACT = 5, 3
+
+
+def batch(seed: int):
+    rng = np.random.default_rng(seed)
+    return batch_from_numpy(rng.normal(size=(32, OBS)), rng.random((32, ACT)), rng.normal(size=32),
+                            rng.normal(size=(32, OBS)), rng.random(32) < 0.1)
+
+
+def test_round_trip_is_exact_and_training_continues_identically(tmp_path):
+    config = SACConfig(hidden=(16, 16), precision="float32")
+    state = init_state(config, OBS, ACT, seed=0)
+    for step in range(3):
+        update(state, batch(step), config)
+    state.version, state.extra = 7, {"samples": 96}
+    save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
+
+    saved = load_checkpoint(tmp_path)  # the run directory is enough
+    assert (saved.version, saved.updates, saved.config) == (7, 3, config)
+    restored = saved.restore()
+    assert restored.extra == {"samples": 96}
+    original = copy.deepcopy(state)
+    torch.manual_seed(1)
+    metrics_a = update(original, batch(9), config)
+    torch.manual_seed(1)
+    metrics_b = update(restored, batch(9), config)
+    for name in metrics_a:  # same networks, optimizer moments, alpha: the same next step
+        torch.testing.assert_close(metrics_a[name], metrics_b[name], rtol=0, atol=0)
+    for key, value in original.actor.state_dict().items():
+        assert torch.equal(value, restored.actor.state_dict()[key])
+    obs = np.random.default_rng(2).normal(size=(4, OBS))
+    np.testing.assert_array_equal(act(saved.policy(), obs, True), act(state.actor.eval(), obs, True))
+
+
+def test_save_replaces_atomically_and_leaves_no_temporary_files(tmp_path):
+    config = SACConfig(hidden=(8,), precision="float32")
+    state = init_state(config, OBS, ACT)
+    path = checkpoint_path(tmp_path)
+    save_checkpoint(path, state, config, OBS, ACT)
+    state.version = 2
+    save_checkpoint(path, state, config, OBS, ACT)
+    assert load_checkpoint(path).version == 2
+    assert sorted(p.name for p in path.parent.iterdir()) == ["checkpoint.pt"]
+
+
+def test_unusable_checkpoints_raise_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="no learner checkpoint"):
+        load_checkpoint(tmp_path)
+    truncated = tmp_path / "cut.pt"
+    config = SACConfig(hidden=(8,), precision="float32")
+    save_checkpoint(truncated, init_state(config, OBS, ACT), config, OBS, ACT)
+    truncated.write_bytes(truncated.read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match="cannot read"):
+        load_checkpoint(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"hello": 1}, foreign)
+    with pytest.raises(CheckpointError, match="not an l2r learner checkpoint"):
+        load_checkpoint(foreign)
+
+
+def test_device_selection():
+    assert select_device("cpu") == torch.device("cpu")
+    with mock.patch("torch.cuda.is_available", return_value=False):
+        assert select_device("auto") == torch.device("cpu")
+        with pytest.raises(DeviceUnavailable, match="no CUDA"):
+            select_device("cuda")
+    with mock.patch("torch.cuda.is_available", return_value=True), \
+            mock.patch("torch.cuda.device_count", return_value=2):
+        assert select_device("auto") == torch.device("cuda", 0)
+        assert select_device("cuda", local_rank=3) == torch.device("cuda", 1)
+    with pytest.raises(ValueError):
+        select_device("tpu")
