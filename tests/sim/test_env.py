@@ -6,6 +6,7 @@ import warnings
 from pathlib import Path
 
 import gymnasium
+from gymnasium.utils.env_checker import check_env
 import mujoco
 import numpy as np
 import pytest
@@ -370,3 +371,9 @@ def test_gymnasium_make():
     assert obs.shape == (41,)
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert np.isfinite(reward) and "contact_force" in info
+
+
+def test_passes_gymnasiums_env_checker():
+    warnings.simplefilter("error")
+    warnings.filterwarnings("ignore", message=".*infinity")  # unbounded observations are intended
+    check_env(RunEnv(difficulty=2), skip_render_check=True)
