@@ -37,6 +37,7 @@ when the disk falls behind, the episode being logged is dropped and counted
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
@@ -103,7 +104,8 @@ class EpisodeLogger:
         self.stats = {"episodes_written": 0, "episodes_skipped": 0, "files_removed": 0, "write_errors": 0}
         self._layouts: dict[tuple, StepLayout] = {}
         self._transforms = TransformEncoder(self.body.bodies)
-        self._pelvis = self.body.bodies.index("pelvis") + 1 if "pelvis" in self.body.bodies else None
+        self.pelvis = self.body.bodies.index("pelvis") + 1  # row of the pelvis in info["body_pos"]
+        self.body_json = self.body.to_json()
         self._training_episodes = 0
         self._episodes = 0
         self._best_return = -np.inf
@@ -256,14 +258,13 @@ class Recorder:
         c["action"][i] = action
         c["reward"][i] = reward
         c["time"][i] = (self._step + 1) * self.logger.step_seconds
-        c["distance"][i] = info.get("distance", np.nan)
+        c["distance"][i] = info["distance"]
         for name in self._info_vectors:
-            c[name][i] = np.ravel(info[name])
+            c[name][i] = info[name].reshape(-1)
         pos = info["body_pos"]
         self._pos[i] = pos[1:]
         self._quat[i] = info["body_quat"][1:]
-        pelvis = self.logger._pelvis
-        c["pelvis_height"][i] = pos[pelvis, 1] if pelvis is not None else np.nan
+        c["pelvis_height"][i] = pos[self.logger.pelvis, 1]
         self._step += 1
         self._row += 1
         if self._row == self.logger.block_steps:
@@ -319,8 +320,11 @@ class Recorder:
     def _send(self, item: tuple) -> None:
         if not self.dropped and not self.logger._submit(item):
             self.dropped = True
-            self.logger.stats["episodes_skipped"] += 1
-            log.warning("episode log %s: writer behind, episode skipped", self.path.name)
+            stats = self.logger.stats
+            stats["episodes_skipped"] += 1
+            if stats["episodes_skipped"] in (1, 10, 100) or stats["episodes_skipped"] % 1000 == 0:
+                log.warning("episode logs: the writer is behind (slow disk?); %d episode(s) skipped so far",
+                            stats["episodes_skipped"])
 
 
 class _EpisodeFile:
@@ -336,7 +340,7 @@ class _EpisodeFile:
         obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]
         t0 = recorder.start_ns
         w.add_metadata(schema.METADATA_EPISODE, _episode_metadata(logger, recorder))
-        w.add_metadata("body", {"json": body.to_json()})
+        w.add_metadata("body", {"json": logger.body_json})
 
         string = w.register_schema(schema.STRING_SCHEMA_NAME, "ros2msg", schema.STRING_SCHEMA)
         robot = w.register_channel(schema.TOPIC_ROBOT, "cdr", string)
@@ -375,9 +379,13 @@ class _EpisodeFile:
         return w.register_channel(schema.TOPIC_STEP, "protobuf", sid, {k: ",".join(v) for k, v in names.items()})
 
 
+@functools.cache
+def _descriptor_set(message_class: type) -> bytes:
+    return build_file_descriptor_set(message_class).SerializeToString()
+
+
 def _register(writer: Writer, message_class: type) -> int:
-    fds = build_file_descriptor_set(message_class).SerializeToString()
-    return writer.register_schema(message_class.DESCRIPTOR.full_name, "protobuf", fds)
+    return writer.register_schema(message_class.DESCRIPTOR.full_name, "protobuf", _descriptor_set(message_class))
 
 
 def _episode_metadata(logger: EpisodeLogger, recorder: Recorder) -> dict[str, str]:
