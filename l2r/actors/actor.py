@@ -157,10 +157,14 @@ class Actor:
 
     # -- actions -------------------------------------------------------------------------
 
+    @property
+    def acting_randomly(self) -> bool:
+        return self.random_phase or self.weights.policy is None
+
     def actions(self) -> np.ndarray:
         obs = np.stack([s.obs for s in self.slots])
         act_dim = self.slots[0].env.action_space.shape[0]
-        if self.random_phase or self.weights.policy is None:
+        if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32)
         actions = act(self.weights.policy, obs, deterministic=self.config.evaluate)
         bad = ~np.isfinite(actions).all(axis=1)
@@ -202,7 +206,7 @@ class Actor:
         if self.episode_logger is not None:
             slot.recorder = self.episode_logger.begin_episode({
                 "seed": slot.seed, "difficulty": self.config.difficulty, "evaluation": False,
-                "policy_version": self.weights.version if not self.random_phase else -1,
+                "policy_version": -1 if self.acting_randomly else self.weights.version,
                 "obstacles": getattr(slot.env.unwrapped, "obstacles", [])})
 
     def record_evaluation(self, env: gymnasium.Env, seed: int):
@@ -214,7 +218,7 @@ class Actor:
         summary = EpisodeSummary(
             actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
             distance=final_x - slot.start_x, length=slot.length,
-            policy_version=max(self.weights.version, 0) if not self.random_phase else -1,
+            policy_version=-1 if self.acting_randomly else self.weights.version,
             difficulty=self.config.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
             time=time.time())
         self.summaries.put(encode(summary))
