@@ -153,4 +153,4 @@ def load_policy_state(policy: Policy, arrays: Mapping[str, np.ndarray]) -> None:
             raise ValueError(f"policy weight {name!r} holds NaN or infinite values")
     with torch.no_grad():
         for name, target in own.items():
-            target.copy_(torch.as_tensor(np.asarray(arrays[name]), dtype=target.dtype))
+            target.copy_(torch.from_numpy(np.array(arrays[name], dtype=np.float32)))

@@ -215,7 +215,8 @@ def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, ne
     """A Batch from replay arrays; actions arrive as [0, 1] excitations."""
 
     def tensor(a: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(a, dtype=np.float32)).to(device, non_blocking=True)
+        # Decoded messages are read-only views; torch wants memory it may write.
+        return torch.from_numpy(np.require(a, np.float32, "W")).to(device, non_blocking=True)
 
     return Batch(tensor(obs), to_tanh_space(tensor(action)), tensor(reward).reshape(-1),
                  tensor(next_obs), tensor(terminated).reshape(-1),

@@ -1,13 +1,118 @@
-"""Learner tests run torch on one thread: on a busy two-core machine, two spinning torch
-threads per test process slow small networks down by an order of magnitude."""
+"""Shared parts of the learner tests: one torch thread, real daemon processes, a replay server
+on loopback with an actor-like feeder."""
 
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
 import torch
+import zenoh
+
+from l2r.protocol import EXPERIENCE_QOS, ExperienceChunk, Keys, encode, session_config
+from l2r.protocol.session import wait_alive
 
 
 @pytest.fixture(autouse=True)
 def one_torch_thread():
+    """On a busy two-core machine two spinning torch threads slow small networks tenfold."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+# Small networks and one thread, so a daemon test trains hundreds of updates in seconds.
+SMALL_LEARNER = ["--threads", "1", "--hidden", "32,32", "--batch-size", "64", "--update-repeat", "2",
+                 "--metrics-interval", "1", "--log-level", "INFO"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Daemon:
+    """A real daemon process (`python -m MODULE ...`) logging to a file."""
+
+    def __init__(self, module: str, args: list[str], log_path: Path):
+        self.log_path = log_path
+        self._log = open(log_path, "ab")
+        self.proc = subprocess.Popen([sys.executable, "-m", module, *args], stdout=self._log,
+                                     stderr=subprocess.STDOUT)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        code = self.proc.wait(timeout)
+        self._log.close()
+        return code
+
+
+class Feeder:
+    """An actor-like publisher: random 41/18 transitions into replay, in chunks, until stopped."""
+
+    def __init__(self, session: zenoh.Session, run: str, chunk: int = 50, period: float = 0.02):
+        self._publisher = session.declare_publisher(Keys(run).experience(0), **EXPERIENCE_QOS.publisher())
+        self._stop = threading.Event()
+        self._chunk, self._period = chunk, period
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        rng, seq, epoch = np.random.default_rng(0), 0, time.time_ns()
+        while not self._stop.is_set():
+            t = self._chunk
+            chunk = ExperienceChunk(
+                actor_id=0, env_id=0, epoch=epoch, seq=seq, policy_version=0,
+                obs=rng.normal(size=(t + 1, 41)).astype(np.float32),
+                actions=rng.random((t, 18), dtype=np.float32), rewards=rng.normal(size=t).astype(np.float32),
+                terminated=np.zeros(t, bool), truncated=np.zeros(t, bool),
+                final_obs=np.zeros((0, 41), np.float32))
+            self._publisher.put(encode(chunk))
+            seq += 1
+            self._stop.wait(self._period)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+@pytest.fixture
+def network(tmp_path):
+    """A replay server on a free loopback port, a test session connected to it, and cleanup."""
+    run = f"test-{uuid.uuid4().hex[:10]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    started: list[Daemon] = []
+
+    def start(module: str, *args: str, name: str) -> Daemon:
+        daemon = Daemon(module, [*args], tmp_path / f"{name}.log")
+        started.append(daemon)
+        return daemon
+
+    def start_replay() -> Daemon:
+        return start("l2r.replay", "--run", run, "--listen", endpoint, "--capacity", "20000", "--min-size", "200",
+                     "--stats-interval", "5", name=f"replay{len(started)}")
+
+    replay = start_replay()
+    session = zenoh.open(session_config(connect=[endpoint]))
+    assert wait_alive(session, Keys(run).alive("replay", 0), timeout=30), replay.log()
+
+    yield SimpleNamespace(run=run, endpoint=endpoint, session=session, replay=replay, start=start,
+                          start_replay=start_replay)
+    session.close()
+    for daemon in started:
+        if daemon.proc.poll() is None:
+            daemon.proc.kill()
+            daemon.proc.wait()

@@ -1,0 +1,109 @@
+"""The real l2r-learner process against a real l2r-replay process over loopback Zenoh."""
+
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from l2r.learner.checkpoint import load_checkpoint
+from l2r.policy import act, build_policy, load_policy_state
+from l2r.protocol import Keys, Stats, Weights, decode
+
+from tests.learner.conftest import SMALL_LEARNER, Feeder
+
+
+class WeightsWatcher:
+    """Collects every published weights version, and checks the weights build a policy."""
+
+    def __init__(self, session, run: str):
+        self.versions: list[int] = []
+        self.metrics: list[dict] = []
+        self.last: Weights | None = None
+        self._lock = threading.Lock()
+        keys = Keys(run)
+        self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
+                      session.declare_subscriber(keys.all_metrics, self._on_metrics)]
+
+    def _on_weights(self, sample) -> None:
+        weights = decode(sample.payload, Weights)
+        with self._lock:
+            self.versions.append(weights.version)
+            self.last = weights
+
+    def _on_metrics(self, sample) -> None:
+        self.metrics.append(decode(sample.payload, Stats).values)
+
+    def wait(self, predicate, timeout: float, what: str, daemon) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if predicate(list(self.versions)):
+                    return
+            assert daemon.proc.poll() is None, f"learner exited early:\n{daemon.log()}"
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}; versions {self.versions}\n{daemon.log()}")
+
+
+def learner_args(network, run_dir, *extra: str) -> list[str]:
+    return ["--run", network.run, "--connect", network.endpoint, "--run-dir", str(run_dir), "--device", "cpu",
+            "--publish-every", "20", *SMALL_LEARNER, *extra]
+
+
+@pytest.mark.slow
+def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp_path):
+    run_dir = tmp_path / "run"
+    feeder = Feeder(network.session, network.run)
+    watcher = WeightsWatcher(network.session, network.run)
+    try:
+        first = network.start("l2r.learner", *learner_args(network, run_dir, "--checkpoint-interval", "0.5"),
+                              name="learner1")
+        # Hundreds of updates: 20 per version, so version 15 means about 300 updates.
+        watcher.wait(lambda v: v and v[-1] >= 15 and (run_dir / "learner/checkpoint.pt").exists(),
+                     90, "version 15 and a checkpoint", first)
+        first.stop(signal.SIGKILL)  # no chance to checkpoint on exit: the periodic one must do
+        versions_before = list(watcher.versions)
+        assert versions_before == sorted(set(versions_before)), "versions must increase"
+        saved = load_checkpoint(run_dir)
+        assert saved.updates >= 200 and 1 <= saved.version <= versions_before[-1]
+        assert any(m["updates_per_s"] > 0 and np.isfinite(m["critic_loss"]) for m in watcher.metrics)
+
+        second = network.start("l2r.learner", *learner_args(network, run_dir, "--resume",
+                                                             "--checkpoint-interval", "60"), name="learner2")
+        watcher.wait(lambda v: len(v) >= len(versions_before) + 3, 60, "versions after resuming", second)
+        resumed = watcher.versions[len(versions_before):]
+        assert resumed[0] == saved.version + 1 and resumed == sorted(set(resumed)), resumed
+
+        # A joining actor asks for the latest weights and can act with them.
+        replies = [r.ok for r in network.session.get(Keys(network.run).weights_query, timeout=5) if r.ok]
+        latest = decode(replies[0].payload, Weights)
+        assert latest.version >= resumed[0]
+        policy = build_policy(latest.spec)
+        load_policy_state(policy, latest.params)
+        actions = act(policy, np.zeros((2, 41), np.float32))
+        assert actions.shape == (2, 18) and ((0 <= actions) & (actions <= 1)).all()
+
+        assert second.stop(signal.SIGTERM) == 0, second.log()
+        final = load_checkpoint(run_dir)  # written on SIGTERM, after the last publication
+        assert final.version == watcher.versions[-1] and final.updates > saved.updates
+    finally:
+        feeder.stop()
+
+
+@pytest.mark.slow
+def test_learner_waits_through_a_replay_restart(network, tmp_path):
+    feeder = Feeder(network.session, network.run)
+    watcher = WeightsWatcher(network.session, network.run)
+    try:
+        learner = network.start("l2r.learner", *learner_args(network, tmp_path / "run"), name="learner")
+        watcher.wait(lambda v: len(v) >= 3, 60, "training before the restart", learner)
+        assert network.replay.stop(signal.SIGTERM) == 0
+        time.sleep(1.0)
+        assert learner.proc.poll() is None, learner.log()
+        network.start_replay()
+        seen = len(watcher.versions)
+        watcher.wait(lambda v: len(v) >= seen + 3, 60, "training after the restart", learner)
+        assert learner.stop() == 0
+    finally:
+        feeder.stop()
