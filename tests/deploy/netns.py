@@ -90,7 +90,9 @@ class Hosts:
 
     def command(self, host: str, cmd: list[str], mounts: dict[str, Path], hostname: str, hosts_file: Path) -> list[str]:
         """``cmd`` run on ``host``: its network, its hostname, ``mounts`` (container path -> host path)."""
-        setup = [f"hostname {shlex.quote(hostname)}", "mount -t tmpfs l2r /srv",
+        # A private /dev/shm too: Zenoh hands payloads over in shared memory when both ends see the
+        # same one, which would bypass the network between these hosts (containers have their own).
+        setup = [f"hostname {shlex.quote(hostname)}", "mount -t tmpfs l2r /srv", "mount -t tmpfs shm /dev/shm",
                  f"mount --bind {shlex.quote(str(hosts_file))} /etc/hosts"]
         for target, source in mounts.items():
             if not target.startswith("/srv/"):

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 import time
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -112,3 +114,148 @@ def test_hosts_talk_only_through_the_router(cluster):
     # The router saw C connect from C's own address, authenticated as an actor.
     assert wait_for(lambda: f"{cluster.hosts.addresses['c']}" in router_log.read_text())
     assert "as actor" in router_log.read_text()
+
+
+OUTAGE_S = 20.0
+LEARNER_TEST_SIZE = ("--batch-size", "64", "--hidden", "64,64", "--update-repeat", "1", "--publish-every", "10",
+                     "--threads", "1", "--metrics-interval", "1", "--checkpoint-interval", "10")
+ACTOR_TEST_SIZE = ("--num-envs", "2", "--random-steps", "300", "--chunk-size", "32", "--chunk-delay", "0.5",
+                   "--torch-threads", "1")
+
+
+class Watch:
+    """The run's stats, metrics and version beacons as the watch probe on host B saw them."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def records(self) -> list[dict]:
+        return read_lines(self.path)
+
+    def replay(self) -> list[dict]:
+        return [r["values"] | {"t": r["t"]} for r in self.records() if "/stats/replay/" in r.get("key", "")]
+
+    def actors(self) -> dict[str, list[dict]]:
+        out: dict[str, list[dict]] = {}
+        for r in self.records():
+            if "/stats/actor/" in r.get("key", ""):
+                out.setdefault(r["key"].rsplit("/", 1)[1], []).append(r["values"] | {"t": r["t"]})
+        return out
+
+    def versions(self) -> list[tuple[float, int]]:
+        return [(r["t"], r["version"]) for r in self.records() if "version" in r]
+
+    def stored(self, actor: str) -> float:
+        """Transitions of ``actor`` the replay server holds, by its latest stats."""
+        replay = self.replay()
+        return replay[-1].get(f"actor.{actor}.transitions", 0) if replay else 0
+
+
+def logged_at(log: Path, text: str) -> list[float]:
+    """When a daemon logged lines containing ``text`` (its log's local timestamps, as epoch seconds)."""
+    stamps = []
+    for line in log.read_text().splitlines():
+        if text in line:
+            stamps.append(datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp())
+    return stamps
+
+
+def tx_bytes(hosts: Hosts, host: str) -> int:
+    out = subprocess.run(["ip", "-n", hosts.ns(host), "-s", "-j", "link", "show", "eth0"],
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out)[0]["stats64"]["tx"]["bytes"]
+
+
+@pytest.mark.slow
+def test_training_across_hosts_survives_losing_the_actors_link(cluster):
+    hosts = cluster.hosts
+    router, router_log = cluster.start("router", "a")
+    assert wait_for(lambda: cluster.healthy("router", "a"), timeout=20), router_log.read_text()
+    watch = Watch(cluster.tmp / "watch.jsonl")
+    cluster.probe("b", "replay", "watch", "--run", cluster.run, "--out", str(watch.path), log_name="watch")
+
+    replay, replay_log = cluster.start("replay", "b", ("--capacity", "200000", "--min-size", "256",
+                                                       "--stats-interval", "1"))
+    assert wait_for(lambda: cluster.healthy("replay", "b"), timeout=30), replay_log.read_text()[-3000:]
+    learner, learner_log = cluster.start("learner", "b", LEARNER_TEST_SIZE)
+    actor_logs = [cluster.start("actor", "c", ACTOR_TEST_SIZE, hostname=f"actor{i}-{uuid.uuid4().hex[:6]}")[1]
+                  for i in range(2)]
+
+    # Training proceeds across the hosts: both actors' experience is stored, the learner publishes.
+    def training() -> bool:
+        versions = watch.versions()
+        return len(watch.actors()) == 2 and all(watch.stored(a) > 0 for a in watch.actors()) \
+            and bool(versions) and versions[-1][1] >= 2
+    assert wait_for(training, timeout=60, interval=0.5), (learner_log.read_text()[-3000:], watch.records()[-5:])
+    actors = sorted(watch.actors())
+    # Bandwidth: bytes host C sent per transition the replay server stored, over a few seconds.
+    start = (time.time(), tx_bytes(hosts, "c"), watch.replay()[-1]["inserted"])
+    time.sleep(5)
+    end = (time.time(), tx_bytes(hosts, "c"), watch.replay()[-1]["inserted"])
+    transitions_per_s = (end[2] - start[2]) / (end[0] - start[0])
+    c_tx_rate = (end[1] - start[1]) / (end[0] - start[0])
+    steps_rate = sum(watch.actors()[a][-1]["env_steps_per_s"] for a in actors)
+
+    # Pull the actors' cable for OUTAGE_S.
+    before = {"version": watch.versions()[-1][1], "replay": watch.replay()[-1]}
+    hosts.link("c", up=False)
+    t_down = time.time()
+    time.sleep(OUTAGE_S)
+    during = {"version": watch.versions()[-1][1], "replay": watch.replay()[-1]}
+    hosts.link("c", up=True)
+    t_up = time.time()
+
+    # Each actor's experience reaches the replay server again.
+    stored_at_up = {a: watch.stored(a) for a in actors}
+    assert wait_for(lambda: all(watch.stored(a) > stored_at_up[a] for a in actors), timeout=40, interval=0.2), \
+        watch.replay()[-1]
+    recovered = {a: next(r["t"] for r in watch.replay() if r["t"] > t_up
+                         and r.get(f"actor.{a}.transitions", 0) > stored_at_up[a]) - t_up for a in actors}
+    # ... and the actors follow the learner's weights again.
+    version_at_up = watch.versions()[-1][1]
+    assert wait_for(lambda: all(watch.actors()[a][-1]["policy_version"] >= version_at_up for a in actors),
+                    timeout=30, interval=0.5)
+    time.sleep(2)
+    after = {"version": watch.versions()[-1][1], "replay": watch.replay()[-1]}
+
+    # The learner kept its version count: never reset, still going up (it trains on B throughout).
+    versions = [v for _, v in watch.versions()]
+    assert versions == sorted(versions) and during["version"] >= before["version"] and after["version"] > before["version"]
+    # The replay server lost nothing it had stored: its size and every actor's count only grew.
+    replay_stats = watch.replay()
+    for field in ["size", "inserted"] + [f"actor.{a}.transitions" for a in actors]:
+        series = [r.get(field, 0) for r in replay_stats]
+        assert series == sorted(series), field
+    assert before["replay"]["size"] <= during["replay"]["size"] <= after["replay"]["size"]
+    # What the actors sent and the replay server never got: chunks missing from their sequences.
+    lost_chunks = after["replay"]["gaps"] - before["replay"]["gaps"]
+    # When the actors noticed: the replay server's liveliness token vanished for them (their own logs).
+    first_wait = min((t for log in actor_logs for t in logged_at(log, "no replay server alive") if t > t_down),
+                     default=None)
+    chunks_sent = sum(watch.actors()[a][-1]["chunks_sent"] for a in actors)
+
+    figures = {
+        "outage_s": OUTAGE_S,
+        "recover_s_per_actor": {a: round(s, 2) for a, s in recovered.items()},
+        "lost_chunks": lost_chunks,
+        "lost_transitions_at_most": lost_chunks * 32,
+        "chunks_sent_total": chunks_sent,
+        "replay_size_before_during_after": [before["replay"]["size"], during["replay"]["size"], after["replay"]["size"]],
+        "learner_version_before_during_after": [before["version"], during["version"], after["version"]],
+        "actors": len(actors),
+        "env_steps_per_s_all_actors": round(steps_rate, 1),
+        "stored_transitions_per_s_all_actors": round(transitions_per_s, 1),
+        "actor_host_tx_bytes_per_s": round(c_tx_rate),
+        "actor_host_tx_bytes_per_stored_transition": round(c_tx_rate / max(transitions_per_s, 1e-9), 1),
+        "link_down_up_at": [datetime.fromtimestamp(t).strftime("%H:%M:%S.%f")[:-3] for t in (t_down, t_up)],
+        "actors_waited_for_replay_after_s": round(first_wait - t_down, 2) if first_wait else None,
+    }
+    print("MULTIHOST_FIGURES " + json.dumps(figures))
+    (cluster.tmp / "figures.json").write_text(json.dumps(figures, indent=1))
+
+    # Nothing shared but the network: each host's run directory holds only its own services' files.
+    hosts.close()
+    assert list((cluster.tmp / "b" / "run").glob("replay/*")), "no replay snapshot on host B"
+    assert list((cluster.tmp / "b" / "run").glob("learner/*")), "no learner checkpoint on host B"
+    assert list((cluster.tmp / "c" / "run").glob("episodes/**/*.mcap")), "no episode logs on host C"
+    assert not list((cluster.tmp / "c" / "run").glob("replay*")) and not list((cluster.tmp / "b" / "run").glob("episodes*"))
