@@ -101,7 +101,7 @@ class EpisodeLogger:
         self.block_steps, self.chunk_bytes = int(block_steps), int(chunk_bytes)
         self.body = body or BodyModel.from_model(load_model())
         self.model_version = _model_version(MODEL_PATH)
-        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "files_removed": 0, "write_errors": 0}
+        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0}
         self._layouts: dict[tuple, StepLayout] = {}
         self._transforms = TransformEncoder(self.body.bodies)
         self.pelvis = self.body.bodies.index("pelvis") + 1  # row of the pelvis in info["body_pos"]
@@ -251,6 +251,17 @@ class Recorder:
     def log_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
         if self.dropped or self.ended:
             return
+        try:
+            self._copy_step(obs, action, reward, info)
+        except (KeyError, ValueError, TypeError, IndexError, AttributeError) as e:
+            # A step the format cannot hold (a missing info key, a changed shape) must not stop
+            # the actor: the episode goes unlogged and the reason is logged.
+            self.dropped = True
+            self.logger.stats["episodes_failed"] += 1
+            if self.logger.stats["episodes_failed"] <= 3:
+                log.error("episode log %s: step %d cannot be logged (%r); episode not logged", self.path.name, self._step, e)
+
+    def _copy_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
         if self._block is None:
             self._new_block(obs, action, info)
         i, c = self._row, self._columns

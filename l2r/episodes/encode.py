@@ -116,34 +116,34 @@ class TransformEncoder:
         return buf.tobytes()
 
     def _build(self, ts_len: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The message for timestamps of ``ts_len`` bytes, with the offsets of the timestamps
+        and of the pose doubles (x y z qx qy qz qw per body) to fill in."""
         out = bytearray()
         ts_at: list[int] = []
         values_at: list[int] = []
         frames = [(WORLD_FRAME, GROUND_FRAME, self.GROUND_IN_WORLD)]
         frames += [(GROUND_FRAME, body, None) for body in self.bodies]
         for parent, child, fixed in frames:
-            vec3 = b"".join(_tag(i, _FIXED64) + bytes(8) for i in (1, 2, 3))
-            quat = b"".join(_tag(i, _FIXED64) + bytes(8) for i in (1, 2, 3, 4))
             head = _tag(1, _LEN) + varint(ts_len)
-            body = (
-                head + bytes(ts_len)
-                + _len_field(2, parent.encode()) + _len_field(3, child.encode())
-                + _len_field(4, vec3) + _len_field(5, quat)
-            )  # fmt: skip
-            start = len(out) + len(_tag(1, _LEN) + varint(len(body)))
-            out += _tag(1, _LEN) + varint(len(body)) + body
-            ts_at.append(start + len(head))
-            # Each double sits after its one-byte tag; the vector and quaternion end the entry.
-            end = start + len(body)
-            offsets = [end - 36 - 2 - 27 + 1 + 9 * i for i in range(3)] + [end - 36 + 1 + 9 * i for i in range(4)]
+            names = _len_field(2, parent.encode()) + _len_field(3, child.encode())
+            vec3_head, quat_head = _tag(4, _LEN) + varint(27), _tag(5, _LEN) + varint(36)
+            entry_len = len(head) + ts_len + len(names) + len(vec3_head) + 27 + len(quat_head) + 36
+            out += _tag(1, _LEN) + varint(entry_len) + head
+            ts_at.append(len(out))
+            out += bytes(ts_len) + names + vec3_head
+            vec3_at = len(out)
+            out += b"".join(_tag(i, _FIXED64) + bytes(8) for i in (1, 2, 3)) + quat_head
+            quat_at = len(out)
+            out += b"".join(_tag(i, _FIXED64) + bytes(8) for i in (1, 2, 3, 4))
+            # each double follows its one-byte tag
+            offsets = [vec3_at + 1 + 9 * i for i in range(3)] + [quat_at + 1 + 9 * i for i in range(4)]
             if fixed is None:
                 values_at += offsets
             else:
                 for at, value in zip(offsets, fixed):
                     out[at : at + 8] = struct.pack("<d", value)
         template = np.frombuffer(bytes(out), np.uint8).copy()
-        ts_index = (np.array(ts_at)[:, None] + np.arange(ts_len)).reshape(-1)
-        ts_index = ts_index.reshape(len(ts_at), ts_len)
+        ts_index = np.array(ts_at)[:, None] + np.arange(ts_len)
         values_index = (np.array(values_at)[:, None] + np.arange(8)).reshape(-1)
         self._templates[ts_len] = (template, ts_index, values_index)
         return self._templates[ts_len]
