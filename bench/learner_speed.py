@@ -1,0 +1,128 @@
+"""SAC gradient steps per second: l2r's update against Stable-Baselines3's SAC.train().
+
+Same shapes (41 observations, 18 actions, 3 hidden layers of 512), same device, same torch
+threads, one process, measured in interleaved rounds so a busy machine slows both alike.
+Every gradient step runs on a freshly sampled batch, sampling included, on both sides.
+
+Prints one JSON line. Figures:
+  updates_per_s_bB            l2r as it trains by default (ELU + LayerNorm, precision 'auto')
+  fp32_updates_per_s_bB       the same network with float32 matmuls
+  same_net_updates_per_s_bB   SB3's network exactly (ReLU, no LayerNorm), precision 'auto'
+  baseline_updates_per_s_bB   SB3 2.x SAC.train(), net_arch 3 x 512, float32
+  *ratio_bB                   each of the above over the baseline
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import numpy as np
+import torch
+
+OBS_DIM, ACT_DIM, HIDDEN, BUFFER = 41, 18, (512, 512, 512), 20_000
+
+
+class L2RStepper:
+    """l2r's update on batches sampled from a numpy buffer (what the replay reply carries)."""
+
+    def __init__(self, batch_size: int, **config):
+        from l2r.learner.sac import SACConfig, init_state
+
+        self.config = SACConfig(hidden=HIDDEN, batch_size=batch_size, update_repeat=1, **config)
+        self.state = init_state(self.config, OBS_DIM, ACT_DIM, "cpu", seed=0)
+        rng = np.random.default_rng(0)
+        self.data = {"obs": rng.normal(size=(BUFFER, OBS_DIM)).astype(np.float32),
+                     "action": rng.random((BUFFER, ACT_DIM), dtype=np.float32),
+                     "reward": rng.normal(size=BUFFER).astype(np.float32),
+                     "next_obs": rng.normal(size=(BUFFER, OBS_DIM)).astype(np.float32),
+                     "terminated": (rng.random(BUFFER) < 0.01)}
+        self.rng, self.batch_size = rng, batch_size
+
+    def steps(self, n: int) -> None:
+        from l2r.learner.sac import batch_from_numpy, update
+
+        for _ in range(n):
+            i = self.rng.integers(0, BUFFER, self.batch_size)
+            d = self.data
+            batch = batch_from_numpy(d["obs"][i], d["action"][i], d["reward"][i], d["next_obs"][i],
+                                     d["terminated"][i])
+            metrics = update(self.state, batch, self.config)
+        float(metrics["critic_loss"])  # wait for the last step (a no-op on CPU, a sync on CUDA)
+
+
+class SB3Stepper:
+    """Stable-Baselines3 SAC with a replay buffer of random data of the same shapes."""
+
+    def __init__(self, batch_size: int):
+        import gymnasium as gym
+        from stable_baselines3 import SAC
+        from stable_baselines3.common.logger import configure
+
+        class Shapes(gym.Env):
+            observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+            action_space = gym.spaces.Box(0.0, 1.0, (ACT_DIM,), np.float32)
+
+        self.model = SAC("MlpPolicy", Shapes(), buffer_size=BUFFER, batch_size=batch_size, learning_starts=0,
+                         policy_kwargs={"net_arch": list(HIDDEN)}, device="cpu", seed=0)
+        self.model.set_logger(configure(None, []))
+        buffer, rng = self.model.replay_buffer, np.random.default_rng(0)
+        buffer.observations[:] = rng.normal(size=buffer.observations.shape)
+        buffer.next_observations[:] = rng.normal(size=buffer.next_observations.shape)
+        buffer.actions[:] = rng.uniform(-1, 1, size=buffer.actions.shape)
+        buffer.rewards[:] = rng.normal(size=buffer.rewards.shape)
+        buffer.dones[:] = rng.random(buffer.dones.shape) < 0.01
+        buffer.full, buffer.pos = True, 0
+        self.batch_size = batch_size
+
+    def steps(self, n: int) -> None:
+        self.model.train(gradient_steps=n, batch_size=self.batch_size)
+
+
+def rate(stepper, n: int) -> float:
+    started = time.perf_counter()
+    stepper.steps(n)
+    return n / (time.perf_counter() - started)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--threads", type=int, default=2, help="torch threads for both sides (default: %(default)s)")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds; the median counts (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=12, help="gradient steps per round at batch 640, more at 256 (default: %(default)s)")
+    p.add_argument("--quick", action="store_true", help="one round of few steps (a smoke run)")
+    args = p.parse_args()
+    if args.quick:
+        args.rounds, args.steps = 1, 4
+    torch.set_num_threads(args.threads)
+    started = time.perf_counter()
+    result: dict = {"bench": "learner_speed", "device": "cpu", "threads": args.threads, "obs_dim": OBS_DIM,
+                    "act_dim": ACT_DIM, "hidden": list(HIDDEN)}
+    for batch_size in (256, 640):
+        steppers = {
+            "": L2RStepper(batch_size),
+            "fp32_": L2RStepper(batch_size, precision="float32"),
+            "same_net_": L2RStepper(batch_size, activation="relu", layer_norm=False),
+            "baseline_": SB3Stepper(batch_size),
+        }
+        n = args.steps * (2 if batch_size == 256 else 1)
+        for stepper in steppers.values():
+            stepper.steps(2)  # warm-up: allocator, lazy imports, kernels
+        rates: dict[str, list[float]] = {name: [] for name in steppers}
+        for _ in range(args.rounds):
+            for name, stepper in steppers.items():
+                rates[name].append(rate(stepper, n))
+        for name, values in rates.items():
+            result[f"{name}updates_per_s_b{batch_size}"] = round(statistics.median(values), 2)
+        baseline = result[f"baseline_updates_per_s_b{batch_size}"]
+        for name in ("", "fp32_", "same_net_"):
+            result[f"{name}ratio_b{batch_size}"] = round(result[f"{name}updates_per_s_b{batch_size}"] / baseline, 2)
+        result["precision"] = "bfloat16" if steppers[""].state.bfloat16 else "float32"
+    result["seconds"] = round(time.perf_counter() - started, 1)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
