@@ -8,13 +8,19 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 import threading
 import time
 import uuid
+from typing import Callable
 
+import msgpack
+import numpy as np
 import pytest
 import zenoh
 
+from l2r.protocol import messages
 from l2r.protocol.keys import Keys
 
 from .zenoh_helpers import free_port, make_secrets, role_config, start_router, stop, wait_for
@@ -134,18 +140,67 @@ def test_only_learners_may_publish_weights(open_as, keys):
     sub.undeclare()
 
 
-def test_only_learners_may_query_the_replay_server(open_as, keys):
-    replay = open_as("replay")
-    queryable = replay.declare_queryable(keys.sample(0), lambda q: q.reply(q.key_expr, b"batch"))
-    queriers = {"learner": open_as("learner"), "actor": open_as("actor"),
-                "replay": open_as("replay"), "learner-cert-with-replay-password": open_as("learner", password_of="replay")}
-    time.sleep(SETTLE_S)
+@pytest.fixture
+def replay_daemon(secure_router, keys, tmp_path):
+    """A real l2r-replay with the replay role's config, connected to the secure router."""
+    secrets, endpoint, _ = secure_router
+    log = tmp_path / "replay.log"
+    cmd = [sys.executable, "-m", "l2r.replay", "--run", keys.run, "--zenoh-config", str(secrets / "replay" / "zenoh.json5"),
+           "--connect", endpoint, "--capacity", "1000", "--min-size", "1", "--stats-interval", "0.3"]
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+    yield log
+    stop(proc)
+
+
+def chunk(seq: int, steps: int = 4) -> messages.ExperienceChunk:
+    rng = np.random.default_rng(seq)
+    return messages.ExperienceChunk(
+        actor_id=1, env_id=0, epoch=7, seq=seq, policy_version=0,
+        obs=rng.standard_normal((steps + 1, 41), dtype=np.float32), actions=np.zeros((steps, 18), np.float32),
+        rewards=np.ones(steps, np.float32), terminated=np.zeros(steps, bool), truncated=np.zeros(steps, bool),
+        final_obs=np.zeros((0, 41), np.float32))
+
+
+def replay_stats(session: zenoh.Session, keys: Keys) -> Callable[[], dict]:
+    """The replay server's latest published stats, as a function to poll."""
+    latest: dict = {}
+    session.declare_subscriber(keys.stats("replay", 0), lambda s: latest.update(messages.decode(s.payload.to_bytes()).values))
+    return lambda: dict(latest)
+
+
+def test_only_learners_may_query_the_replay_server(open_as, keys, replay_daemon):
+    learner = open_as("learner")
+    stats = replay_stats(learner, keys)
+    assert wait_for(lambda: "size" in stats(), timeout=20), replay_daemon.read_text()[-2000:]
+    open_as("actor").put(keys.experience(actor_id=1), messages.encode(chunk(0)))
+    assert wait_for(lambda: stats().get("size") == 4, timeout=20), replay_daemon.read_text()[-2000:]
+    request = messages.encode(messages.SampleRequest(batch_size=2))
+    queriers = {"learner": learner, "actor": open_as("actor"), "replay": open_as("replay"),
+                "learner-cert-with-replay-password": open_as("learner", password_of="replay")}
     answered = {
-        name: [r.ok.payload.to_bytes() for r in session.get(keys.sample(0), timeout=2.0) if r.ok is not None]
+        name: [type(messages.decode(r.ok.payload.to_bytes())).__name__
+               for r in session.get(keys.sample(0), payload=request, timeout=3.0) if r.ok is not None]
         for name, session in queriers.items()
     }
-    assert answered == {"learner": [b"batch"], "actor": [], "replay": [], "learner-cert-with-replay-password": []}
-    queryable.undeclare()
+    assert answered == {"learner": ["SampleBatch"], "actor": [], "replay": [], "learner-cert-with-replay-password": []}
+
+
+def test_experience_of_another_protocol_version_or_run_is_dropped(open_as, keys, replay_daemon):
+    """Through the router into the real replay server: a chunk from a newer protocol is rejected
+    and logged; a chunk under another run's keys never reaches it; the good chunk is stored."""
+    stats = replay_stats(open_as("learner"), keys)
+    actor = open_as("actor")
+    assert wait_for(lambda: "size" in stats(), timeout=20), replay_daemon.read_text()[-2000:]
+    future = msgpack.unpackb(messages.encode(chunk(0)), raw=False)
+    future["v"] = messages.PROTOCOL_VERSION + 1
+    actor.put(keys.experience(actor_id=1), msgpack.packb(future, use_bin_type=True))
+    actor.put(Keys(keys.run + "x").experience(actor_id=1), messages.encode(chunk(1)))
+    actor.put(keys.experience(actor_id=1), messages.encode(chunk(2)))
+    assert wait_for(lambda: stats().get("size") == 4 and stats().get("rejected") == 1, timeout=20), stats()
+    time.sleep(2 * SETTLE_S)
+    assert stats()["size"] == 4 and stats()["rejected"] == 1
+    assert "version" in "".join(line for line in replay_daemon.read_text().splitlines() if "rejected" in line)
 
 
 def test_a_session_that_matches_no_role_gets_nothing(open_as, keys):
