@@ -139,7 +139,11 @@ class EpisodeLogger:
         """Write what is queued, abandon episodes still running (their .part files are
         removed), and stop the writer thread."""
         if self._thread.is_alive():
-            self._queue.put(("stop",))
+            try:
+                self._queue.put(("stop",), timeout=timeout)
+            except queue.Full:
+                log.warning("episode logs: the writer did not drain its queue in %.0f s; giving up", timeout)
+                return
             self._thread.join(timeout)
 
     def layout(self, sizes: dict[str, int]) -> StepLayout:
@@ -189,8 +193,9 @@ class EpisodeLogger:
                         self._best_file = recorder.path
                     self._enforce_budget(keep=recorder.path)
             except Exception:
-                log.exception("episode log %s: write failed; the episode is dropped", recorder.path)
+                log.exception("episode log %s: write failed; the episode is dropped", recorder.path.name)
                 self.stats["write_errors"] += 1
+                recorder.dropped = True  # its later items are discarded quietly
                 _discard(open_files.pop(recorder, None))
             for rec in [r for r in open_files if r.dropped]:
                 _discard(open_files.pop(rec))
