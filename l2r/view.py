@@ -48,10 +48,10 @@ def blueprint() -> rrb.Blueprint:
             rrb.Spatial3DView(name="runner", origin="/world"),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="reward", origin="/plots/reward"),
-                rrb.TimeSeriesView(name="distance and pelvis height (m)", contents=["/plots/distance", "/plots/pelvis_height"]),
+                rrb.TimeSeriesView(name="distance and pelvis height (m)", contents=["/plots/distance/**", "/plots/pelvis_height/**"]),
                 rrb.TimeSeriesView(name="muscle activation", origin="/plots/muscle_activation"),
                 rrb.TimeSeriesView(name="muscle force (N)", origin="/plots/muscle_force"),
-                rrb.TimeSeriesView(name="ligament and contact forces", contents=["/plots/ligament_force", "/plots/contact_force"]),
+                rrb.TimeSeriesView(name="ligament and contact forces", contents=["/plots/ligament_force/**", "/plots/contact_force/**"]),
             ),
             column_shares=[3, 2],
         ),
@@ -206,7 +206,8 @@ def episode_metadata(path: str | Path) -> dict[str, dict[str, str]]:
 
 
 def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) -> int:
-    """Draw frames actors publish while this viewer's liveliness token exists."""
+    """Draw the frames actors publish while this viewer's liveliness token exists: one runner
+    per actor environment, under ``world/ground/actor<a>/env<e>``."""
     import zenoh
 
     from l2r.protocol.keys import Keys
@@ -216,16 +217,24 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
     body = BodyModel.from_model(load_model())
     log_episodes(rec, [], body)
     keys = Keys(run)
-    frames = {"count": 0}
+    seen: set[tuple[int, int]] = set()
+    counts = {"frames": 0, "rejected": 0}
 
     def on_frame(sample: zenoh.Sample) -> None:
         try:
             frame = decode(sample.payload, Frame)
         except ProtocolError as e:
-            print(f"l2r view: rejected a frame from {sample.key_expr}: {e}", file=sys.stderr)
+            counts["rejected"] += 1
+            if counts["rejected"] <= 3:
+                print(f"l2r view: rejected a frame from {sample.key_expr}: {e}", file=sys.stderr)
             return
-        log_frame(rec, body, frame)
-        frames["count"] += 1
+        root = f"{GROUND}/actor{frame.actor_id}/env{frame.env_id}"
+        if (frame.actor_id, frame.env_id) not in seen:
+            seen.add((frame.actor_id, frame.env_id))
+            for name in body.bodies:
+                _log_shapes(rec, f"{root}/{name}/shape", [s for s in body.shapes if s.body == name])
+        log_frame(rec, body, frame, root)
+        counts["frames"] += 1
 
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(keys.alive("viewer", uuid.uuid4().hex[:12]))
@@ -239,27 +248,26 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
             pass
         subscriber.undeclare()
         token.undeclare()
-    print(f"l2r view: {frames['count']} frames drawn", file=sys.stderr)
+    print(f"l2r view: {counts['frames']} frames from {len(seen)} environment(s) drawn", file=sys.stderr)
     return 0
 
 
-def log_frame(rec: rr.RecordingStream, body: BodyModel, frame) -> None:
-    """One live frame: the env's arrays (see ``l2r.episodes.live``) under actor/env entities."""
-    arrays, values = frame.arrays, frame.values
-    rec.set_time("step", sequence=frame.step)
+def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str) -> None:
+    """One live frame (``l2r.episodes.live.frame``): poses, muscles, reward and distance."""
+    arrays = frame.arrays
     rec.set_time("wall", timestamp=time.time())
-    where = f"actor{frame.actor_id}/env{frame.env_id}"
+    rec.set_time("step", sequence=frame.step)
     if "body_pos" in arrays and "body_quat" in arrays:
-        pos, quat = np.asarray(arrays["body_pos"])[1:], np.asarray(arrays["body_quat"])[1:]
+        pos, quat = np.asarray(arrays["body_pos"], float)[1:], np.asarray(arrays["body_quat"], float)[1:]
         for i, name in enumerate(body.bodies):
-            rec.log(f"{GROUND}/bodies/{name}", rr.Transform3D(translation=pos[i], quaternion=[*quat[i, 1:], quat[i, 0]]))
+            rec.log(f"{root}/{name}", rr.Transform3D(translation=pos[i], quaternion=[*quat[i, 1:], quat[i, 0]]))
         if "muscle_activation" in arrays and body.paths:
             points = body.muscle_points(pos, quat)
             colors = activation_colors(np.asarray(arrays["muscle_activation"])[: len(points)])
-            rec.log(f"{GROUND}/muscles", rr.LineStrips3D(points, colors=colors, radii=0.008))
-    for name, value in values.items():
-        rec.log(f"plots/{name}", rr.Scalars(float(value)))
-    rec.log("episodes", rr.TextLog(f"{where} episode {frame.episode} step {frame.step}"))
+            rec.log(f"{root}/muscles", rr.LineStrips3D(points, colors=colors, radii=0.008))
+    where = f"actor{frame.actor_id}_env{frame.env_id}"
+    for name, value in frame.values.items():
+        rec.log(f"plots/{name}/{where}", rr.Scalars(float(value)))
 
 
 # ------------------------------------------------------------------------------------- cli

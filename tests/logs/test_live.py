@@ -62,8 +62,10 @@ def test_live_viewer_draws_frames_that_actors_send_only_while_it_watches(tmp_pat
         live.close()
 
     chunks = rr.chunk.RrdReader(out).stream().to_chunks()
-    logged = [v[0] for c in chunks if c.entity_path == "/plots/reward" and not c.is_static
+    logged = [v[0] for c in chunks if c.entity_path == "/plots/reward/actor5_env0" and not c.is_static
               for v in c.to_record_batch().column("Scalars:scalars").to_pylist()]  # fmt: skip
     assert logged and set(logged) <= set(rewards)
-    assert any(c.entity_path == "/world/ground/bodies/pelvis" and not c.is_static for c in chunks)
-    assert any(c.entity_path == "/world/ground/muscles" and not c.is_static for c in chunks)
+    root = "/world/ground/actor5/env0"
+    assert any(c.entity_path == f"{root}/pelvis" and not c.is_static for c in chunks)
+    assert any(c.entity_path == f"{root}/pelvis/shape/capsules" for c in chunks)
+    assert any(c.entity_path == f"{root}/muscles" and not c.is_static for c in chunks)
