@@ -9,6 +9,7 @@ mj_steps_per_s: raw `mujoco.mj_step` rate on the same model and controls, no Pyt
 physics_share_d0: the fraction of an env step spent inside MuJoCo (substeps / mj rate / env rate).
 speedup_vs_opensim_low / _high: env_steps_per_s_d0 over OpenSim's fastest / slowest rate for the
     same 0.01 s step, as recorded with the reference figures (about 110 and 40 steps/s).
+same_work: the two reference rollouts OpenSim timed, run here, with their own speedups.
 """
 
 from __future__ import annotations
@@ -75,10 +76,25 @@ def mj_rate(seconds: float, seed: int = 0) -> tuple[float, float, int]:
     return steps / cpu, steps / wall, env.substeps
 
 
-def opensim_rates() -> tuple[float, float]:
-    rollouts = json.loads(REFERENCE.read_text())["rollouts"]
-    rates = [r["opensim_steps_per_second"] for r in rollouts]
-    return min(rates), max(rates)
+def same_work(repeats: int) -> dict[str, dict[str, float]]:
+    """The reference rollouts OpenSim timed (constant excitation from the default pose), run
+    here: steps per CPU second against OpenSim's recorded rate for the same rollout."""
+    out = {}
+    env = RunEnv()
+    for rollout in json.loads(REFERENCE.read_text())["rollouts"]:
+        excitation = 0.0 if rollout["label"].startswith("zero") else 0.5
+        action = np.full(env.action_space.shape, excitation)
+        steps, clock = 0, Clock()
+        for _ in range(repeats):
+            env.reset(seed=0)
+            for _ in range(rollout["steps"]):
+                steps += 1
+                if any(env.step(action)[2:4]):
+                    break
+        rate = steps / clock.elapsed()[0]
+        opensim = rollout["opensim_steps_per_second"]
+        out[rollout["label"]] = {"steps_per_s": round(rate, 1), "opensim": round(opensim, 1), "speedup": round(rate / opensim, 1)}
+    return out
 
 
 def main() -> None:
@@ -93,7 +109,9 @@ def main() -> None:
     mj, wall_mj, substeps = mj_rate(seconds)
     d0, wall_d0 = env_rate(0, seconds)
     d2, wall_d2 = env_rate(2, seconds)
-    slow, fast = opensim_rates()
+    same = same_work(repeats=10 if args.quick else 50)
+    slow = min(r["opensim"] for r in same.values())
+    fast = max(r["opensim"] for r in same.values())
     print(
         json.dumps(
             {
@@ -106,6 +124,7 @@ def main() -> None:
                 "opensim_steps_per_s": [round(slow, 1), round(fast, 1)],
                 "speedup_vs_opensim_low": round(d0 / fast, 1),
                 "speedup_vs_opensim_high": round(d0 / slow, 1),
+                "same_work": same,
                 "wall_env_steps_per_s_d0": round(wall_d0, 1),
                 "wall_env_steps_per_s_d2": round(wall_d2, 1),
                 "wall_mj_steps_per_s": round(wall_mj, 1),

@@ -38,6 +38,7 @@ PSOAS_RIGHT = "iliopsoas_r"
 LEFT_PSOAS_CHOICES = ("glut_max_l", "iliopsoas_l")
 
 OBS_SIZE = 41
+NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
 
 Obstacle = tuple[float, float, float]  # (x, y, radius) in m
@@ -72,7 +73,7 @@ class RunEnv(gym.Env):
         self.max_steps = max_steps
         self._seed = seed
 
-        m = body.load_model()
+        m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
         d = mujoco.MjData(m)
         self._m, self._d = m, d
         self.substeps = round(STEP_SECONDS / m.opt.timestep)
@@ -101,30 +102,24 @@ class RunEnv(gym.Env):
         self._psoas = (self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT))
         self._max_force = m.actuator_gainprm[:, 2].copy()
 
-        # Observation values 0..35 are one gather from [qpos, qvel, com, com velocity, xpos].
-        nq, nv = m.nq, m.nv
-        com = nq + nv
-        xpos = com + 6
-        tracked = [_id(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in TRACKED_BODIES]
+        # Observation values 0..35 are one gather from the sensors `with_sensors` added, and the
+        # foot contact forces one slice of them.
+        def sensor(name: str, size: int) -> np.ndarray:
+            adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
+            return np.arange(adr, adr + size)
+
+        pos = [sensor(f"l2r_q_{c}", 1) for c in PELVIS + JOINTS]
+        vel = [sensor(f"l2r_qdot_{c}", 1) for c in PELVIS + JOINTS]
         self._obs_gather = np.concatenate(
-            [qadr[:3], nq + vadr[:3], qadr[3:], nq + vadr[3:], [com, com + 1, com + 3, com + 4]]
-            + [[xpos + 3 * b, xpos + 3 * b + 1] for b in tracked]
+            pos[:3] + vel[:3] + pos[3:] + vel[3:] + [sensor("l2r_com", 2), sensor("l2r_com_vel", 2)]
+            + [sensor(f"l2r_pos_{b}", 2) for b in TRACKED_BODIES]
         )
+        self._contact = np.concatenate([sensor(f"l2r_contact_{g}", 3) for g in FOOT_SPHERES])
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))
 
         # Obstacles: three spheres of the world body, parked where the model put them when unused.
         self._obstacle_geoms = [_id(m, mujoco.mjtObj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(NUM_OBSTACLES)]
         self._parked = [(m.geom_pos[g].copy(), float(m.geom_size[g, 0])) for g in self._obstacle_geoms]
-
-        # Contact forces are decoded for condim-3 contacts (normal and two friction directions).
-        colliding = (m.geom_contype | m.geom_conaffinity) != 0
-        if np.any(m.geom_condim[colliding] != 3):
-            raise ValueError("every colliding geom must have condim 3")
-        self._pyramidal = m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
-        self._foot_slot = [-1] * m.ngeom  # geom id -> foot sphere index, -1 for others
-        for slot, name in enumerate(FOOT_SPHERES):
-            self._foot_slot[_id(m, mujoco.mjtObj.mjOBJ_GEOM, name)] = slot
-        self._contact_force = np.zeros((len(FOOT_SPHERES), 3))
 
         self.action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_SIZE,), dtype=np.float32)
@@ -177,8 +172,6 @@ class RunEnv(gym.Env):
         m.actuator_biasprm[:, 2] = force
 
         body.reset_to_default(m, d)  # the .osim default pose, at rest (includes mj_forward)
-        mujoco.mj_subtreeVel(m, d)
-        self._contact_force = self._foot_forces()
         self._lig_force = self._lig_kernel(d.qpos.tolist(), d.qvel.tolist())
         self._lig_applied = [0.0] * len(LIGAMENTS)  # the reset cleared qfrc_applied
         self._x = float(d.qpos[self._x_adr])
@@ -205,19 +198,15 @@ class RunEnv(gym.Env):
         t_before = d.time
         qfrc, dofs, kernel = d.qfrc_applied, self._lig_dofs, self._lig_kernel
         forces, applied = self._lig_force, self._lig_applied
-        last = self.substeps - 1
-        for i in range(self.substeps):
+        for _ in range(self.substeps):
             if forces != applied:  # the ligaments are slack most of the time
                 for dof, f in zip(dofs, forces):
                     qfrc[dof] = f
                 applied = forces
             mujoco.mj_step2(m, d)
-            if i == last:
-                self._contact_force = self._foot_forces()  # before step1 replaces the contacts
             mujoco.mj_step1(m, d)
             qpos = d.qpos.tolist()
             forces = kernel(qpos, d.qvel.tolist())
-        mujoco.mj_subtreeVel(m, d)
         self._lig_force, self._lig_applied = forces, applied
         self._steps += 1
 
@@ -233,45 +222,9 @@ class RunEnv(gym.Env):
         self._running = not (terminated or truncated)
         return self._observe(), reward, terminated, truncated, info
 
-    def _foot_forces(self) -> np.ndarray:
-        """World-frame force (N) on each foot sphere from the current contacts, shape (4, 3).
-
-        Plain floats: for a handful of contacts this costs a fraction of numpy's call overhead.
-        """
-        d = self._d
-        out = [0.0] * (3 * len(FOOT_SPHERES))
-        if d.ncon:
-            con, efc, slot, pyramidal = d.contact, d.efc_force.tolist(), self._foot_slot, self._pyramidal
-            for (g1, g2), adr, fr, mu in zip(
-                con.geom.tolist(), con.efc_address.tolist(), con.frame.tolist(), con.friction.tolist()
-            ):
-                s1, s2 = slot[g1], slot[g2]
-                if s1 < 0 and s2 < 0:
-                    continue
-                if pyramidal:  # four pyramid edges -> normal and two friction components
-                    f0, f1, f2, f3 = efc[adr : adr + 4]
-                    n, t1, t2 = f0 + f1 + f2 + f3, (f0 - f1) * mu[0], (f2 - f3) * mu[1]
-                else:
-                    n, t1, t2 = efc[adr : adr + 3]
-                # Rows of the frame: normal, tangent 1, tangent 2. This is geom1's force on geom2.
-                fx = n * fr[0] + t1 * fr[3] + t2 * fr[6]
-                fy = n * fr[1] + t1 * fr[4] + t2 * fr[7]
-                fz = n * fr[2] + t1 * fr[5] + t2 * fr[8]
-                if s2 >= 0:
-                    out[3 * s2] += fx
-                    out[3 * s2 + 1] += fy
-                    out[3 * s2 + 2] += fz
-                if s1 >= 0:
-                    out[3 * s1] -= fx
-                    out[3 * s1 + 1] -= fy
-                    out[3 * s1 + 2] -= fz
-        return np.array(out).reshape(len(FOOT_SPHERES), 3)
-
     def _observe(self) -> np.ndarray:
-        d = self._d
-        state = np.concatenate((d.qpos, d.qvel, d.subtree_com[0], d.subtree_linvel[0], d.xpos.reshape(-1)))
         obs = np.empty(OBS_SIZE, dtype=np.float32)
-        obs[:36] = state[self._obs_gather]
+        obs[:36] = self._d.sensordata[self._obs_gather]
         obs[36:] = (*self.psoas, *next_obstacle(self.obstacles, self._x))
         return obs
 
@@ -285,8 +238,34 @@ class RunEnv(gym.Env):
             "muscle_length": d.actuator_length.copy(),
             "muscle_force": -d.actuator_force,
             "ligament_force": np.array(self._lig_force),
-            "contact_force": self._contact_force,
+            # The sensors report the force the sphere exerts; the force on it is the opposite.
+            "contact_force": -d.sensordata[self._contact].reshape(len(FOOT_SPHERES), 3),
         }
+
+
+def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    """Compile the body with the sensors the env reads: the observed coordinates and speeds,
+    centre of mass position and velocity, tracked body positions, and the net contact force
+    on each foot sphere. MuJoCo computes them inside the step, so the env only gathers."""
+    sensor, obj = mujoco.mjtSensor, mujoco.mjtObj
+
+    def add(name: str, kind: mujoco.mjtSensor, objtype: mujoco.mjtObj, objname: str) -> mujoco.MjsSensor:
+        s = spec.add_sensor()
+        s.name, s.type, s.objtype, s.objname = name, kind, objtype, objname
+        return s
+
+    for c in PELVIS + JOINTS:
+        add(f"l2r_q_{c}", sensor.mjSENS_JOINTPOS, obj.mjOBJ_JOINT, c)
+        add(f"l2r_qdot_{c}", sensor.mjSENS_JOINTVEL, obj.mjOBJ_JOINT, c)
+    add("l2r_com", sensor.mjSENS_SUBTREECOM, obj.mjOBJ_BODY, "world")
+    add("l2r_com_vel", sensor.mjSENS_SUBTREELINVEL, obj.mjOBJ_BODY, "world")
+    for b in TRACKED_BODIES:
+        add(f"l2r_pos_{b}", sensor.mjSENS_FRAMEPOS, obj.mjOBJ_XBODY, b)  # the body frame's origin
+    force = 1 << int(mujoco.mjtConDataField.mjCONDATA_FORCE)
+    for g in FOOT_SPHERES:
+        # intprm: data fields, reduction (3 = net force of all the geom's contacts, world frame), count
+        add(f"l2r_contact_{g}", sensor.mjSENS_CONTACT, obj.mjOBJ_GEOM, g).intprm[:3] = [force, NET_FORCE, 1]
+    return spec.compile()
 
 
 def draw_episode(rng: np.random.Generator, difficulty: int) -> tuple[list[Obstacle], tuple[float, float]]:
