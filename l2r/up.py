@@ -66,6 +66,7 @@ class Child:
     argv: list[str]
     tier: int
     resume_args: list[str] = field(default_factory=list)
+    nice: int = 0
     process: subprocess.Popen | None = None
     restarts: int = 0
     crash_times: deque = field(default_factory=deque)
@@ -87,7 +88,8 @@ class ProcessGroup:
             # A session of its own: a Ctrl-C at the terminal reaches `l2r up` only, which then
             # stops the children in order.
             child.process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                             start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                             start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                                             preexec_fn=(lambda: os.nice(child.nice)) if child.nice else None)
         log.info("started %s (pid %d)%s", child.name, child.process.pid, " with --resume" if resume and child.resume_args else "")
 
     def start(self) -> None:
@@ -301,9 +303,15 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--log-every", type=int, default=10,
                    help="actors log every Nth training episode as MCAP under episodes/ (0: none); "
                         "evaluation episodes are always logged")
+    a.add_argument("--actor-nice", type=int, default=10,
+                   help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
+                        "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
     a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"), help="learner device")
+    le.add_argument("--learner-threads", type=int, default=0,
+                    help="torch CPU threads of the learner; 0: the cores left after one per actor and one for "
+                         "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--batch-size", type=int, default=256, help="learner batch size")
     le.add_argument("--min-replay", type=int, default=1000, help="transitions stored before the learner starts")
     le.add_argument("--samples-per-insert", type=float, default=0.0,
@@ -333,6 +341,10 @@ def make_run_dir(args: argparse.Namespace) -> Path:
     return run_dir
 
 
+def learner_threads(args: argparse.Namespace) -> int:
+    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - args.evaluators - 1)
+
+
 def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port: int, learner_port: int) -> list[Child]:
     """The processes of the job, in start order (stopped in reverse)."""
     replay_ep, learner_ep = loopback(replay_port), loopback(learner_port)
@@ -345,6 +357,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                       "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
                                            "--device", args.device, "--batch-size", str(args.batch_size),
+                                           "--threads", str(learner_threads(args)),
                                            "--run-dir", str(run_dir), *args.learner_arg],
                           resume_args=["--resume"]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
@@ -352,11 +365,12 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
     logs = [] if args.no_episode_logs else ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
-        children.append(Child(f"actor-{i}", tier=2, argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
-                                                  "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
+        children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice,
+                              argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
+                                         "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
     for i in range(args.evaluators):
         # Evaluators take ids after the actors' so their keys never collide.
-        children.append(Child(f"evaluator-{i}", tier=2, argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
+        children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice, argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
                                                       "--actor-id", str(args.actors + i),
                                                       "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
                                                       "--eval-episodes", str(args.eval_episodes),

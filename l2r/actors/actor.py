@@ -22,6 +22,7 @@ import zenoh
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.experience import ChunkBuilder
 from l2r.actors.weights import WeightFollower
+from l2r.episodes.live import LiveFrames
 from l2r.policy import act
 from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode, parse_alive,
@@ -134,6 +135,7 @@ class Actor:
         self.episodes = 0
         self.chunks_sent = 0
         self.waiting_for_replay = False
+        self.first_version: int | None = None  # version of the first weights received
         self.random_phase = not config.evaluate and config.random_steps > 0
         self.slots: list[EnvSlot] = []
         for i in range(config.num_envs):
@@ -149,6 +151,7 @@ class Actor:
         self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
         self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
         self.episode_logger = make_episode_logger(config)
+        self.live = LiveFrames(session, self.keys, config.actor_id)  # frames only while a viewer watches
         for slot in self.slots:
             self.begin_record(slot)
         self._rate_steps, self._rate_time = 0, time.monotonic()
@@ -177,10 +180,13 @@ class Actor:
     # -- one iteration ---------------------------------------------------------------------
 
     def step(self) -> None:
+        acted_by = self.weights.version
         if self.weights.poll():
-            self.flush(force=True)  # a chunk carries the one version that produced it
-        if self.random_phase and (self.steps >= self.config.random_steps
-                                  or self.weights.version > 0 and self.steps == 0):
+            self.flush(force=True, version=acted_by)  # a chunk carries the one version that produced it
+            if self.first_version is None:
+                self.first_version = self.weights.version
+        if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > 0):
+            # A first policy past version 0 means the run was already training: no warm-up.
             self.random_phase = False
             log.info("warm-up over after %d random steps; acting with the policy", self.steps)
         actions = self.actions()
@@ -191,6 +197,7 @@ class Actor:
             slot.length += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
                 slot.recorder.log_step(obs, action, reward, info)
+            self.live.publish(i, slot.episode, slot.length, reward, info)
             start_obs = None
             if terminated or truncated:
                 self.end_episode(i, slot, float(info.get("distance", 0.0)), terminated, truncated)
@@ -233,12 +240,14 @@ class Actor:
         slot.start_x = float(info.get("distance", 0.0))
         self.begin_record(slot)
 
-    def flush(self, force: bool = False) -> None:
-        """Send every chunk that is full, older than the delay, or any at all when forced."""
+    def flush(self, force: bool = False, version: int | None = None) -> None:
+        """Send every chunk that is full, older than the delay, or any at all when forced.
+        Chunks are stamped with ``version`` (default: the policy in use; 0 before any)."""
         deadline = time.time() - self.config.chunk_delay
+        version = max(self.weights.version if version is None else version, 0)
         for builder in self.builders:
             if builder and (force or builder.full or builder.started_at < deadline):
-                chunk = builder.take(self.seq, max(self.weights.version, 0))
+                chunk = builder.take(self.seq, version)
                 self.experience.put(encode(chunk))
                 self.seq += 1
                 self.chunks_sent += 1
@@ -294,6 +303,7 @@ class Actor:
         if self.episode_logger is not None:
             self.episode_logger.close()
         self.weights.close()
+        self.live.close()
         for slot in self.slots:
             slot.env.close()
 

@@ -91,10 +91,12 @@ def stop(proc: subprocess.Popen) -> str:
 
 def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
     peer.replay_up(True)
-    proc = peer.actor("--random-steps", "0", "--seed", "4")
+    # Joining a run whose policy is past version 0 skips the warm-up, however long it is.
+    proc = peer.actor("--random-steps", "1000000", "--seed", "4")
     try:
         # The weights it asked for on join drive its first chunks.
         wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks), what="chunks acted by version 3")
+        wait_for(lambda: any(e.policy_version == 3 for e in peer.episodes), what="episodes acted by version 3")
         alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
         assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
 

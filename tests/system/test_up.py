@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 # Small networks and batches so a few hundred updates fit in seconds on two shared cores.
 SMALL = ["--learner-arg=--hidden=64,64", "--learner-arg=--publish-every=20", "--learner-arg=--update-repeat=1",
-         "--learner-arg=--checkpoint-interval=3", "--learner-arg=--threads=1", "--batch-size", "64"]
+         "--learner-arg=--checkpoint-interval=3", "--batch-size", "64"]
 
 
 def wait_for(predicate, proc, timeout, what):
