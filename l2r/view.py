@@ -275,7 +275,7 @@ def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str) -> Non
 
 def cli(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="l2r view", description=__doc__.split("\n\n")[0] + " Episode files play one after the other.",
+        prog="l2r view", description="Watch logged episodes (one after the other), or a run's actors live, in Rerun.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n  l2r view runs/exp1/episodes/*.mcap\n  l2r view best.mcap --save best.rrd\n"
                "  l2r view --live --run exp1 --connect tcp/127.0.0.1:7447 --web",
@@ -288,10 +288,11 @@ def cli(argv: list[str] | None = None) -> int:
     live = parser.add_argument_group("live")
     live.add_argument("--live", action="store_true", help="watch the episodes a run's actors are running now")
     live.add_argument("--duration", type=float, help="with --live: stop after this many seconds (default: until Ctrl-C)")
-    from l2r.protocol.session import add_daemon_arguments, config_from_args, parse_daemon_args
+    from l2r.protocol.session import add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args
 
     add_daemon_arguments(parser)
     args = parse_daemon_args(parser, argv)
+    configure_logging(args.log_level)
     if args.live == bool(args.files):
         parser.error("give episode files, or --live (with --run) to watch a running job")
     missing = [str(p) for p in args.files if not p.is_file()]

@@ -32,7 +32,8 @@ and docs/episodes.md.
 Cost: ``log_step`` copies the step into a preallocated block (a few microseconds); a
 background thread encodes blocks and writes zstd chunks. The queue between them is bounded:
 when the disk falls behind, the episode being logged is dropped and counted
-(``stats["episodes_skipped"]``) instead of blocking the environment.
+(``stats["episodes_skipped"]``) instead of blocking the environment. ``stats`` also counts
+files written and removed, failures, and the writer thread's CPU seconds (``writer_cpu_s``).
 """
 
 from __future__ import annotations
@@ -101,7 +102,8 @@ class EpisodeLogger:
         self.block_steps, self.chunk_bytes = int(block_steps), int(chunk_bytes)
         self.body = body or BodyModel.from_model(load_model())
         self.model_version = _model_version(MODEL_PATH)
-        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0}
+        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0,
+                      "writer_cpu_s": 0.0}
         self._layouts: dict[tuple, StepLayout] = {}
         self._transforms = TransformEncoder(self.body.bodies)
         self.pelvis = self.body.bodies.index("pelvis") + 1  # row of the pelvis in info["body_pos"]
@@ -178,6 +180,7 @@ class EpisodeLogger:
             what, recorder = item[0], item[1] if len(item) > 1 else None
             try:
                 if what == "stop":
+                    self.stats["writer_cpu_s"] = time.thread_time()
                     break
                 if recorder.dropped:
                     _discard(open_files.pop(recorder, None))
@@ -199,6 +202,7 @@ class EpisodeLogger:
                 _discard(open_files.pop(recorder, None))
             for rec in [r for r in open_files if r.dropped]:
                 _discard(open_files.pop(rec))
+            self.stats["writer_cpu_s"] = time.thread_time()
         for episode_file in open_files.values():
             _discard(episode_file)
 
@@ -372,11 +376,11 @@ class _EpisodeFile:
         w, rec = self.writer, self.recorder
         if self.step is None:
             self.step = self._register_step(rec.layout)
-        times = rec.start_ns + np.rint(block["time"][:count] * 1e9).astype(np.int64)
-        encode = self.logger._transforms.encode
+        times = (rec.start_ns + np.rint(block["time"][:count] * 1e9).astype(np.int64)).tolist()
+        transforms = self.logger._transforms.encode_block(times, pos[:count], quat[:count])
         for i, message in enumerate(rec.layout.messages(block, first_step, count)):
-            t = int(times[i])
-            w.add_message(self.tf, t, encode(t, pos[i], quat[i]), t, sequence=first_step + i)
+            t = times[i]
+            w.add_message(self.tf, t, transforms[i], t, sequence=first_step + i)
             w.add_message(self.step, t, message, t, sequence=first_step + i)
         self.file.flush()
 

@@ -103,17 +103,30 @@ class TransformEncoder:
         self._templates: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def encode(self, time_ns: int, pos: np.ndarray, quat_wxyz: np.ndarray) -> bytes:
-        """pos (bodies, 3), quat_wxyz (bodies, 4) in the ground frame."""
-        ts = timestamp(time_ns)
-        template, ts_at, values_at = self._templates.get(len(ts)) or self._build(len(ts))
-        buf = template.copy()
-        buf[ts_at] = np.frombuffer(ts, np.uint8)
-        values = np.empty((len(self.bodies), 7), "<f8")
-        values[:, :3] = pos
-        values[:, 3:6] = quat_wxyz[:, 1:]
-        values[:, 6] = quat_wxyz[:, 0]
-        buf[values_at] = values.view(np.uint8).reshape(-1)
-        return buf.tobytes()
+        """One message: pos (bodies, 3), quat_wxyz (bodies, 4) in the ground frame."""
+        return self.encode_block([time_ns], pos[None], quat_wxyz[None])[0]
+
+    def encode_block(self, times_ns: Sequence[int], pos: np.ndarray, quat_wxyz: np.ndarray) -> list[bytes]:
+        """One message per step: pos (steps, bodies, 3), quat_wxyz (steps, bodies, 4)."""
+        n = len(times_ns)
+        values = np.empty((n, len(self.bodies), 7), "<f8")
+        values[..., :3] = pos
+        values[..., 3:6] = quat_wxyz[..., 1:]
+        values[..., 6] = quat_wxyz[..., 0]
+        value_bytes = values.view(np.uint8).reshape(n, -1)
+        stamps = [timestamp(t) for t in times_ns]
+        out: list[bytes] = [b""] * n
+        for ts_len in set(map(len, stamps)):  # one or two lengths in a block
+            rows = [i for i, ts in enumerate(stamps) if len(ts) == ts_len]
+            template, ts_at, values_at = self._templates.get(ts_len) or self._build(ts_len)
+            buf = np.tile(template, (len(rows), 1))
+            ts = np.frombuffer(b"".join(stamps[i] for i in rows), np.uint8).reshape(len(rows), 1, ts_len)
+            buf[:, ts_at] = ts
+            buf[:, values_at] = value_bytes[rows]
+            raw, size = buf.tobytes(), template.size
+            for k, i in enumerate(rows):
+                out[i] = raw[k * size : (k + 1) * size]
+        return out
 
     def _build(self, ts_len: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The message for timestamps of ``ts_len`` bytes, with the offsets of the timestamps

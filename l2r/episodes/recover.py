@@ -56,7 +56,7 @@ def default_target(source: Path) -> Path:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m l2r.episodes.recover", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m l2r.episodes.recover", description="Repair episode files a crash left unfinished (.mcap.part) into complete .mcap files.")
     parser.add_argument("files", nargs="+", type=Path, help="interrupted episode files (.mcap.part or .mcap)")
     parser.add_argument("-o", "--output", type=Path, help="output file (only with one input)")
     args = parser.parse_args(argv)

@@ -61,6 +61,17 @@ def test_frame_transforms_decode_to_the_poses_written(time_ns, values):
         assert same([t.rotation.w, t.rotation.x, t.rotation.y, t.rotation.z], q)
 
 
+def test_a_block_of_frame_transforms_mixes_timestamp_lengths():
+    times = [0, 1, 127, 128, 10**9 + 5, 2**40, 1795238732414350454]
+    rng = np.random.default_rng(0)
+    pos, quat = rng.normal(size=(len(times), len(BODIES), 3)), rng.normal(size=(len(times), len(BODIES), 4))
+    for t, p, q, raw in zip(times, pos, quat, TransformEncoder(BODIES).encode_block(times, pos, quat)):
+        transforms = FrameTransforms.FromString(raw).transforms[1:]
+        assert all(tr.timestamp.ToNanoseconds() == t for tr in transforms)
+        assert same([[tr.translation.x, tr.translation.y, tr.translation.z] for tr in transforms], p)
+        assert same([[tr.rotation.w, tr.rotation.x, tr.rotation.y, tr.rotation.z] for tr in transforms], q)
+
+
 def test_cdr_string_layout():
     assert cdr_string("ab") == b"\x00\x01\x00\x00\x03\x00\x00\x00ab\x00"
 
