@@ -14,13 +14,18 @@ Prints one JSON line. Figures:
 
 from __future__ import annotations
 
-import argparse
-import json
-import statistics
-import time
+import os
 
-import numpy as np
-import torch
+# As l2r-learner does (see l2r/learner/__main__.py); both sides run in this one process.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 OBS_DIM, ACT_DIM, HIDDEN, BUFFER = 41, 18, (512, 512, 512), 20_000
 
@@ -99,7 +104,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     result: dict = {"bench": "learner_speed", "device": "cpu", "threads": args.threads, "obs_dim": OBS_DIM,
-                    "act_dim": ACT_DIM, "hidden": list(HIDDEN)}
+                    "act_dim": ACT_DIM, "hidden": list(HIDDEN),
+                    "omp_wait_policy": os.environ["OMP_WAIT_POLICY"]}
     for batch_size in (256, 640):
         steppers = {
             "": L2RStepper(batch_size),
