@@ -129,11 +129,14 @@ class LigamentKernel:
             x = qpos[qa]
             if x > upper:
                 over, k = x - upper, k_up
+                s = over * inv_tr
             elif x < lower:
                 over, k = x - lower, k_low
+                s = -over * inv_tr
             else:
                 forces.append(0.0)
                 continue
-            s = min(abs(over) * inv_tr, 1.0)
+            if s > 1.0:
+                s = 1.0
             forces.append(-s * s * s * (10.0 + s * (-15.0 + 6.0 * s)) * (k * over + damping * qvel[va]))
         return forces
