@@ -65,7 +65,7 @@ from l2r.sim.model import MODEL_PATH, load_model
 log = logging.getLogger(__name__)
 
 BLOCK_STEPS = 100  # steps per hand-over to the writer thread (what a crash can lose at most)
-CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression (about 130 steps)
+CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression (about 100 steps)
 INFO_VECTORS = ("muscle_activation", "muscle_force", "muscle_length", "ligament_force", "contact_force")
 
 

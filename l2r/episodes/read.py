@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
@@ -38,11 +37,13 @@ class Episode:
 
 
 def iter_records(path: str | Path):
-    """The file's records in order; an interrupted file simply ends at its last whole record."""
+    """The file's records in order, up to the first that cannot be read: an interrupted file
+    ends at its last whole record, a damaged one (bad magic, a chunk that does not decompress)
+    at the damage."""
     with open(path, "rb") as f:
         try:
             yield from StreamReader(f, record_size_limit=1 << 30).records
-        except (McapError, EOFError, ValueError, OSError):
+        except Exception:  # whatever the damage, what came before it stays readable
             return
 
 

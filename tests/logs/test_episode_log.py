@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -19,6 +20,7 @@ from l2r.actors.episode_log import EpisodeLogger, LogPolicy
 from l2r.episodes import schema
 from l2r.episodes.read import read_episode
 from l2r.sim.env import RunEnv
+from l2r.view import write_recording
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 WRITER = Path(__file__).with_name("episode_writer.py")
@@ -133,6 +135,10 @@ def test_a_killed_writer_leaves_a_part_file_that_recovers(tmp_path):
     n = len(episode)
     assert 10 <= n <= steps and episode.result == {}
     assert_steps_equal(episode, expected(0, steps, across_resets=True), n)
+    # The viewer plays the interrupted file itself just as far.
+    assert len(read_episode(part)) == n and not read_episode(part).complete
+    chunks = rr.chunk.RrdReader(write_recording([part], tmp_path / "part.rrd")).stream().to_chunks()
+    assert sum(c.num_rows for c in chunks if c.entity_path == "/plots/reward" and not c.is_static) == n
 
 
 def small_logger(tmp_path: Path, **kwargs) -> EpisodeLogger:
