@@ -238,8 +238,8 @@ def read_osim(path: Path | str) -> Osim:
             Muscle(
                 m.get("name"), _num(m, "max_isometric_force"), _num(m, "optimal_fiber_length"), _num(m, "tendon_slack_length"),
                 _num(m, "pennation_angle_at_optimal"), _num(m, "max_contraction_velocity"), _num(m, "activation_time_constant"),
-                _num(m, "deactivation_time_constant"), _num(m, "FmaxTendonStrain", 0.033), _num(m, "FmaxMuscleStrain", 0.6),
-                _num(m, "KshapePassive", 4.0), points,
+                _num(m, "deactivation_time_constant"), _num(m, "FmaxTendonStrain", 0.04), _num(m, "FmaxMuscleStrain", 0.6),
+                _num(m, "KshapePassive", 5.0), points,
             )
         )
     spheres = [
@@ -319,10 +319,13 @@ def _place(frames: dict, body: str, local) -> np.ndarray:
     return p + (np.einsum("nij,nj->ni", r, local) if local.ndim == 2 else np.einsum("nij,j->ni", r, local))
 
 
-def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray]) -> np.ndarray:
+def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray], switch_pose: dict | None = None) -> np.ndarray:
     """Muscle-tendon length along OpenSim's path: fixed points, conditional points only
-    inside their coordinate range, moving points at their spline positions."""
+    inside their coordinate range (judged at `switch_pose`, default `pose`, so that moment
+    arms can hold the path's points fixed as OpenSim does), moving points at their spline
+    positions."""
     frames = body_frames(osim, pose)
+    switch_pose = pose if switch_pose is None else switch_pose
     n = len(next(iter(pose.values())))
     length, previous = np.zeros(n), None
     for point in muscle.points:
@@ -331,6 +334,7 @@ def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray]) -> n
         if point.kind != "fixed":
             q = np.asarray(pose.get(point.coordinate, np.full(n, osim.coordinate(point.coordinate).default)))
             if point.kind == "conditional":
+                q = np.asarray(switch_pose[point.coordinate]) if point.coordinate in switch_pose else q
                 active = (q >= point.active_range[0]) & (q <= point.active_range[1])
             else:
                 local = np.stack([f(q) for f in point.moving], axis=1)
@@ -341,6 +345,169 @@ def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray]) -> n
         length += np.where(active, np.linalg.norm(position - previous, axis=1), 0.0)
         previous = np.where(active[:, None], position, previous)
     return length
+
+
+def thelen_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: float) -> np.ndarray:
+    """Tendon force (N) of OpenSim's Thelen2003Muscle at rest, fibre and tendon in equilibrium.
+
+    Thelen (2003): Gaussian active force-length (shape 0.45), exponential passive curve,
+    exponential-then-linear tendon, fixed-width pennation; OpenSim holds activation >= 0.01.
+    """
+    a = max(activation, 0.01)
+    l0, ls, e0t = muscle.optimal_length, muscle.slack_length, muscle.tendon_strain
+    width = l0 * np.sin(muscle.pennation)
+    kpe, e0m = muscle.passive_shape, muscle.muscle_strain
+    toe_strain, toe_force, k_toe = 99 * e0t * np.exp(3) / (166 * np.exp(3) - 67), 0.33, 3.0
+    k_lin = 0.67 / (e0t - toe_strain)
+
+    def tendon(strain):
+        toe = toe_force / (np.exp(k_toe) - 1) * (np.exp(k_toe * strain / toe_strain) - 1)
+        return np.where(strain > toe_strain, k_lin * (strain - toe_strain) + toe_force, np.where(strain > 0, toe, 0.0))
+
+    def fibre(along):  # fibre force along the tendon for fibre length projected on the tendon
+        lm = np.sqrt(along**2 + width**2) / l0
+        passive = np.where(lm > 1, (np.exp(kpe * (lm - 1) / e0m) - 1) / (np.exp(kpe) - 1), 0.0)
+        return (a * np.exp(-((lm - 1) ** 2) / 0.45) + passive) * along / (lm * l0)
+
+    # bisection on the projected fibre length: the tendon side falls as the fibre lengthens
+    lo, hi = np.full_like(mtu_length, 1e-6), np.maximum(mtu_length - ls, 2e-6)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        tendon_longer = fibre(mid) < tendon((mtu_length - mid) / ls - 1)
+        lo, hi = np.where(tendon_longer, mid, lo), np.where(tendon_longer, hi, mid)
+    force = muscle.max_force * tendon((mtu_length - 0.5 * (lo + hi)) / ls - 1)
+    return np.where(mtu_length > ls, force, 0.0)
+
+
+def mujoco_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: float, c: "MuscleCurves") -> np.ndarray:
+    """MuJoCo's muscle force at rest with a rigid tendon (its FL and passive curves)."""
+    x = (mtu_length - muscle.slack_length) / muscle.optimal_length
+    a, b = 0.5 * (c.lmin + 1), 0.5 * (1 + c.lmax)
+    active = np.select(
+        [(x < c.lmin) | (x > c.lmax), x <= a, x <= 1, x <= b],
+        [0.0, 0.5 * ((x - c.lmin) / (a - c.lmin)) ** 2, 1 - 0.5 * ((1 - x) / (1 - a)) ** 2, 1 - 0.5 * ((x - 1) / (b - 1)) ** 2],
+        0.5 * ((c.lmax - x) / (c.lmax - b)) ** 2,
+    )
+    passive = np.select([x <= 1, x <= b], [0.0, 0.5 * ((x - 1) / (b - 1)) ** 2], 0.5 + (x - b) / (b - 1)) * c.fpmax
+    return muscle.max_force * (activation * active + passive)
+
+
+ISOMETRIC_ACTIVATIONS = (0.0, 0.5, 1.0)
+
+
+def fit_curves(muscle: Muscle, mtu_lengths: np.ndarray) -> "MuscleCurves":
+    """lmin, lmax, fpmax matching Thelen's isometric tendon force over the lengths the muscle
+    reaches, and fvmax matching Thelen's force-velocity curve (Af 0.25, Flen 1.4)."""
+    from scipy.optimize import least_squares
+
+    targets = [thelen_isometric_force(muscle, mtu_lengths, a) / muscle.max_force for a in ISOMETRIC_ACTIVATIONS]
+
+    def residual(p):
+        c = MuscleCurves(p[0], p[1], p[2])
+        return np.concatenate([mujoco_isometric_force(muscle, mtu_lengths, a, c) / muscle.max_force - t
+                               for a, t in zip(ISOMETRIC_ACTIVATIONS, targets)])
+
+    fit = least_squares(residual, [0.5, 1.6, 1.3], bounds=([0.05, 1.05, 0.0], [0.95, 3.0, 20.0]), method="trf", diff_step=1e-4)
+    v = np.linspace(0.0, 1.0, 101)  # lengthening velocity in max-velocity units
+    f_len = 1.4  # OpenSim 4's Thelen2003Muscle default
+    thelen = (10 * v * f_len + f_len - 1) / (10 * v + f_len - 1)
+
+    def fv_residual(fvmax):
+        y = fvmax - 1
+        return np.where(v <= y, fvmax - (y - v) ** 2 / y, fvmax) - thelen
+
+    fvmax = least_squares(lambda p: fv_residual(p[0]), [1.4], bounds=([1.05], [2.0])).x[0]
+    return MuscleCurves(*np.round(fit.x, 4), round(float(fvmax), 4))
+
+
+
+# --------------------------------------------------------------------------- fitting muscle paths
+
+GRID_POINTS = {1: 81, 2: 29}  # samples per coordinate for muscles spanning one or two joints
+# The fit spans each coordinate's .osim range clipped to +-90 degrees: the ligaments stop the
+# joints well inside it, and past it (hip hyperextension beyond 90 degrees) the conditional
+# psoas point makes the OpenSim path jump by 2 cm, which no smooth path should chase.
+GRID_LIMIT = np.pi / 2
+MOMENT_ARM_STEP = 1e-6
+
+
+def spanned_coordinates(osim: Osim, muscle: Muscle) -> list[str]:
+    """The unlocked coordinates of the joints between the muscle's first and last body."""
+    def chain(body):
+        out = [body]
+        while osim.bodies[out[-1]].joint is not None and out[-1] != "pelvis":
+            out.append(osim.bodies[out[-1]].joint.parent)
+        return out
+
+    first, last = chain(muscle.points[0].body), chain(muscle.points[-1].body)
+    between = [b for b in first + last if (b in first) != (b in last)]
+    coords = [c.name for b in between if b != "pelvis" for c in osim.bodies[b].joint.coordinates if not c.locked]
+    return [c for name in osim.bodies for c in coords if c in [k.name for k in (osim.bodies[name].joint.coordinates if osim.bodies[name].joint else [])]]
+
+
+def pose_grid(osim: Osim, coordinates: list[str]) -> dict[str, np.ndarray]:
+    """A full grid over the coordinates' .osim ranges."""
+    axes = [np.linspace(*np.clip(osim.coordinate(c).range, -GRID_LIMIT, GRID_LIMIT), GRID_POINTS[len(coordinates)]) for c in coordinates]
+    return {c: g.ravel() for c, g in zip(coordinates, np.meshgrid(*axes, indexing="ij"))}
+
+
+def coupled_translations(osim: Osim) -> dict:
+    """The knee translation as MuJoCo's quartic coupling makes it, for `body_frames`."""
+    out = {}
+    for name, body in osim.bodies.items():
+        if body.joint is not None and body.joint.kind == "CustomJoint":
+            coefs, origin = knee_coupling(osim, name), _knee_origin(osim, name)
+            out[name] = lambda q, c=coefs, o=origin: o + np.stack(
+                [np.polyval(c[0][::-1], q), np.polyval(c[1][::-1], q), np.zeros_like(q)], axis=1)
+    return out
+
+
+def _shifted_poses(pose: dict, coordinates: list[str]) -> list[dict]:
+    """The pose, then each coordinate nudged up and down, for central-difference moment arms."""
+    out = [pose]
+    for c in coordinates:
+        for sign in (1, -1):
+            out.append({**pose, c: pose[c] + sign * MOMENT_ARM_STEP})
+    return out
+
+
+def _lengths_and_arms(lengths: list[np.ndarray]) -> np.ndarray:
+    """[L, -dL/dq per coordinate] flattened, from lengths at the `_shifted_poses`."""
+    arms = [-(up - down) / (2 * MOMENT_ARM_STEP) for up, down in zip(lengths[1::2], lengths[2::2])]
+    return np.concatenate([lengths[0], *arms])
+
+
+def fit_site_path(osim: Osim, muscle: Muscle) -> tuple[MusclePath, float]:
+    """Site positions (x, y in their bodies; z kept) whose straight path in the MuJoCo body best
+    matches OpenSim's length and moment arms over the pose grid, starting from every OpenSim
+    point (conditional ones included, moving ones at knee angle 0). Returns the path and its
+    RMS residual (m)."""
+    from scipy.optimize import least_squares
+
+    coords = spanned_coordinates(osim, muscle)
+    pose = pose_grid(osim, coords)
+    poses = _shifted_poses(pose, coords)
+    # OpenSim holds the active path points fixed while it differentiates, so do we
+    target = _lengths_and_arms([opensim_length(osim, muscle, p, pose) for p in poses])
+    translations = coupled_translations(osim)
+    frames = [body_frames(osim, p, translations) for p in poses]
+    start = static_path(muscle).sites
+    x0 = np.array([pos[:2] for _, pos in start]).ravel()
+
+    def path(x):
+        return [(b, np.array([x[2 * i], x[2 * i + 1], pos[2]])) for i, (b, pos) in enumerate(start)]
+
+    def residual(x):
+        sites = path(x)
+        lengths = []
+        for f in frames:
+            points = [_place(f, b, pos) for b, pos in sites]
+            lengths.append(sum(np.linalg.norm(q - p, axis=1) for p, q in zip(points, points[1:])))
+        # a weak pull towards the anatomical positions keeps redundant sites where they were
+        return np.concatenate([_lengths_and_arms(lengths) - target, 0.01 * (x - x0)])
+
+    fit = least_squares(residual, x0, method="trf", x_scale=0.01, diff_step=1e-3)
+    return MusclePath(path(np.round(fit.x, 6))), float(np.sqrt(np.mean(fit.fun[: len(target)] ** 2)))
 
 
 # --------------------------------------------------------------------------- the MuJoCo body
@@ -417,7 +584,7 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
     default = ET.SubElement(root, "default")
     ET.SubElement(default, "joint", limited="false", armature="0", damping="0")
     ET.SubElement(default, "site", size="0.005", group="3")
-    contact_attrs = dict(condim="3", friction=_fmt(contact["friction"], 0.005, 0.0001), solref=_fmt(contact["timeconst"], 1.0), solimp=_fmt(contact["impedance"], contact["impedance"], 0.001))
+    contact_attrs = dict(condim="3", friction=_fmt(contact["friction"], 0.005, 0.0001), solref=_fmt(contact["timeconst"], 1.0), solimp=_fmt(CONTACT_IMPEDANCE))
     foot = ET.SubElement(default, "default", attrib={"class": "foot"})
     ET.SubElement(foot, "geom", type="sphere", contype="1", conaffinity="2", rgba="0.8 0.3 0.3 1", **contact_attrs)
     world_geom = ET.SubElement(default, "default", attrib={"class": "world"})
@@ -498,7 +665,8 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
             coefs = knee_coupling(osim, name)
             for axis, c in zip(("tx", "ty"), coefs):
                 ET.SubElement(equality, "joint", name=f"knee_{axis}_{side}_coupling", joint1=f"knee_{axis}_{side}",
-                              joint2=body.joint.coordinates[0].name, polycoef=_fmt(c, digits=8))
+                              joint2=body.joint.coordinates[0].name, polycoef=_fmt(c, digits=8),
+                              solref=_fmt(COUPLING_SOLREF), solimp=_fmt(COUPLING_SOLIMP))
 
     tendon = ET.SubElement(root, "tendon")
     actuator = ET.SubElement(root, "actuator")
@@ -529,27 +697,77 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
 
 
 
-def contact_parameters(osim: Osim) -> dict:
-    """MuJoCo contact settings whose static penetration under body weight, shared by the four
-    foot spheres, equals the Hunt-Crossley penetration of the .osim contact model."""
-    k = osim.contact["stiffness"] ** (2 / 3) / 2  # two surfaces of equal stiffness in series
-    radius = osim.spheres[0].radius
+CONTACT_IMPEDANCE = (0.9, 0.95, 0.001)  # MuJoCo's default solimp
+# MuJoCo softens a joint coupling by the summed inverse weights of both joints, and the light
+# shank makes that large; an impedance near 1 keeps the knee translation on its curve.
+COUPLING_SOLREF = (2 * TIMESTEP, 1.0)
+COUPLING_SOLIMP = (0.9999, 0.9999, 0.001)
+
+
+def hunt_crossley_sink(osim: Osim) -> float:
+    """How far the body, held rigid in its default pose, sinks from it until the .osim's
+    Hunt-Crossley spheres carry its weight (negative: it rises). Each sphere pushes with
+    4/3 k^1.5 sqrt(R) d^1.5, k = stiffness^(2/3) / 2 for two equally stiff surfaces (Simbody)."""
+    pose = {"pelvis_tilt": np.array([osim.coordinate("pelvis_tilt").default])}
+    frames = body_frames(osim, pose)
+    tilt = _axis_rotation(np.array([0.0, 0.0, 1.0]), pose["pelvis_tilt"][0])[0]
+    heights = np.array([osim.coordinate("pelvis_ty").default + (tilt @ _place(frames, s.body, s.location)[0])[1] for s in osim.spheres])
+    radius = np.array([s.radius for s in osim.spheres])
     weight = sum(b.mass for b in osim.bodies.values()) * float(np.linalg.norm(osim.gravity))
-    # Hunt-Crossley elastic force: 4/3 k^1.5 sqrt(R) x^1.5
-    depth = (weight / len(osim.spheres) / (4 / 3 * k**1.5 * np.sqrt(radius))) ** (2 / 3)
-    # MuJoCo at rest: d k r = (1 - d) a0 with k = 1 / (d^2 tau^2) for damping ratio 1, so
-    # r = (1 - d) d tau^2 g; the impedance d = 0.5 makes that contact the stiffest one for r.
-    impedance = 0.5
-    timeconst = np.sqrt(depth / ((1 - impedance) * impedance * np.linalg.norm(osim.gravity)))
-    return {"friction": osim.contact["static_friction"], "timeconst": float(timeconst), "impedance": impedance, "depth": float(depth)}
+    k = osim.contact["stiffness"] ** (2 / 3) / 2
+    lo, hi = -1.0, 1.0
+    for _ in range(80):
+        sink = 0.5 * (lo + hi)
+        depth = np.maximum(radius - heights + sink, 0.0)
+        lo, hi = (sink, hi) if np.sum(4 / 3 * k**1.5 * np.sqrt(radius) * depth**1.5) < weight else (lo, sink)
+    return 0.5 * (lo + hi)
+
+
+def mujoco_sink(model, timeconst: float) -> float:
+    """The same test on the MuJoCo body: joints held by stiff springs at the default pose,
+    muscles off, foot contacts with this solref time constant, settled for 3 s."""
+    import mujoco
+
+    m = model.__copy__()
+    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
+    for g in range(m.ngeom):
+        m.geom_solref[g, 0] = timeconst
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    hinges = m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE
+    m.jnt_stiffness[hinges] = 3e4
+    m.dof_damping[m.jnt_dofadr[hinges]] = 300.0
+    m.qpos_spring[:] = d.qpos
+    start = d.qpos[1]
+    mujoco.mj_step(m, d, round(3.0 / TIMESTEP))
+    return float(start - d.qpos[1])
+
+
+def tune_contact(osim: Osim, mjcf: str) -> float:
+    """The solref time constant (damping ratio 1) under which the MuJoCo body rests at the
+    height the Hunt-Crossley contacts hold it: bisection, in log time."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(mjcf)
+    target = hunt_crossley_sink(osim)
+    lo, hi = np.log(2 * TIMESTEP), np.log(1.0)
+    for _ in range(14):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mujoco_sink(model, float(np.exp(mid))) < target else (lo, mid)
+    return round(float(np.exp(0.5 * (lo + hi))), 4)
 
 
 def generate(osim_path: Path | str = OSIM_PATH) -> str:
     """The MJCF text for an .osim file."""
     osim = read_osim(osim_path)
-    paths = {m.name: static_path(m) for m in osim.muscles}
-    curves = {m.name: MuscleCurves() for m in osim.muscles}
-    return build_mjcf(osim, paths, curves, contact_parameters(osim))
+    paths, curves = {}, {}
+    for muscle in osim.muscles:
+        paths[muscle.name], _ = fit_site_path(osim, muscle)
+        pose = pose_grid(osim, spanned_coordinates(osim, muscle))
+        curves[muscle.name] = fit_curves(muscle, opensim_length(osim, muscle, pose))
+    contact = {"friction": osim.contact["static_friction"], "timeconst": 0.02}
+    contact["timeconst"] = tune_contact(osim, build_mjcf(osim, paths, curves, contact))
+    return build_mjcf(osim, paths, curves, contact)
 
 
 def main(argv: list[str] | None = None) -> int:
