@@ -126,6 +126,9 @@ class Meter:
 
 def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
     """Run a learner until SIGTERM/SIGINT or `max_updates`; returns the exit status."""
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    device = select_device(config.device, config.rank)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame) -> None:
@@ -134,9 +137,6 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, on_signal)
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-    device = select_device(config.device, config.rank)
     init_distributed(config.world_size, config.rank, config.dist_url, device)
     try:
         state = _initial_state(config, sac, device)

@@ -1,0 +1,42 @@
+"""The l2r-learner command line: help, and clear errors for bad input."""
+
+import pytest
+
+from l2r.learner.__main__ import build_parser, cli
+from l2r.protocol import parse_daemon_args
+
+
+def test_help_explains_and_exits_zero(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli(["--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    for flag in ("--resume", "--device", "--world-size", "--update-repeat", "--publish-every", "--precision"):
+        assert flag in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--hidden", "512,x"], "invalid literal"),
+    (["--gamma", "1.5"], "gamma"),
+    (["--world-size", "2", "--rank", "2"], "--rank 2"),
+    (["--in-flight", "0"], "--in-flight"),
+    (["--device", "tpu"], "invalid choice"),
+])
+def test_bad_arguments_are_usage_errors(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli(argv)
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(capsys, monkeypatch):
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    assert cli(["--device", "cuda", "--run", "nothing-here"]) == 1
+    assert "no CUDA device" in capsys.readouterr().err
+
+
+def test_config_file_supplies_defaults(tmp_path):
+    config = tmp_path / "learner.toml"
+    config.write_text('run = "exp7"\nbatch-size = 128\nprecision = "float32"\n')
+    args = parse_daemon_args(build_parser(), ["--config", str(config), "--batch-size", "32"])
+    assert (args.run, args.batch_size, args.precision) == ("exp7", 32, "float32")
