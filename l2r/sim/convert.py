@@ -477,11 +477,77 @@ def _lengths_and_arms(lengths: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([lengths[0], *arms])
 
 
-def fit_site_path(osim: Osim, muscle: Muscle) -> tuple[MusclePath, float]:
-    """Site positions (x, y in their bodies; z kept) whose straight path in the MuJoCo body best
-    matches OpenSim's length and moment arms over the pose grid, starting from every OpenSim
-    point (conditional ones included, moving ones at knee angle 0). Returns the path and its
-    RMS residual (m)."""
+def _to_body(frames: dict, body: str, points: np.ndarray) -> np.ndarray:
+    r, p = frames[body]
+    return np.einsum("nji,nj->ni", r, points - p)
+
+
+def wrapped_length(a: np.ndarray, b: np.ndarray, centre: np.ndarray, radius: float, side: np.ndarray) -> np.ndarray:
+    """Length from a to b (n,3, in the cylinder's body frame; axis z) as MuJoCo wraps a tendon
+    on a cylinder with a side site in direction `side`: straight when the segment clears the
+    circle on the side site's side, else tangent, arc on that side, tangent; the height change
+    is spread along the path (a helix on the cylinder)."""
+    pa, pb = a[:, :2] - centre[:2], b[:, :2] - centre[:2]
+    dif = pb - pa
+    t = np.clip(-np.sum(dif * pa, axis=1) / np.maximum(np.sum(dif * dif, axis=1), 1e-12), 0.0, 1.0)
+    near = pa + t[:, None] * dif
+    la, lb = np.linalg.norm(pa, axis=1), np.linalg.norm(pb, axis=1)
+    straight = ((np.sum(near**2, axis=1) > radius**2) & (near @ side[:2] >= 0)) | (la < radius) | (lb < radius)
+    alpha_a = np.arccos(np.clip(radius / np.maximum(la, radius), -1, 1))
+    alpha_b = np.arccos(np.clip(radius / np.maximum(lb, radius), -1, 1))
+    theta_a, theta_b = np.arctan2(pa[:, 1], pa[:, 0]), np.arctan2(pb[:, 1], pb[:, 0])
+    side_angle = np.arctan2(side[1], side[0])
+    best = None
+    for sign in (1.0, -1.0):  # counter-clockwise, clockwise
+        ta, tb = theta_a + sign * alpha_a, theta_b - sign * alpha_b
+        arc = np.mod(sign * (tb - ta), 2 * np.pi)
+        closeness = np.cos(ta + sign * arc / 2 - side_angle)
+        tangent = np.sqrt(np.maximum(la**2 - radius**2, 0)) + np.sqrt(np.maximum(lb**2 - radius**2, 0))
+        length = tangent + radius * arc
+        best = (length, closeness) if best is None else (np.where(closeness > best[1], length, best[0]), np.maximum(closeness, best[1]))
+    planar = np.where(straight, np.linalg.norm(dif, axis=1), best[0])
+    return np.sqrt(planar**2 + (b[:, 2] - a[:, 2]) ** 2)
+
+
+def path_length(frames: dict, path: MusclePath) -> np.ndarray:
+    """Length of a MuJoCo muscle path (sites and an optional wrapping cylinder)."""
+    points = [_place(frames, b, pos) for b, pos in path.sites]
+    total = 0.0
+    for i, (p, q) in enumerate(zip(points, points[1:])):
+        if path.wrap is not None and i == path.wrap_after:
+            body, centre, radius, side = path.wrap
+            total = total + wrapped_length(_to_body(frames, body, p), _to_body(frames, body, q), centre, radius, side)
+        else:
+            total = total + np.linalg.norm(q - p, axis=1)
+    return total
+
+
+def initial_paths(muscle: Muscle) -> list[MusclePath]:
+    """Starting paths to fit: every OpenSim point as a site (conditional ones always on, moving
+    ones at knee angle 0), and, for a conditional point on the hip or knee, a cylinder in
+    its place on the side it bends the path to, which lets the path go when it is slack
+    like the conditional point does."""
+    paths = [static_path(muscle)]
+    for i, point in enumerate(muscle.points):
+        if point.kind != "conditional" or i in (0, len(muscle.points) - 1):
+            continue
+        before, after = muscle.points[i - 1].location, muscle.points[i + 1].location
+        if muscle.points[i - 1].body != point.body and muscle.points[i + 1].body != point.body:
+            continue
+        sites = [s for j, s in enumerate(static_path(muscle).sites) if j != i]
+        chord = after - before
+        normal = np.array([-chord[1], chord[0], 0.0])
+        side = normal * np.sign(np.dot(normal, point.location - before))
+        side /= np.linalg.norm(side)
+        radius = 0.02
+        paths.append(MusclePath(sites, (point.body, point.location - side * radius, radius, side), wrap_after=i - 1))
+    return paths
+
+
+def fit_path(osim: Osim, muscle: Muscle, start: MusclePath) -> tuple[MusclePath, float]:
+    """Site positions (x, y in their bodies; z kept) and cylinder centre and radius whose
+    MuJoCo path best matches OpenSim's length and moment arms over the pose grid. Returns
+    the path and its RMS residual (m)."""
     from scipy.optimize import least_squares
 
     coords = spanned_coordinates(osim, muscle)
@@ -491,23 +557,33 @@ def fit_site_path(osim: Osim, muscle: Muscle) -> tuple[MusclePath, float]:
     target = _lengths_and_arms([opensim_length(osim, muscle, p, pose) for p in poses])
     translations = coupled_translations(osim)
     frames = [body_frames(osim, p, translations) for p in poses]
-    start = static_path(muscle).sites
-    x0 = np.array([pos[:2] for _, pos in start]).ravel()
+    x0 = np.array([pos[:2] for _, pos in start.sites]).ravel()
+    if start.wrap is not None:
+        x0 = np.concatenate([x0, start.wrap[1][:2], [start.wrap[2]]])
 
     def path(x):
-        return [(b, np.array([x[2 * i], x[2 * i + 1], pos[2]])) for i, (b, pos) in enumerate(start)]
+        sites = [(b, np.array([x[2 * i], x[2 * i + 1], pos[2]])) for i, (b, pos) in enumerate(start.sites)]
+        if start.wrap is None:
+            return MusclePath(sites)
+        body, centre, _, side = start.wrap
+        return MusclePath(sites, (body, np.array([x[-3], x[-2], centre[2]]), x[-1], side), start.wrap_after)
 
     def residual(x):
-        sites = path(x)
-        lengths = []
-        for f in frames:
-            points = [_place(f, b, pos) for b, pos in sites]
-            lengths.append(sum(np.linalg.norm(q - p, axis=1) for p, q in zip(points, points[1:])))
+        p = path(x)
         # a weak pull towards the anatomical positions keeps redundant sites where they were
-        return np.concatenate([_lengths_and_arms(lengths) - target, 0.01 * (x - x0)])
+        return np.concatenate([_lengths_and_arms([path_length(f, p) for f in frames]) - target, 0.01 * (x - x0)])
 
-    fit = least_squares(residual, x0, method="trf", x_scale=0.01, diff_step=1e-3)
-    return MusclePath(path(np.round(fit.x, 6))), float(np.sqrt(np.mean(fit.fun[: len(target)] ** 2)))
+    lower = np.full(len(x0), -np.inf)
+    if start.wrap is not None:
+        lower[-1] = 0.002
+    fit = least_squares(residual, x0, bounds=(lower, np.inf), method="trf", x_scale=0.01, diff_step=1e-3)
+    return path(np.round(fit.x, 6)), float(np.sqrt(np.mean(fit.fun[: len(target)] ** 2)))
+
+
+def fit_muscle_path(osim: Osim, muscle: Muscle) -> MusclePath:
+    """The best fitted path among `initial_paths`."""
+    fits = [fit_path(osim, muscle, start) for start in initial_paths(muscle)]
+    return min(fits, key=lambda f: f[1])[0]
 
 
 # --------------------------------------------------------------------------- the MuJoCo body
@@ -606,7 +682,7 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
             sites_by_body.setdefault(body, []).append((f"{muscle.name}_{i}", pos))
         wrap = paths[muscle.name].wrap
         if wrap is not None:
-            sites_by_body.setdefault(wrap[0], []).append((f"{muscle.name}_side", wrap[3]))
+            sites_by_body.setdefault(wrap[0], []).append((f"{muscle.name}_side", wrap[1] + wrap[3] * (wrap[2] + 0.01)))
 
     qpos0: list[float] = []  # the .osim default pose, in MuJoCo's joint order
 
@@ -762,7 +838,7 @@ def generate(osim_path: Path | str = OSIM_PATH) -> str:
     osim = read_osim(osim_path)
     paths, curves = {}, {}
     for muscle in osim.muscles:
-        paths[muscle.name], _ = fit_site_path(osim, muscle)
+        paths[muscle.name] = fit_muscle_path(osim, muscle)
         pose = pose_grid(osim, spanned_coordinates(osim, muscle))
         curves[muscle.name] = fit_curves(muscle, opensim_length(osim, muscle, pose))
     contact = {"friction": osim.contact["static_friction"], "timeconst": 0.02}
