@@ -41,6 +41,11 @@ OBS_SIZE = 41
 NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
 
+# Warnings MuJoCo counts when it resets a diverging simulation.
+DIVERGENCE_WARNINGS = tuple(
+    int(w) for w in (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+)
+
 Obstacle = tuple[float, float, float]  # (x, y, radius) in m
 
 
@@ -127,6 +132,7 @@ class RunEnv(gym.Env):
         self.obstacles: list[Obstacle] = []  # this episode's, sorted by x
         self.psoas = (1.0, 1.0)  # this episode's strengths (left, right), as observed
         self._clipped = np.empty(NUM_MUSCLES)
+        self._step_time = STEP_SECONDS - 0.5 * m.opt.timestep  # less time than this: MuJoCo reset
         self._steps = 0
         self._x = 0.0  # pelvis x
         self._lig_force: list[float] = []  # the ligament forces of the current state
@@ -215,12 +221,17 @@ class RunEnv(gym.Env):
         terminated = qpos[self._y_adr] < FALL_HEIGHT
         truncated = self._steps >= self.max_steps
         info = self._info()
-        # MuJoCo resets the data (time back to 0) when the simulation diverges: end the episode.
-        if d.time < t_before + 0.5 * STEP_SECONDS:
+        # MuJoCo resets the data when the simulation diverges (time restarts, the body jumps to
+        # its reference pose, a warning is counted): end the episode and say so.
+        if (terminated or d.time < t_before + self._step_time) and self._diverged():
             log.warning("simulation diverged at step %d; episode terminated", self._steps)
             terminated, reward, info["diverged"] = True, 0.0, True
         self._running = not (terminated or truncated)
         return self._observe(), reward, terminated, truncated, info
+
+    def _diverged(self) -> bool:
+        """Whether MuJoCo has reset a diverging simulation since the episode began."""
+        return any(self._d.warning[w].number for w in DIVERGENCE_WARNINGS)
 
     def _observe(self) -> np.ndarray:
         obs = np.empty(OBS_SIZE, dtype=np.float32)

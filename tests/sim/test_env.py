@@ -175,6 +175,21 @@ def test_truncates_at_max_steps():
         env.step(np.zeros(18))
 
 
+@pytest.mark.parametrize("steps_before", [0, 3])
+def test_a_diverging_simulation_ends_the_episode(steps_before, tmp_path, monkeypatch, caplog):
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes MUJOCO_LOG.TXT into the working directory
+    env = RunEnv()
+    env.reset(seed=0)
+    for _ in range(steps_before):
+        env.step(np.full(18, 0.1))
+    env.data.qvel[env.model.joint("knee_angle_r").dofadr[0]] = 1e12  # MuJoCo resets its data
+    _, reward, terminated, _, info = env.step(np.zeros(18))
+    assert terminated and info["diverged"] and reward == 0.0
+    assert "diverged" in caplog.text
+    env.reset(seed=0)
+    assert "diverged" not in env.step(np.zeros(18))[4]
+
+
 def test_step_before_reset_is_an_error():
     with pytest.raises(RuntimeError, match="reset"):
         RunEnv().step(np.zeros(18))
