@@ -310,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"), help="learner device")
     le.add_argument("--learner-threads", type=int, default=0,
-                    help="torch CPU threads of the learner; 0: the cores left after one per actor and one for "
+                    help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--batch-size", type=int, default=256, help="learner batch size")
     le.add_argument("--min-replay", type=int, default=1000, help="transitions stored before the learner starts")
@@ -351,15 +351,16 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     # Everyone also listens on an ephemeral loopback port, so Zenoh's gossip meshes the peers.
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
-    children = [Child("replay", tier=0, argv=py + ["l2r.replay", *common, "--listen", replay_ep,
-                                      "--capacity", str(args.capacity), "--min-size", str(args.min_replay),
-                                      "--samples-per-insert", str(args.samples_per_insert),
-                                      "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
-    children.append(Child("learner", tier=1, argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
-                                           "--device", args.device, "--batch-size", str(args.batch_size),
-                                           "--threads", str(learner_threads(args)),
-                                           "--run-dir", str(run_dir), *args.learner_arg],
-                          resume_args=["--resume"]))
+    children = [Child("replay", tier=0,
+                      argv=py + ["l2r.replay", *common, "--listen", replay_ep,
+                                 "--capacity", str(args.capacity), "--min-size", str(args.min_replay),
+                                 "--samples-per-insert", str(args.samples_per_insert),
+                                 "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
+    children.append(Child("learner", tier=1, resume_args=["--resume"],
+                          argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
+                                     "--device", args.device, "--batch-size", str(args.batch_size),
+                                     "--threads", str(learner_threads(args)),
+                                     "--run-dir", str(run_dir), *args.learner_arg]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
               "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
@@ -370,12 +371,12 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
     for i in range(args.evaluators):
         # Evaluators take ids after the actors' so their keys never collide.
-        children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice, argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
-                                                      "--actor-id", str(args.actors + i),
-                                                      "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
-                                                      "--eval-episodes", str(args.eval_episodes),
-                                                      "--eval-interval", str(args.eval_interval), *logs,
-                                                      *args.actor_arg]))
+        children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice,
+                              argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
+                                         "--actor-id", str(args.actors + i),
+                                         "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
+                                         "--eval-episodes", str(args.eval_episodes),
+                                         "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg]))
     return children
 
 
@@ -446,8 +447,10 @@ def cli(argv: list[str] | None = None) -> int:
             board.close()
             token.undeclare()
     summary = after_run(run_dir, board)
-    checkpoint = "yes" if any((run_dir / "learner").glob("*")) else "none written"
-    print(f"l2r up: done. {summary['env_steps']} env steps, {summary['updates']} updates, "
-          f"best evaluation distance {summary['best_eval_distance']} m; checkpoint: {checkpoint}\n"
-          f"        run directory: {run_dir}\n        evaluate with: l2r eval {run_dir}", file=sys.stderr)
+    best = summary["best_eval_distance"]
+    checkpoint = run_dir / "learner" / "checkpoint.pt"
+    print(f"l2r up: done. {summary['env_steps']:,} env steps, {summary['updates']:,} updates, best evaluation "
+          f"distance {'-' if best is None else f'{best:.2f} m'}\n        run directory: {run_dir}\n        "
+          + (f"evaluate with: l2r eval {run_dir}" if checkpoint.exists() else "no learner checkpoint was written"),
+          file=sys.stderr)
     return code
