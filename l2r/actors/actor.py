@@ -152,8 +152,9 @@ class Actor:
         self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
         self.episode_logger = make_episode_logger(config)
         self.live = LiveFrames(session, self.keys, config.actor_id)  # frames only while a viewer watches
-        for slot in self.slots:
-            self.begin_record(slot)
+        if not config.evaluate:  # evaluation rounds start their own recordings
+            for slot in self.slots:
+                self.begin_record(slot)
         self._rate_steps, self._rate_time = 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
