@@ -93,12 +93,18 @@ def same_work(repeats: int) -> dict[str, dict[str, float]]:
                     break
         rate = steps / clock.elapsed()[0]
         opensim = rollout["opensim_steps_per_second"]
-        out[rollout["label"]] = {"steps_per_s": round(rate, 1), "opensim": round(opensim, 1), "speedup": round(rate / opensim, 1)}
+        out[rollout["label"]] = {
+            "steps_per_s": round(rate, 1),
+            "opensim": round(opensim, 1),
+            "speedup": round(rate / opensim, 1),
+        }
     return out
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seconds", type=float, default=5.0, help="timing window per figure (default 5)")
     parser.add_argument("--quick", action="store_true", help="1 s per figure")
     args = parser.parse_args()

@@ -43,7 +43,7 @@ NUM_MUSCLES = 18
 
 # Warnings MuJoCo counts when it resets a diverging simulation.
 DIVERGENCE_WARNINGS = tuple(
-    int(w) for w in (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+    int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{what}")) for what in ("QACC", "QPOS", "QVEL")
 )
 
 Obstacle = tuple[float, float, float]  # (x, y, radius) in m
@@ -86,10 +86,8 @@ class RunEnv(gym.Env):
             raise ValueError(f"the model's timestep {m.opt.timestep} s does not divide {STEP_SECONDS} s")
 
         # Everything the step needs is located once, by name, here.
-        joints = [_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in PELVIS + JOINTS]
-        qadr = m.jnt_qposadr[joints]
-        vadr = m.jnt_dofadr[joints]
-        self._x_adr, self._y_adr = int(qadr[1]), int(qadr[2])
+        x_joint, y_joint = (_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in PELVIS[1:])
+        self._x_adr, self._y_adr = int(m.jnt_qposadr[x_joint]), int(m.jnt_qposadr[y_joint])
 
         lig = default_limits()
         lig_joints = [_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in lig.coordinates]
@@ -107,8 +105,8 @@ class RunEnv(gym.Env):
         self._psoas = (self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT))
         self._max_force = m.actuator_gainprm[:, 2].copy()
 
-        # Observation values 0..35 are one gather from the sensors `with_sensors` added, and the
-        # foot contact forces one slice of them.
+        # Observation values 0..35, and the foot contact forces, are gathers from the sensors
+        # `with_sensors` added.
         def sensor(name: str, size: int) -> np.ndarray:
             adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
             return np.arange(adr, adr + size)
@@ -123,7 +121,9 @@ class RunEnv(gym.Env):
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))
 
         # Obstacles: three spheres of the world body, parked where the model put them when unused.
-        self._obstacle_geoms = [_id(m, mujoco.mjtObj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(NUM_OBSTACLES)]
+        self._obstacle_geoms = [
+            _id(m, mujoco.mjtObj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(NUM_OBSTACLES)
+        ]
         self._parked = [(m.geom_pos[g].copy(), float(m.geom_size[g, 0])) for g in self._obstacle_geoms]
 
         self.action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
@@ -192,7 +192,9 @@ class RunEnv(gym.Env):
             raise RuntimeError("RunEnv.step() needs reset() first, and again after an episode ends")
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (NUM_MUSCLES,):
-            raise ValueError(f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}")
+            raise ValueError(
+                f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}"
+            )
         # The sum is finite for every sane action; only otherwise is the element-wise test needed.
         if not math.isfinite(a.sum()) and not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a.tolist()}")
@@ -205,7 +207,7 @@ class RunEnv(gym.Env):
         qfrc, dofs, kernel = d.qfrc_applied, self._lig_dofs, self._lig_kernel
         forces, applied = self._lig_force, self._lig_applied
         for _ in range(self.substeps):
-            if forces != applied:  # the ligaments are slack most of the time
+            if forces != applied:  # unchanged (e.g. all joints within their limits): no rewrite
                 for dof, f in zip(dofs, forces):
                     qfrc[dof] = f
                 applied = forces

@@ -225,7 +225,7 @@ def test_difficulty_places_obstacles_and_scales_the_psoas():
         g = m.geom(f"obstacle_{i}")
         np.testing.assert_allclose(g.pos, [x, y, 0.0])
         assert g.size[0] == r and m.geom_rbound[g.id] == r
-    np.testing.assert_allclose(obs[38:], [env.obstacles[0][0], env.obstacles[0][1], env.obstacles[0][2]], rtol=1e-6)
+    np.testing.assert_allclose(obs[38:], env.obstacles[0], rtol=1e-6)  # pelvis x is 0 at reset
     np.testing.assert_allclose(obs[36:38], env.psoas, rtol=1e-6)
     left, right = env.psoas
     scale = np.ones(18)
@@ -320,7 +320,8 @@ def test_info_carries_what_a_logger_needs():
     m, d = env.model, env.data
     shapes = {
         "body_pos": (m.nbody, 3), "body_quat": (m.nbody, 4), "muscle_activation": (18,),
-        "muscle_length": (18,), "muscle_force": (18,), "ligament_force": (len(LIGAMENTS),), "contact_force": (4, 3),
+        "muscle_length": (18,), "muscle_force": (18,), "ligament_force": (len(LIGAMENTS),),
+        "contact_force": (4, 3),
     }  # fmt: skip
     for _ in range(5):
         _, _, _, _, info = env.step(np.full(18, 0.3))
