@@ -277,10 +277,11 @@ def cli(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="l2r view", description="Watch logged episodes (one after the other), or a run's actors live, in Rerun.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="examples:\n  l2r view runs/exp1/episodes/*.mcap\n  l2r view best.mcap --save best.rrd\n"
+        epilog="examples:\n  l2r view runs/exp1/episodes/*-eval.mcap\n  l2r view runs/exp1/episodes --save all.rrd\n"
                "  l2r view --live --run exp1 --connect tcp/127.0.0.1:7447 --web",
     )  # fmt: skip
-    parser.add_argument("files", nargs="*", type=Path, help="episode files (.mcap, or interrupted .mcap.part)")
+    parser.add_argument("files", nargs="*", type=Path,
+                        help="episode files (.mcap, or interrupted .mcap.part), or directories of them")
     out = parser.add_mutually_exclusive_group()
     out.add_argument("--save", type=Path, metavar="OUT.rrd", help="write a Rerun file instead of opening a viewer")
     out.add_argument("--web", action="store_true", help="serve the web viewer (for a machine without a screen)")
@@ -295,6 +296,10 @@ def cli(argv: list[str] | None = None) -> int:
     configure_logging(args.log_level)
     if args.live == bool(args.files):
         parser.error("give episode files, or --live (with --run) to watch a running job")
+    given = args.files
+    args.files = [f for p in given for f in (sorted(p.glob("*.mcap")) if p.is_dir() else [p])]
+    if given and not args.files:
+        parser.error(f"no .mcap files in {', '.join(map(str, given))}")
     missing = [str(p) for p in args.files if not p.is_file()]
     if missing:
         parser.error(f"no such file: {', '.join(missing)}")
