@@ -45,7 +45,11 @@ GROUND_ROTATION = rr.Quaternion(xyzw=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # 
 def blueprint() -> rrb.Blueprint:
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(name="runner", origin="/world"),
+            rrb.Vertical(
+                rrb.Spatial3DView(name="runner", origin="/world"),
+                rrb.TextLogView(name="episodes", origin="/episodes"),
+                row_shares=[5, 1],
+            ),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="reward", origin="/plots/reward"),
                 rrb.TimeSeriesView(name="distance and pelvis height (m)", contents=["/plots/distance/**", "/plots/pelvis_height/**"]),
