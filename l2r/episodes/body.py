@@ -222,7 +222,9 @@ def _add_primitive(entity, s: Shape) -> None:
 
 def _set(primitive, s: Shape, offset: tuple[float, float, float], size: tuple[float, ...]) -> None:
     """Place ``primitive`` at the shape's pose shifted by ``offset`` along the shape's axes."""
-    pos = np.asarray(s.pos) + rotate(np.asarray(s.quat), np.asarray(offset))
+    shift = np.zeros(3)
+    mujoco.mju_rotVecQuat(shift, np.asarray(offset, float), np.asarray(s.quat, float))
+    pos = np.asarray(s.pos) + shift
     p = primitive.pose
     p.position.x, p.position.y, p.position.z = (float(v) for v in pos)
     p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z = s.quat

@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -26,7 +26,7 @@ def same(a, b) -> bool:
     return np.array_equal(np.asarray(a, dtype=float), np.asarray(b, dtype=float), equal_nan=True)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])  # a busy machine is not a bug
 @given(st.dictionaries(st.sampled_from([n for n, _ in schema.STEP_VECTORS]), st.integers(0, 60)),
        st.integers(0, 2**32 - 200), st.data())  # fmt: skip
 def test_step_messages_decode_to_the_values_written(sizes, first_step, data):
@@ -47,7 +47,7 @@ def test_step_messages_decode_to_the_values_written(sizes, first_step, data):
             assert same(list(getattr(step, name)), block[name][i] if n else [])
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])  # a busy machine is not a bug
 @given(st.integers(0, 2**62), arrays(np.float64, (len(BODIES), 7), elements=doubles))
 def test_frame_transforms_decode_to_the_poses_written(time_ns, values):
     pos, quat = values[:, :3], values[:, 3:]
