@@ -5,8 +5,9 @@
     client.update_priorities(batch, td_errors)
     client.learner_version = 12               # reported back as policy lag
 
-A background thread keeps ``in_flight`` queries outstanding, spread round-robin over the
-replay shards that hold a liveliness token. A "not ready" reply (the rate limiter holds the
+Up to ``in_flight`` queries are kept outstanding, spread round-robin over the replay shards
+that hold a liveliness token; each batch taken sends the next query, so while the learner
+trains, the next batches are on their way. A "not ready" reply (the rate limiter holds the
 learner back) is retried after the delay the server asks for; it is never an error.
 """
 
@@ -51,28 +52,36 @@ class ReplayClient:
         self._in_flight = in_flight
         self._timeout = timeout
         self._ready: queue.Queue[SampleBatch] = queue.Queue()
-        self._events: queue.Queue[tuple] = queue.Queue()
+        self._lock = threading.Lock()  # guards the fields below, shared with Zenoh's threads
         self._shards: set[int] = set()
-        self._shards_lock = threading.Lock()
-        self._closed = threading.Event()
+        self._pending = 0  # queries sent and not answered yet
+        self._not_before: dict[int, float] = {}  # shard -> earliest time to ask it again
+        self._turn = 0
         self._liveliness = session.liveliness().declare_subscriber(
             self.keys.alive_role("replay"), self._on_alive, history=True)
-        self._thread = threading.Thread(target=self._pump, name="replay-client", daemon=True)
-        self._thread.start()
 
     @property
     def shards(self) -> list[int]:
-        with self._shards_lock:
+        with self._lock:
             return sorted(self._shards)
 
     def sample(self, timeout: float | None = None) -> SampleBatch:
         """The next batch; waits while replay is empty or rate-limited. ``queue.Empty`` on timeout."""
-        batch = self._ready.get(timeout=timeout)
-        self._events.put(("consumed",))  # a free slot: the pump asks for another batch
-        return batch
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            self._top_up()
+            wait = 0.01 if deadline is None else min(0.01, deadline - time.monotonic())
+            try:
+                batch = self._ready.get(timeout=max(0.0, wait))
+            except queue.Empty:
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise
+                continue
+            self._top_up()
+            return batch
 
     def __iter__(self):
-        while not self._closed.is_set():
+        while True:
             yield self.sample()
 
     def update_priorities(self, batch: SampleBatch, priorities: np.ndarray) -> None:
@@ -82,9 +91,6 @@ class ReplayClient:
         self._session.put(self.keys.priorities(batch.shard), encode(update), **PRIORITY_QOS.put())
 
     def close(self) -> None:
-        self._closed.set()
-        self._events.put(("closed",))
-        self._thread.join(timeout=2.0)
         self._liveliness.undeclare()
 
     def __enter__(self) -> "ReplayClient":
@@ -93,45 +99,44 @@ class ReplayClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # -- background ---------------------------------------------------------------------
+    # -- requests ---------------------------------------------------------------------
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
             shard = int(parse_alive(str(sample.key_expr))[1])
         except ValueError:
             return
-        with self._shards_lock:
+        with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._shards.add(shard)
             else:
                 self._shards.discard(shard)
-        self._events.put(("shards",))
 
-    def _pump(self) -> None:
-        pending = 0  # queries sent whose replies have not all arrived
-        not_before: dict[int, float] = {}  # shard -> earliest time to ask it again
-        turn = 0
-        while not self._closed.is_set():
-            now = time.monotonic()
-            shards = [s for s in self.shards if not_before.get(s, 0.0) <= now]
-            while shards and pending + self._ready.qsize() < self._in_flight:
-                shard = shards[turn % len(shards)]
-                turn += 1
-                self._request(shard)
-                pending += 1
-            waits = [t - now for t in not_before.values() if t > now]
-            try:
-                event = self._events.get(timeout=min(waits + [0.5]))
-            except queue.Empty:
-                continue
-            if event[0] == "done":
-                pending -= 1
-            elif event[0] == "wait":
-                _, shard, delay = event
-                not_before[shard] = time.monotonic() + delay
+    def _top_up(self) -> None:
+        """Send queries until ``in_flight`` are outstanding or waiting to be taken."""
+        while True:
+            with self._lock:
+                now = time.monotonic()
+                shards = sorted(s for s in self._shards if self._not_before.get(s, 0.0) <= now)
+                if not shards or self._pending + self._ready.qsize() >= self._in_flight:
+                    return
+                shard = shards[self._turn % len(shards)]
+                self._turn += 1
+                self._pending += 1
+            self._request(shard)
+
+    def _answered(self, query: dict, shard: int, retry_after: float) -> None:
+        """Free the query's slot, once, on its first answer or on its end."""
+        with self._lock:
+            if query["answered"]:
+                return
+            query["answered"] = True
+            self._pending -= 1
+            if retry_after:
+                self._not_before[shard] = time.monotonic() + retry_after
 
     def _request(self, shard: int) -> None:
         request = SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version))
-        state = {"answered": False}
+        query = {"answered": False}
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is None:
@@ -144,18 +149,13 @@ class ReplayClient:
                 return
             if isinstance(message, NotReady):
                 self.waits += 1
-                self._events.put(("wait", shard, message.retry_after))
             else:
                 self._ready.put(message)
-            if not state["answered"]:  # the reply frees the slot; the query's end may come later
-                state["answered"] = True
-                self._events.put(("done",))
+            self._answered(query, shard, message.retry_after if isinstance(message, NotReady) else 0.0)
 
-        def on_done() -> None:
-            if not state["answered"]:  # timeout, error or shard gone: back off a little
-                state["answered"] = True
-                self._events.put(("wait", shard, 0.2))
-                self._events.put(("done",))
+        def on_done() -> None:  # the query ended; if it had no answer, back off a little
+            self._answered(query, shard, 0.2)
 
+        # direct callbacks: replies are handled on Zenoh's thread, in order, without a hop
         self._session.get(self.keys.sample(shard), zenoh.handlers.Callback(on_reply, on_done, indirect=False),
                           payload=encode(request), timeout=self._timeout, **SAMPLE_QOS.put())

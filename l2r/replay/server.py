@@ -228,8 +228,8 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
     keys = server.keys
     with zenoh.open(zenoh_config) as session:
         entities = [
-            session.declare_subscriber(keys.experience_of_shard(config.shard), server.on_experience),
-            session.declare_queryable(keys.sample(config.shard), server.on_sample_query),
+            session.declare_subscriber(keys.experience_of_shard(config.shard), zenoh.handlers.Callback(server.on_experience, indirect=False)),
+            session.declare_queryable(keys.sample(config.shard), zenoh.handlers.Callback(server.on_sample_query, indirect=False)),
             session.declare_subscriber(keys.priorities(config.shard), server.on_priorities),
             session.declare_subscriber(keys.learner_version, server.on_learner_version),
         ]
