@@ -74,6 +74,7 @@ class WeightsOutlet:
     def __init__(self, session: zenoh.Session, keys: Keys):
         self._latest: bytes | None = None
         self._lock = threading.Lock()
+        self._query_key = keys.weights_query
         self._weights = session.declare_publisher(keys.weights, **WEIGHTS_QOS.publisher())
         self._version = session.declare_publisher(keys.learner_version, **VERSION_QOS.publisher())
         self._queryable = session.declare_queryable(keys.weights_query, self._answer)
@@ -90,7 +91,7 @@ class WeightsOutlet:
         with self._lock:
             payload = self._latest
         if payload is not None:
-            query.reply(query.key_expr, payload)
+            query.reply(self._query_key, payload)  # a concrete key, whatever pattern was asked
 
 
 class Meter:
