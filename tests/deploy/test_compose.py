@@ -135,4 +135,4 @@ def test_healthcheck_sees_a_live_daemon_and_only_it(tmp_path):
             assert check("learner") == 1
             token.undeclare()
     finally:
-        stop(router)
+        assert stop(router) == 0, "the router did not stop cleanly on SIGTERM"

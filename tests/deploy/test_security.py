@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from l2r.policy import build_policy, default_spec, policy_state
 from l2r.protocol import messages
 from l2r.protocol.keys import Keys
 
@@ -201,6 +202,32 @@ def test_experience_of_another_protocol_version_or_run_is_dropped(open_as, keys,
     time.sleep(2 * SETTLE_S)
     assert stats()["size"] == 4 and stats()["rejected"] == 1
     assert "version" in "".join(line for line in replay_daemon.read_text().splitlines() if "rejected" in line)
+
+
+@pytest.mark.slow
+def test_weights_of_another_protocol_version_are_dropped_by_the_actor(secure_router, open_as, keys, tmp_path):
+    """Through the router into a real l2r-actor: weights from a newer protocol are rejected and logged."""
+    secrets, endpoint, _ = secure_router
+    log = tmp_path / "actor.log"
+    cmd = [sys.executable, "-m", "l2r.actors", "--run", keys.run, "--actor-id", "5", "--num-envs", "1",
+           "--zenoh-config", str(secrets / "actor" / "zenoh.json5"), "--connect", endpoint, "--torch-threads", "1"]
+    learner = open_as("learner")
+    latest: dict = {}
+    learner.declare_subscriber(keys.stats("actor", 5), lambda s: latest.update(messages.decode(s.payload.to_bytes()).values))
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        assert wait_for(lambda: "rejected_weights" in latest, timeout=30), log.read_text()[-2000:]
+        spec = default_spec()
+        spec["hidden"] = [8]
+        weights = msgpack.unpackb(messages.encode(messages.Weights(3, policy_state(build_policy(spec)), spec)), raw=False)
+        weights["v"] = messages.PROTOCOL_VERSION + 1
+        learner.put(keys.weights, msgpack.packb(weights, use_bin_type=True))
+        assert wait_for(lambda: latest["rejected_weights"] == 1, timeout=20), latest
+        assert latest["policy_version"] != 3
+        assert any("rejected" in line and "version" in line for line in log.read_text().splitlines())
+    finally:
+        stop(proc)
 
 
 def test_a_session_that_matches_no_role_gets_nothing(open_as, keys):
