@@ -482,30 +482,45 @@ def _to_body(frames: dict, body: str, points: np.ndarray) -> np.ndarray:
     return np.einsum("nji,nj->ni", r, points - p)
 
 
+def _segments_cross(p1, p2, p3, p4) -> np.ndarray:
+    """Whether 2D segments p1-p2 and p3-p4 (arrays of (n,2)) intersect."""
+    det = (p4[:, 1] - p3[:, 1]) * (p2[:, 0] - p1[:, 0]) - (p4[:, 0] - p3[:, 0]) * (p2[:, 1] - p1[:, 1])
+    safe = np.where(np.abs(det) < 1e-15, 1.0, det)
+    a = ((p4[:, 0] - p3[:, 0]) * (p1[:, 1] - p3[:, 1]) - (p4[:, 1] - p3[:, 1]) * (p1[:, 0] - p3[:, 0])) / safe
+    b = ((p2[:, 0] - p1[:, 0]) * (p1[:, 1] - p3[:, 1]) - (p2[:, 1] - p1[:, 1]) * (p1[:, 0] - p3[:, 0])) / safe
+    return (np.abs(det) >= 1e-15) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+
+
 def wrapped_length(a: np.ndarray, b: np.ndarray, centre: np.ndarray, radius: float, side: np.ndarray) -> np.ndarray:
     """Length from a to b (n,3, in the cylinder's body frame; axis z) as MuJoCo wraps a tendon
     on a cylinder with a side site in direction `side`: straight when the segment clears the
-    circle on the side site's side, else tangent, arc on that side, tangent; the height change
-    is spread along the path (a helix on the cylinder)."""
+    circle on the side site's side; else along the tangents whose chord midpoint lies towards
+    the side site and the arc between them, the height change spread along (a helix)."""
     pa, pb = a[:, :2] - centre[:2], b[:, :2] - centre[:2]
+    sq0, sq1, r2 = np.sum(pa**2, axis=1), np.sum(pb**2, axis=1), radius**2
     dif = pb - pa
-    t = np.clip(-np.sum(dif * pa, axis=1) / np.maximum(np.sum(dif * dif, axis=1), 1e-12), 0.0, 1.0)
+    t = np.clip(-np.sum(dif * pa, axis=1) / np.maximum(np.sum(dif**2, axis=1), 1e-15), 0.0, 1.0)
     near = pa + t[:, None] * dif
-    la, lb = np.linalg.norm(pa, axis=1), np.linalg.norm(pb, axis=1)
-    straight = ((np.sum(near**2, axis=1) > radius**2) & (near @ side[:2] >= 0)) | (la < radius) | (lb < radius)
-    alpha_a = np.arccos(np.clip(radius / np.maximum(la, radius), -1, 1))
-    alpha_b = np.arccos(np.clip(radius / np.maximum(lb, radius), -1, 1))
-    theta_a, theta_b = np.arctan2(pa[:, 1], pa[:, 0]), np.arctan2(pb[:, 1], pb[:, 0])
-    side_angle = np.arctan2(side[1], side[0])
-    best = None
-    for sign in (1.0, -1.0):  # counter-clockwise, clockwise
-        ta, tb = theta_a + sign * alpha_a, theta_b - sign * alpha_b
-        arc = np.mod(sign * (tb - ta), 2 * np.pi)
-        closeness = np.cos(ta + sign * arc / 2 - side_angle)
-        tangent = np.sqrt(np.maximum(la**2 - radius**2, 0)) + np.sqrt(np.maximum(lb**2 - radius**2, 0))
-        length = tangent + radius * arc
-        best = (length, closeness) if best is None else (np.where(closeness > best[1], length, best[0]), np.maximum(closeness, best[1]))
-    planar = np.where(straight, np.linalg.norm(dif, axis=1), best[0])
+    straight = (sq0 < r2) | (sq1 < r2) | ((np.sum(near**2, axis=1) > r2) & (near @ side[:2] >= 0))
+    root0, root1 = np.sqrt(np.maximum(sq0 - r2, 0.0)), np.sqrt(np.maximum(sq1 - r2, 0.0))
+    options = []
+    for sgn in (1.0, -1.0):
+        t0 = np.stack([pa[:, 0] * r2 + sgn * radius * pa[:, 1] * root0, pa[:, 1] * r2 - sgn * radius * pa[:, 0] * root0], 1) / sq0[:, None]
+        t1 = np.stack([pb[:, 0] * r2 - sgn * radius * pb[:, 1] * root1, pb[:, 1] * r2 + sgn * radius * pb[:, 0] * root1], 1) / sq1[:, None]
+        mid = t0 + t1
+        good = (mid @ side[:2]) / np.maximum(np.linalg.norm(mid, axis=1), 1e-15)
+        crossing = _segments_cross(pa, t0, pb, t1)
+        options.append((t0, t1, np.where(crossing, -1e4, good), crossing))
+    first = options[0][2] > options[1][2]
+    t0 = np.where(first[:, None], options[0][0], options[1][0])
+    t1 = np.where(first[:, None], options[0][1], options[1][1])
+    straight |= np.where(first, options[0][3], options[1][3])
+    cos = np.sum(t0 * t1, axis=1) / np.maximum(np.linalg.norm(t0, axis=1) * np.linalg.norm(t1, axis=1), 1e-15)
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    cross = t0[:, 1] * t1[:, 0] - t0[:, 0] * t1[:, 1]
+    angle = np.where(((cross > 0) & ~first) | ((cross < 0) & first), 2 * np.pi - angle, angle)
+    wrapped = np.linalg.norm(pa - t0, axis=1) + radius * angle + np.linalg.norm(pb - t1, axis=1)
+    planar = np.where(straight, np.linalg.norm(dif, axis=1), wrapped)
     return np.sqrt(planar**2 + (b[:, 2] - a[:, 2]) ** 2)
 
 
@@ -522,24 +537,25 @@ def path_length(frames: dict, path: MusclePath) -> np.ndarray:
     return total
 
 
-def initial_paths(muscle: Muscle) -> list[MusclePath]:
+def initial_paths(osim: Osim, muscle: Muscle) -> list[MusclePath]:
     """Starting paths to fit: every OpenSim point as a site (conditional ones always on, moving
-    ones at knee angle 0), and, for a conditional point on the hip or knee, a cylinder in
-    its place on the side it bends the path to, which lets the path go when it is slack
-    like the conditional point does."""
+    ones at knee angle 0), and, for each conditional point, a thin cylinder just behind it on
+    the side it bends the path to: the path then bends there only while the point would be
+    in the way, and goes straight when it has moved clear, as the conditional point does."""
     paths = [static_path(muscle)]
+    default = {c: np.array([osim.coordinate(c).default]) for c in spanned_coordinates(osim, muscle)}
+    frames = body_frames(osim, default)
     for i, point in enumerate(muscle.points):
         if point.kind != "conditional" or i in (0, len(muscle.points) - 1):
             continue
-        before, after = muscle.points[i - 1].location, muscle.points[i + 1].location
-        if muscle.points[i - 1].body != point.body and muscle.points[i + 1].body != point.body:
-            continue
-        sites = [s for j, s in enumerate(static_path(muscle).sites) if j != i]
+        # neighbours and the point in the point's body frame, at the default pose
+        before, after = (_to_body(frames, point.body, _place(frames, q.body, q.location))[0] for q in (muscle.points[i - 1], muscle.points[i + 1]))
         chord = after - before
         normal = np.array([-chord[1], chord[0], 0.0])
         side = normal * np.sign(np.dot(normal, point.location - before))
         side /= np.linalg.norm(side)
-        radius = 0.02
+        radius = 0.005
+        sites = [site for j, site in enumerate(static_path(muscle).sites) if j != i]
         paths.append(MusclePath(sites, (point.body, point.location - side * radius, radius, side), wrap_after=i - 1))
     return paths
 
@@ -582,7 +598,7 @@ def fit_path(osim: Osim, muscle: Muscle, start: MusclePath) -> tuple[MusclePath,
 
 def fit_muscle_path(osim: Osim, muscle: Muscle) -> MusclePath:
     """The best fitted path among `initial_paths`."""
-    fits = [fit_path(osim, muscle, start) for start in initial_paths(muscle)]
+    fits = [fit_path(osim, muscle, start) for start in initial_paths(osim, muscle)]
     return min(fits, key=lambda f: f[1])[0]
 
 
