@@ -12,6 +12,7 @@ import logging
 import signal
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from l2r.protocol import (
 from l2r.replay import snapshot
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import SequenceTracker
-from l2r.replay.storage import ChunkRejected, Storage, StorageConfig
+from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
 
 log = logging.getLogger("l2r.replay")
 
@@ -173,14 +174,34 @@ class ReplayServer:
 
     # -- persistence ----------------------------------------------------------------------
     def capture(self) -> tuple[dict[str, np.ndarray], dict]:
-        """Copy the state under the lock (the only pause inserts and samples see)."""
-        start = time.perf_counter()
-        with self.lock:
+        """A consistent copy of the state, taken in blocks so inserts and samples go on
+        between them; ``snapshot_pause`` is the longest time they were held up."""
+        pauses = []
+        with self.lock, _timed(pauses):
+            copy = StateCopy(self.storage)
+            meta = self._meta()
+        try:
+            done = False
+            while not done:
+                with self.lock, _timed(pauses):
+                    done = copy.step()
+        except Overtaken as e:  # inserts outran the copy: take it in one go instead
+            log.warning("snapshot copy %s; copying under one lock", e)
+            return self._capture_at_once()
+        self.snapshot_pause = max(pauses)
+        return copy.arrays, meta
+
+    def _meta(self) -> dict:
+        return {"sequences": self.sequences.state(), "inserted": self.limiter.inserted,
+                "sampled": self.limiter.sampled, "learner_version": self.learner_version,
+                "shard": self.config.shard, "time": time.time()}
+
+    def _capture_at_once(self) -> tuple[dict[str, np.ndarray], dict]:
+        pauses = []
+        with self.lock, _timed(pauses):
             arrays = self.storage.state()
-            meta = {"sequences": self.sequences.state(), "inserted": self.limiter.inserted,
-                    "sampled": self.limiter.sampled, "learner_version": self.learner_version,
-                    "shard": self.config.shard, "time": time.time()}
-        self.snapshot_pause = time.perf_counter() - start
+            meta = self._meta()
+        self.snapshot_pause = pauses[0]
         return arrays, meta
 
     def restore(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
@@ -190,11 +211,20 @@ class ReplayServer:
         self.learner_version = meta["learner_version"]
 
 
+@contextmanager
+def _timed(durations: list[float]):
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        durations.append(time.perf_counter() - start)
+
+
 def _save(server: ReplayServer, path: Path) -> None:
     arrays, meta = server.capture()
     start = time.perf_counter()
     size = snapshot.write(path, arrays, meta)
-    log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts/samples paused %.1f ms)",
+    log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",
              server.storage.live, size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
 
 

@@ -184,16 +184,11 @@ class Storage:
 
     # -- snapshots ------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:
-        """Copies of everything needed to rebuild this storage (taken under the server's lock)."""
-        filled = min(self.written, self.capacity)
-        side_filled = min(self.side_written, self.side_capacity)
-        state = {name: getattr(self, name)[:side_filled if name.startswith("side") else filled].copy()
-                 for name in self.ARRAYS}
-        state["priorities"] = self.tree.get(np.arange(filled)).copy()
-        state["counters"] = np.array([self.written, self.side_written, self.live, self.capacity,
-                                      self.side_capacity, self.config.obs_dim, self.config.act_dim], np.int64)
-        state["max_priority"] = np.array(self.max_priority)
-        return state
+        """Copies of everything needed to rebuild this storage, in one go."""
+        copy = StateCopy(self)
+        while not copy.step(block=self.capacity):
+            pass
+        return copy.arrays
 
     def restore(self, state: dict[str, np.ndarray]) -> None:
         """Load a ``state()``; raise ValueError if it was taken with other dimensions."""
@@ -209,6 +204,56 @@ class Storage:
             self.tree.set_range(0, state["priorities"])
         self.written, self.side_written, self.live = written, side_written, live
         self.max_priority = float(state["max_priority"])
+
+
+class Overtaken(RuntimeError):
+    """Inserts overwrote rows a StateCopy had not copied yet."""
+
+
+class StateCopy:
+    """A consistent copy of a Storage as it was at creation, taken block by block.
+
+    Call ``step()`` under the same lock as inserts until it returns True; inserts may run
+    between steps. Rows are copied oldest first, so the write head, which also overwrites
+    the oldest rows first, only reaches rows already copied. Should it catch up (inserts
+    faster than the copy), ``step`` raises Overtaken.
+    """
+
+    SIDE = ("side_obs", "side_owner", "side_owner_generation")
+
+    def __init__(self, storage: Storage):
+        self.storage = storage
+        self.written, self.side_written = storage.written, storage.side_written
+        filled = min(storage.written, storage.capacity)
+        side_filled = min(storage.side_written, storage.side_capacity)
+        self.arrays = {name: np.empty((side_filled if name in self.SIDE else filled, *getattr(storage, name).shape[1:]),
+                                      getattr(storage, name).dtype) for name in Storage.ARRAYS}
+        self.arrays["priorities"] = np.empty(filled, np.float64)
+        self.arrays["counters"] = np.array([storage.written, storage.side_written, storage.live, storage.capacity,
+                                            storage.side_capacity, storage.config.obs_dim, storage.config.act_dim], np.int64)
+        self.arrays["max_priority"] = np.array(storage.max_priority)
+        # offsets from each ring's write head: rows [capacity - filled, capacity) hold data
+        self._next = [storage.capacity - filled, storage.side_capacity - side_filled]
+
+    def step(self, block: int = 1 << 14) -> bool:
+        """Copy the next ``block`` rows of each ring; True when the copy is complete."""
+        st = self.storage
+        rings = ((0, st.capacity, self.written, st.written, [n for n in Storage.ARRAYS if n not in self.SIDE]),
+                 (1, st.side_capacity, self.side_written, st.side_written, list(self.SIDE)))
+        for ring, capacity, head0, head, names in rings:
+            offset = self._next[ring]
+            if offset >= capacity:
+                continue
+            if head - head0 > offset:
+                raise Overtaken(f"inserts overwrote rows not yet copied ({head - head0} > {offset})")
+            end = min(capacity, offset + block)
+            rows = (head0 + np.arange(offset, end)) % capacity
+            for name in names:
+                self.arrays[name][rows] = getattr(st, name)[rows]
+            if ring == 0:
+                self.arrays["priorities"][rows] = st.tree.get(rows)
+            self._next[ring] = end
+        return all(n >= c for n, c in zip(self._next, (st.capacity, st.side_capacity)))
 
 
 def _ring_put(ring: np.ndarray, start: int, values: np.ndarray) -> None:

@@ -7,7 +7,7 @@ import pytest
 
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import SequenceTracker
-from l2r.replay.storage import ChunkRejected, Storage, StorageConfig
+from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
 from l2r.replay.sumtree import SumTree
 from tests.protocol.factories import make_chunk
 
@@ -134,3 +134,30 @@ def test_rate_limiter_reverb_semantics():
     limiter.inserted = 116  # 16 more inserts allow 32 more samples
     assert limiter.can_sample(116, 32)[0] and not limiter.can_sample(116, 33)[0]
     assert RateLimiter(min_size=10).can_sample(10, 10**6)[0]  # ratio off: only the minimum size
+
+
+@pytest.mark.parametrize("prefill", [3, 12])  # a ring partly filled, and one that has wrapped
+def test_block_copy_is_the_state_at_its_start_while_inserts_go_on(prefill):
+    storage = Storage(StorageConfig(capacity=100, side_fraction=0.5))
+    for seq in range(prefill):
+        storage.insert(make_chunk(seq=seq, steps=9, ends=(4,)))
+    expected = storage.state()
+    copy = StateCopy(storage)
+    seq = prefill
+    while not copy.step(block=10):
+        storage.insert(make_chunk(seq=seq, steps=3))  # slower than the copy: never overtakes
+        seq += 1
+    assert storage.written > expected["counters"][0]
+    for name, values in expected.items():
+        np.testing.assert_array_equal(copy.arrays[name], values, err_msg=name)
+
+
+def test_block_copy_notices_when_inserts_overtake_it():
+    storage = Storage(StorageConfig(capacity=100, side_fraction=0.5))
+    for seq in range(12):
+        storage.insert(make_chunk(seq=seq, steps=9))
+    copy = StateCopy(storage)
+    copy.step(block=10)
+    storage.insert(make_chunk(seq=12, steps=30))
+    with pytest.raises(Overtaken):
+        copy.step(block=10)
