@@ -39,7 +39,6 @@ class Service:
     binds: dict[str, Path]  # container path -> host path (bind mounts, relative to the compose file)
     volumes: dict[str, str]  # container path -> named volume
     healthcheck: list[str] | None  # the command, or None
-    depends_on: list[str]
 
 
 def services(env: dict[str, str], path: Path = COMPOSE_FILE) -> dict[str, Service]:
@@ -58,5 +57,5 @@ def services(env: dict[str, str], path: Path = COMPOSE_FILE) -> dict[str, Servic
             test = ["sh", "-c", test[1]]
         elif test:
             test = test[1:]
-        out[name] = Service(name, list(spec.get("command", [])), binds, volumes, test, list(spec.get("depends_on", {})))
+        out[name] = Service(name, list(spec.get("command", [])), binds, volumes, test)
     return out

@@ -12,7 +12,6 @@ from pathlib import Path
 import zenoh
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
-ROLES = ("router", "replay", "learner", "actor")
 
 
 def free_port() -> int:
@@ -43,11 +42,11 @@ def role_config(secrets: Path, role: str, endpoint: str, timeout_ms: int = 3000,
     return conf
 
 
-def start_router(args: list[str], log_path: Path, python: list[str] | None = None, ready_timeout: float = 20.0):
+def start_router(args: list[str], log_path: Path, ready_timeout: float = 20.0) -> subprocess.Popen:
     """Start ``l2r router ARGS`` and return the process once it logs that it is ready."""
     log = open(log_path, "w")
     proc = subprocess.Popen(
-        (python or [sys.executable]) + ["-m", "l2r.cli", "router", *args],
+        [sys.executable, "-m", "l2r.cli", "router", *args],
         stdout=log, stderr=subprocess.STDOUT, cwd=DEPLOY.parent,
     )
     deadline = time.monotonic() + ready_timeout
