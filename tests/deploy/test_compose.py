@@ -11,6 +11,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 import uuid
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import zenoh
 from l2r.protocol.keys import Keys
 
 from . import compose
-from .zenoh_helpers import DEPLOY, free_port, start_router, stop
+from .zenoh_helpers import DEPLOY, free_port, make_secrets, start_router, stop, wait_for
 
 DAEMONS = {"replay": "l2r.replay", "learner": "l2r.learner", "learner-gpu": "l2r.learner", "actor": "l2r.actors"}
 ROLE = {"replay": "replay", "learner": "learner", "learner-gpu": "learner", "actor": "actor"}
@@ -136,3 +137,29 @@ def test_healthcheck_sees_a_live_daemon_and_only_it(tmp_path):
             token.undeclare()
     finally:
         assert stop(router) == 0, "the router did not stop cleanly on SIGTERM"
+
+
+def test_a_daemon_waits_for_the_router_instead_of_exiting(tmp_path):
+    """With its role config, l2r-replay started before any router keeps retrying, then joins it."""
+    secrets = make_secrets(tmp_path / "secrets")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    run = f"wait-{uuid.uuid4().hex[:8]}"
+    replay_config = str(secrets / "replay" / "zenoh.json5")
+    with open(tmp_path / "replay.log", "w") as out:
+        replay = subprocess.Popen([sys.executable, "-m", "l2r.replay", "--run", run, "--zenoh-config", replay_config,
+                                   "--connect", endpoint, "--capacity", "1000"], stdout=out, stderr=subprocess.STDOUT)
+    router = None
+    try:
+        time.sleep(3)
+        assert replay.poll() is None, (tmp_path / "replay.log").read_text()
+        router = start_router(["-c", str(secrets / "router" / "zenoh.json5"), "-l", endpoint], tmp_path / "router.log")
+        learner_config = tmp_path / "learner.json5"
+        learner_config.write_text((secrets / "learner" / "zenoh.json5").read_text().replace("tls/router:7447", endpoint))
+        healthcheck = [sys.executable, str(DEPLOY / "healthcheck.py"), "--zenoh-config", str(learner_config),
+                       "--run", run, "--role", "replay", "--timeout", "2"]
+        assert wait_for(lambda: subprocess.run(healthcheck, capture_output=True, timeout=30).returncode == 0,
+                        timeout=30, interval=0.5), (tmp_path / "replay.log").read_text()
+    finally:
+        stop(replay)
+        if router:
+            stop(router)
