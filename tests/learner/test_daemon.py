@@ -11,7 +11,7 @@ from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import act, build_policy, load_policy_state
 from l2r.protocol import Keys, Stats, Weights, decode
 
-from tests.learner.conftest import SMALL_LEARNER, Feeder
+from tests.learner.conftest import SMALL_LEARNER, Feeder, free_port
 
 
 class WeightsWatcher:
@@ -105,5 +105,23 @@ def test_learner_waits_through_a_replay_restart(network, tmp_path):
         seen = len(watcher.versions)
         watcher.wait(lambda v: len(v) >= seen + 3, 60, "training after the restart", learner)
         assert learner.stop() == 0
+    finally:
+        feeder.stop()
+
+
+@pytest.mark.slow
+def test_two_data_parallel_learners_train_and_stop_together(network, tmp_path):
+    run_dir = tmp_path / "run"
+    url = f"tcp://127.0.0.1:{free_port()}"
+    feeder = Feeder(network.session, network.run)
+    watcher = WeightsWatcher(network.session, network.run)
+    try:
+        ranks = [network.start("l2r.learner", *learner_args(network, run_dir, "--world-size", "2", "--rank", str(r),
+                                                            "--dist-url", url), name=f"rank{r}") for r in range(2)]
+        watcher.wait(lambda v: len(v) >= 4, 90, "versions from rank 0", ranks[0])
+        assert ranks[1].stop(signal.SIGTERM) == 0, ranks[1].log()  # stopping one rank stops both
+        assert ranks[0].proc.wait(30) == 0, ranks[0].log()
+        assert "rank 1 on cpu" in ranks[1].log()
+        assert load_checkpoint(run_dir).version == watcher.versions[-1]  # rank 0 wrote it last
     finally:
         feeder.stop()
