@@ -21,12 +21,24 @@ def osim() -> convert.Osim:
     return convert.read_osim(convert.OSIM_PATH)
 
 
-def test_converter_reproduces_the_committed_model(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def generated() -> str:
+    return convert.generate(convert.OSIM_PATH)  # the whole conversion, fits included (seconds)
+
+
+def test_converter_reproduces_the_committed_model(generated):
+    assert generated == convert.MJCF_PATH.read_text()
+
+
+def test_check_flags_a_stale_model(generated, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(convert, "generate", lambda path: generated)  # reuse the conversion above
     assert convert.main(["--check"]) == 0
     stale = tmp_path / "runner.xml"
-    stale.write_text(convert.MJCF_PATH.read_text().replace('mass="34.2366"', 'mass="34.2"'))
+    stale.write_text(generated.replace('mass="34.2366"', 'mass="34.2"'))
     assert convert.main(["--check", "--out", str(stale)]) == 1
     assert "differs" in capsys.readouterr().err
+    assert convert.main(["--out", str(stale)]) == 0
+    assert stale.read_text() == generated
 
 
 def test_converter_rejects_a_file_that_is_not_an_osim_model(tmp_path, capsys):
