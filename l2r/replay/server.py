@@ -180,6 +180,7 @@ class ReplayServer:
         with self.lock, _timed(pauses):
             copy = StateCopy(self.storage)
             meta = self._meta()
+        copy.touch()
         try:
             done = False
             while not done:

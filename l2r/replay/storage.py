@@ -235,6 +235,11 @@ class StateCopy:
         # offsets from each ring's write head: rows [capacity - filled, capacity) hold data
         self._next = [storage.capacity - filled, storage.side_capacity - side_filled]
 
+    def touch(self) -> None:
+        """Fault in the copy's memory (call outside the lock, so steps only copy)."""
+        for values in self.arrays.values():
+            values.fill(0)
+
     def step(self, block: int = 1 << 14) -> bool:
         """Copy the next ``block`` rows of each ring; True when the copy is complete."""
         st = self.storage
