@@ -48,6 +48,7 @@ def temporal(chunks: list, entity: str, component: str) -> list:
     return [value for _, value in sorted(rows, key=lambda r: r[0])]
 
 
+@pytest.mark.slow
 def test_l2r_view_saves_a_recording_of_several_episodes(episodes, tmp_path):
     files, produced = episodes
     out = tmp_path / "episodes.rrd"
@@ -98,6 +99,7 @@ def test_best_episode_and_write_recording(episodes, tmp_path):
     assert rewards == list(produced[1]["reward"])
 
 
+@pytest.mark.slow
 def test_view_rejects_bad_input_clearly(tmp_path):
     def view(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "l2r.cli", "view", *args], capture_output=True, text=True, timeout=60)
