@@ -316,18 +316,34 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
+def format_markdown(report: dict) -> str:
+    """The per-muscle table as Markdown, for docs/model.md."""
+    lines = ["| muscle | length RMS (mm) | moment arm RMS (mm) | isometric force RMS, % of max (a = 0 / 0.5 / 1) |",
+             "|---|---:|---|---:|"]
+    for name in body.MUSCLES:
+        if name not in report["mtu_length_rms_m"]:
+            continue
+        arms = ", ".join(f"{c} {1000 * report['moment_arm_rms_m'][name][c]:.2f}" for c in report["spanned_coordinates"].get(name, []))
+        forces = report["isometric_force_rms_frac"].get(name, {})
+        force_text = " / ".join(f"{100 * forces[a]:.1f}" for a in ACTIVATIONS if a in forces)
+        lines.append(f"| {name} | {1000 * report['mtu_length_rms_m'][name]:.2f} | {arms} | {force_text} |")
+    return "\n".join(lines)
+
+
 def cli(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="l2r validate", description=__doc__.split("\n\n")[0],
                                      epilog="Exit status: 0 when the report was made (targets met or not), 2 on a bad reference file.")
     parser.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE, help="OpenSim figures to compare with (default: the packaged ones)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    output = parser.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    output.add_argument("--markdown", action="store_true", help="print the per-muscle table as Markdown")
     args = parser.parse_args(argv)
     try:
         report = validate(args.reference)
     except ReferenceError as e:
         print(f"validate: bad reference file: {e}", file=sys.stderr)
         return 2
-    print(json.dumps(report) if args.json else format_table(report))
+    print(json.dumps(report) if args.json else format_markdown(report) if args.markdown else format_table(report))
     return 0
 
 
