@@ -237,8 +237,9 @@ class StateCopy:
 
     def touch(self) -> None:
         """Fault in the copy's memory (call outside the lock, so steps only copy)."""
-        for values in self.arrays.values():
-            values.fill(0)
+        for name in Storage.ARRAYS:
+            self.arrays[name].fill(0)
+        self.arrays["priorities"].fill(0)
 
     def step(self, block: int = 1 << 14) -> bool:
         """Copy the next ``block`` rows of each ring; True when the copy is complete."""

@@ -143,6 +143,7 @@ def test_block_copy_is_the_state_at_its_start_while_inserts_go_on(prefill):
         storage.insert(make_chunk(seq=seq, steps=9, ends=(4,)))
     expected = storage.state()
     copy = StateCopy(storage)
+    copy.touch()
     seq = prefill
     while not copy.step(block=10):
         storage.insert(make_chunk(seq=seq, steps=3))  # slower than the copy: never overtakes
