@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(skipped when the run's policy is already past version 0)")
     a.add_argument("--seed", type=int, default=DEFAULTS.seed, help="base seed of episodes and random actions")
     a.add_argument("--torch-threads", type=int, default=DEFAULTS.torch_threads, help="torch CPU threads for inference")
+    a.add_argument("--max-speed", type=float, default=DEFAULTS.max_speed,
+                   help="pelvis speed (m/s) above which a step is a simulation blow-up: the episode ends before "
+                        "it, as a terminal step without reward, and it is counted (0: off)")
     a.add_argument("--stats-interval", type=float, default=DEFAULTS.stats_interval, help="seconds between stats reports")
     a.add_argument("--max-steps", type=int, default=DEFAULTS.max_steps, help="stop after this many steps (0: never)")
     e = p.add_argument_group("experience")
@@ -76,7 +79,7 @@ def config_from(args: argparse.Namespace) -> ActorConfig:
         chunk_size=args.chunk_size, chunk_delay=args.chunk_delay, seed=args.seed,
         num_shards=args.num_shards, evaluate=args.evaluate, eval_episodes=args.eval_episodes,
         eval_interval=args.eval_interval, torch_threads=args.torch_threads, max_steps=args.max_steps,
-        stats_interval=args.stats_interval,
+        stats_interval=args.stats_interval, max_speed=args.max_speed,
         episode_log=episode_log,
     )
 

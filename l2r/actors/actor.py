@@ -31,6 +31,14 @@ from l2r.sim.wrappers import ActionRepeat
 
 log = logging.getLogger("l2r.actor")
 
+STEP_SECONDS = 0.01  # one inner step of the runner
+
+
+def blew_up(reward: float, info: dict, max_speed: float) -> bool:
+    """Whether a step moved the pelvis faster than any runner can: a simulation blow-up, whose
+    reward would teach the policy to break the physics rather than to run."""
+    return max_speed > 0 and abs(reward) > max_speed * STEP_SECONDS * int(info.get("inner_steps", 1))
+
 
 @dataclass
 class ActorConfig:
@@ -60,6 +68,9 @@ class ActorConfig:
     eval_interval: float = 30.0
     """Evaluation: seconds between the starts of two rounds (a round waits for a new policy)."""
     torch_threads: int = 1
+    max_speed: float = 20.0
+    """Pelvis speed (m/s) above which a step counts as a simulation blow-up: the episode ends
+    before it (stored as a terminal step without reward) and the blow-up is counted (0: off)."""
     stats_interval: float = 2.0
     max_steps: int = 0
     """Stop after this many steps of this actor (0: run until stopped)."""
@@ -116,6 +127,7 @@ class EnvSlot:
     ret: float = 0.0
     length: int = 0
     start_x: float = 0.0
+    x: float = 0.0  # distance after the last step
     recorder: object = None  # MCAP recorder of the episode (a no-op one when not logged)
 
 
@@ -134,6 +146,7 @@ class Actor:
         self.steps = 0
         self.episodes = 0
         self.chunks_sent = 0
+        self.blowups = 0
         self.waiting_for_replay = False
         self.first_version: int | None = None  # version of the first weights received
         self.random_phase = not config.evaluate and config.random_steps > 0
@@ -142,7 +155,8 @@ class Actor:
             seed = episode_seed(config, i, 0)
             env = make_env(config, seed)
             obs, info = env.reset(seed=seed)
-            self.slots.append(EnvSlot(env, obs, seed, start_x=float(info.get("distance", 0.0))))
+            x = float(info.get("distance", 0.0))
+            self.slots.append(EnvSlot(env, obs, seed, start_x=x, x=x))
         self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size) for i in range(config.num_envs)]
         for builder, slot in zip(self.builders, self.slots):
             builder.begin(slot.obs)
@@ -194,6 +208,14 @@ class Actor:
         now = time.time()
         for i, (slot, action) in enumerate(zip(self.slots, actions)):
             obs, reward, terminated, truncated, info = slot.env.step(action)
+            if blew_up(reward, info, self.config.max_speed):
+                self.blowups += 1
+                if self.blowups == 1 or self.blowups % 100 == 0:
+                    log.warning("simulation blow-up (%.1f m in one step); episode ended before it (%d so far)",
+                                reward, self.blowups)
+                obs, reward, terminated, truncated = slot.obs, 0.0, True, False
+                info = {**info, "distance": slot.x}
+            slot.x = float(info.get("distance", 0.0))
             slot.ret += float(reward)
             slot.length += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
@@ -238,7 +260,7 @@ class Actor:
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
         slot.obs, info = slot.env.reset(seed=slot.seed)
-        slot.start_x = float(info.get("distance", 0.0))
+        slot.start_x = slot.x = float(info.get("distance", 0.0))
         self.begin_record(slot)
 
     def flush(self, force: bool = False, version: int | None = None) -> None:
@@ -270,7 +292,8 @@ class Actor:
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
             results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
-                                        self.record_evaluation if self.episode_logger is not None else None)
+                                        self.record_evaluation if self.episode_logger is not None else None,
+                                        self.config.max_speed)
             for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
                 self.summaries.put(encode(EpisodeSummary(
                     actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
@@ -294,7 +317,7 @@ class Actor:
             "newest_version": self.weights.newest_seen, "staleness": self.weights.staleness,
             "weight_swaps": self.weights.swaps, "rejected_weights": self.weights.rejections.total,
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
-            "num_envs": len(self.slots),
+            "num_envs": len(self.slots), "blowups": self.blowups,
         }
         self.stats.put(encode(Stats(self.config.role, str(self.config.actor_id), time.time(), values)))
 
@@ -309,8 +332,8 @@ class Actor:
             slot.env.close()
 
 
-def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
-                      stop: threading.Event | None = None, record=None) -> list[tuple[float, float, int]]:
+def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop: threading.Event | None = None,
+                      record=None, max_speed: float = ActorConfig.max_speed) -> list[tuple[float, float, int]]:
     """Run one deterministic episode per env (batched policy calls); (return, distance, steps) each.
 
     ``record(env, seed)``, if given, is called after each reset and returns an episode
@@ -321,6 +344,7 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
         obs.append(o)
         start_x.append(float(info.get("distance", 0.0)))
         recorders.append(record(env, seed) if record else None)
+    x = list(start_x)
     results: list = [None] * len(envs)
     returns = [0.0] * len(envs)
     lengths = [0] * len(envs)
@@ -330,6 +354,9 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int],
         still = []
         for i, action in zip(running, actions):
             o, reward, terminated, truncated, info = envs[i].step(action)
+            if blew_up(reward, info, max_speed):  # ends the episode where it was, as in training
+                o, reward, terminated, info = obs[i], 0.0, True, {**info, "distance": x[i]}
+            x[i] = float(info.get("distance", 0.0))
             returns[i] += float(reward)
             lengths[i] += int(info.get("inner_steps", 1))
             obs[i] = o
