@@ -101,6 +101,16 @@ def same_work(repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -136,7 +146,7 @@ def main() -> None:
                 "wall_mj_steps_per_s": round(wall_mj, 1),
                 "load_average_1min": round(os.getloadavg()[0], 2),
                 "mujoco": mujoco.__version__,
-                "machine": f"{platform.machine()} {platform.processor() or platform.node()}",
+                "machine": f"{cpu_model()}, {os.cpu_count()} CPUs",
                 "seconds_per_figure": seconds,
             }
         )
