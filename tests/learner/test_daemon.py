@@ -10,6 +10,7 @@ import pytest
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import act, build_policy, load_policy_state
 from l2r.protocol import Keys, Stats, Weights, decode
+from l2r.protocol.session import wait_alive
 
 from tests.learner.conftest import SMALL_LEARNER, Feeder, free_port
 
@@ -96,15 +97,19 @@ def test_learner_waits_through_a_replay_restart(network, tmp_path):
     feeder = Feeder(network.session, network.run)
     watcher = WeightsWatcher(network.session, network.run)
     try:
-        learner = network.start("l2r.learner", *learner_args(network, tmp_path / "run"), name="learner")
+        # Prioritized sampling here, so priority updates flow back to the server too.
+        learner = network.start("l2r.learner", *learner_args(network, tmp_path / "run", "--prioritized"),
+                                name="learner")
+        assert wait_alive(network.session, Keys(network.run).alive("learner", 0), timeout=30), learner.log()
         watcher.wait(lambda v: len(v) >= 3, 60, "training before the restart", learner)
         assert network.replay.stop(signal.SIGTERM) == 0
         time.sleep(1.0)
         assert learner.proc.poll() is None, learner.log()
-        network.start_replay()
+        replay = network.start_replay()
         seen = len(watcher.versions)
         watcher.wait(lambda v: len(v) >= seen + 3, 60, "training after the restart", learner)
         assert learner.stop() == 0
+        assert all("rejected" not in daemon.log() for daemon in (learner, network.replay, replay))
     finally:
         feeder.stop()
 
