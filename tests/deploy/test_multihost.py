@@ -186,7 +186,8 @@ def test_training_across_hosts_survives_losing_the_actors_link(cluster):
         versions = watch.versions()
         return len(watch.actors()) == 2 and all(watch.stored(a) > 0 for a in watch.actors()) \
             and bool(versions) and versions[-1][1] >= 2
-    assert wait_for(training, timeout=60, interval=0.5), (learner_log.read_text()[-3000:], watch.records()[-5:])
+    assert wait_for(training, timeout=60, interval=0.5), "\n".join(
+        [f"--- {log.name}\n{log.read_text()[-1500:]}" for log in [replay_log, learner_log, *actor_logs]])
     actors = sorted(watch.actors())
     # Bandwidth: bytes host C sent per transition the replay server stored, over a few seconds.
     start = (time.time(), tx_bytes(hosts, "c"), watch.replay()[-1]["inserted"])
