@@ -148,7 +148,9 @@ class RunEnv(gym.Env):
     def data(self) -> mujoco.MjData:
         return self._d
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start an episode from the default pose with a new obstacle course and psoas strengths.
 
         options: {"difficulty": 0|1|2} changes the difficulty from this episode on.
@@ -185,7 +187,7 @@ class RunEnv(gym.Env):
         self._running = True
         return self._observe(), self._info()
 
-    def step(self, action):
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Advance 0.01 s. Excitations outside [0, 1] are clipped to it; NaN, inf or a shape
         other than (18,) raise ValueError."""
         if not self._running:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 
 
@@ -19,7 +21,7 @@ class ActionRepeat(gym.Wrapper):
             raise ValueError(f"repeat must be at least 1, got {repeat}")
         self.repeat = repeat
 
-    def step(self, action):
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         total = 0.0
         for i in range(self.repeat):
             obs, reward, terminated, truncated, info = self.env.step(action)
