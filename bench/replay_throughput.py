@@ -225,14 +225,14 @@ def main() -> None:
             resident = rss_bytes(server.pid)
             size = stats[-1][1]["size"]
 
-            with ReplayClient(session, run, batch_size=256, in_flight=8) as client:
+            with ReplayClient(session, run, batch_size=256, in_flight=16) as client:
                 client.sample(timeout=30)
                 n, start = 0, time.perf_counter()
                 while time.perf_counter() - start < seconds:
                     client.sample(timeout=30)
                     n += 1
                 sample_rate = n / (time.perf_counter() - start)
-            with ReplayClient(session, run, batch_size=256, in_flight=8, prioritized=True) as client:
+            with ReplayClient(session, run, batch_size=256, in_flight=16, prioritized=True) as client:
                 client.sample(timeout=30)
                 n, start = 0, time.perf_counter()
                 while time.perf_counter() - start < seconds:

@@ -143,10 +143,11 @@ class Storage:
         side = self.next_row[slots]
         next_rows = np.where(side < 0, (slots + 1) % self.capacity, self.capacity + side)
         return SampleBatch(
-            shard=shard, size=self.live, prioritized=prioritized, obs=self.obs[slots],
-            actions=self.actions[slots], rewards=self.rewards[slots], next_obs=self.all_obs[next_rows],
-            terminated=self.terminated[slots], truncated=self.truncated[slots], indices=slots,
-            generations=self.generation[slots], probabilities=probabilities, policy_versions=self.versions[slots])
+            shard=shard, size=self.live, prioritized=prioritized, obs=self.all_obs.take(slots, axis=0),
+            actions=self.actions.take(slots, axis=0), rewards=self.rewards.take(slots),
+            next_obs=self.all_obs.take(next_rows, axis=0), terminated=self.terminated.take(slots),
+            truncated=self.truncated.take(slots), indices=slots, generations=self.generation.take(slots),
+            probabilities=probabilities, policy_versions=self.versions.take(slots))
 
     def _sample_uniform(self, n: int) -> np.ndarray:
         high = min(self.written, self.capacity)
