@@ -1,8 +1,10 @@
 """What a viewer needs to draw the runner, read once from the MuJoCo model.
 
 ``BodyModel`` holds each body's shapes (the model's own geoms: spheres, capsules, boxes,
-cylinders, ellipsoids) in the body's frame, and each muscle's path as the sites it runs
-through. A body without a visual geom is drawn as bones: capsules to its children.
+cylinders, ellipsoids; not the surfaces tendons wrap around) in the body's frame, and each
+muscle's path as the sites it runs through (drawn straight from site to site: where a tendon
+wraps a surface the line cuts across it). A body without a visual geom is drawn as bones:
+capsules to its children.
 
 It travels inside every episode file as JSON, so an old log still draws after the model
 changes, and renders itself as URDF (for Rerun) and as a ``foxglove.SceneUpdate`` (for
@@ -66,9 +68,12 @@ class BodyModel:
         bodies = tuple(m.body(i).name for i in range(1, m.nbody))
         shapes: list[Shape] = []
         drawn = set()
+        # Surfaces tendons wrap around are part of the muscle model, not of the body's look.
+        surfaces = (int(mujoco.mjtWrap.mjWRAP_CYLINDER), int(mujoco.mjtWrap.mjWRAP_SPHERE))
+        wraps = {int(g) for g, kind in zip(m.wrap_objid, m.wrap_type) if int(kind) in surfaces}
         for g in range(m.ngeom):
             b, kind = int(m.geom_bodyid[g]), _KINDS.get(int(m.geom_type[g]))
-            if b == 0 or kind is None:
+            if b == 0 or kind is None or g in wraps:
                 continue
             n = {"sphere": 1, "capsule": 2, "cylinder": 2}.get(kind, 3)
             shapes.append(Shape(bodies[b - 1], kind, _floats(m.geom_size[g][:n]), _floats(m.geom_pos[g]),
@@ -86,7 +91,7 @@ class BodyModel:
         for t in range(m.ntendon):
             start, count = int(m.tendon_adr[t]), int(m.tendon_num[t])
             sites = [int(s) for s, kind in zip(m.wrap_objid[start : start + count], m.wrap_type[start : start + count])
-                     if kind == mujoco.mjtWrap.mjWRAP_SITE]  # fmt: skip
+                     if int(kind) == int(mujoco.mjtWrap.mjWRAP_SITE)]  # fmt: skip
             muscles.append(m.tendon(t).name)
             paths.append([(int(m.site_bodyid[s]) - 1, _floats(m.site_pos[s])) for s in sites if m.site_bodyid[s]])
         return cls(bodies, shapes, tuple(muscles), paths)

@@ -84,10 +84,11 @@ def test_muscle_paths_follow_the_sites_mujoco_computes():
     body = BodyModel.from_model(m)
     assert set(BODIES) <= set(body.bodies) and body.muscles == MUSCLES
     points = body.muscle_points(d.xpos[1:], d.xquat[1:])
-    for t, path in enumerate(points):
+    for t, path in enumerate(points):  # the sites; wrapping surfaces between them are not drawn
         start, count = m.tendon_adr[t], m.tendon_num[t]
-        sites = m.wrap_objid[start : start + count]
-        assert np.allclose(path, d.site_xpos[sites], atol=1e-12)
+        kinds, ids = m.wrap_type[start : start + count], m.wrap_objid[start : start + count]
+        sites = ids[kinds == mujoco.mjtWrap.mjWRAP_SITE]
+        assert len(sites) >= 2 and np.allclose(path, d.site_xpos[sites], atol=1e-12)
 
 
 def test_the_body_renders_as_urdf_scene_and_json():
