@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from l2r.sim import convert, model as body
+from l2r.sim import convert, fit, model as body, opensim
 
 REFERENCE = json.loads((convert.ASSETS / "opensim_reference.json").read_text())
 
@@ -17,8 +17,8 @@ def m() -> mujoco.MjModel:
 
 
 @pytest.fixture(scope="module")
-def osim() -> convert.Osim:
-    return convert.read_osim(convert.OSIM_PATH)
+def osim() -> opensim.Osim:
+    return opensim.read_osim(convert.OSIM_PATH)
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +138,7 @@ def test_numpy_opensim_geometry_matches_opensim(osim):
     samples = REFERENCE["geometry"][:50]
     pose = {c: np.array([s["pose"][c] for s in samples]) for c in samples[0]["pose"]}
     for muscle in osim.muscles:
-        ours = convert.opensim_length(osim, muscle, pose)
+        ours = opensim.opensim_length(osim, muscle, pose)
         theirs = [s["muscles"][muscle.name]["mtu_length"] for s in samples]
         np.testing.assert_allclose(ours, theirs, atol=1e-9)
 
@@ -147,10 +147,10 @@ def test_numpy_thelen_matches_opensim_isometric_forces(osim):
     samples = REFERENCE["isometric_forces"]
     pose = {c: np.array([s["pose"][c] for s in samples]) for c in samples[0]["pose"]}
     for muscle in osim.muscles:
-        length = convert.opensim_length(osim, muscle, pose)
+        length = opensim.opensim_length(osim, muscle, pose)
         for a in ("0.0", "0.5", "1.0"):
             theirs = np.array([s["forces"][muscle.name][a] for s in samples])
-            ours = convert.thelen_isometric_force(muscle, length, float(a))
+            ours = opensim.thelen_isometric_force(muscle, length, float(a))
             assert np.max(np.abs(ours - theirs)) < 0.01 * muscle.max_force, (muscle.name, a)
 
 
@@ -171,16 +171,16 @@ def test_converter_path_lengths_are_what_mujoco_computes(m, osim):
         t = m.tendon(muscle.name).id
         kinds = m.wrap_type[m.tendon_adr[t] : m.tendon_adr[t] + m.tendon_num[t]]
         wrap_after = next((k - 1 for k, kind in enumerate(kinds) if kind == mujoco.mjtWrap.mjWRAP_CYLINDER), 0)
-        paths[muscle.name] = convert.MusclePath([(m.body(b).name, p) for b, p in sites], wrap, wrap_after)
+        paths[muscle.name] = fit.MusclePath([(m.body(b).name, p) for b, p in sites], wrap, wrap_after)
     for _ in range(20):
         pose = {c: rng.uniform(-1.4, 1.4) for c in body.LEG_COORDINATES}
         pose["knee_angle_r"] = pose["knee_angle_l"] = rng.uniform(-1.5, 0.1)
         body.set_pose(m, d, pose)
         mujoco.mj_kinematics(m, d)
         mujoco.mj_tendon(m, d)
-        frames = convert.body_frames(osim, {c: np.array([v]) for c, v in pose.items()}, convert.coupled_translations(osim))
+        frames = opensim.body_frames(osim, {c: np.array([v]) for c, v in pose.items()}, fit.coupled_translations(osim))
         for name, path in paths.items():
-            assert convert.path_length(frames, path)[0] == pytest.approx(d.ten_length[m.tendon(name).id], abs=1e-6), name
+            assert fit.path_length(frames, path)[0] == pytest.approx(d.ten_length[m.tendon(name).id], abs=1e-6), name
 
 
 def _has_site(m, name):
