@@ -136,20 +136,30 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
         log.info("%s: finishing the current update, then checkpointing", signal.Signals(signum).name)
         stop.set()
 
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, on_signal)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     init_distributed(config.world_size, config.rank, config.dist_url, device)
     try:
         state = _initial_state(config, sac, device)
+        broadcast_state(state)
+        log.info("rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", config.rank, device,
+                 "bfloat16" if state.bfloat16 else "float32", torch.get_num_threads(), state.version,
+                 state.updates)
+        _serve(config, sac, state, conf, device, stop)
+        return 0
     except CheckpointError as e:
         log.error("%s", e)
-        close_distributed()
         return 1
-    broadcast_state(state)
-    leader = config.rank == 0
+    finally:
+        close_distributed()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _serve(config: LearnerConfig, sac: SACConfig, state: TrainState, conf: zenoh.Config, device: torch.device,
+           stop: threading.Event) -> None:
+    """The Zenoh side: liveliness, publishers, replay client and training; the checkpoint comes last."""
     keys = Keys(config.run)
-    log.info("rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", config.rank, device,
-             "bfloat16" if state.bfloat16 else "float32", torch.get_num_threads(), state.version, state.updates)
+    leader = config.rank == 0
     try:
         with zenoh.open(conf) as session:
             token = session.liveliness().declare_token(keys.alive("learner", config.rank))
@@ -164,8 +174,6 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
     finally:
         if leader:
             _checkpoint(config, sac, state)
-        close_distributed()
-    return 0
 
 
 def _initial_state(config: LearnerConfig, sac: SACConfig, device: torch.device) -> TrainState:

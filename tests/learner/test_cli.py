@@ -40,3 +40,15 @@ def test_config_file_supplies_defaults(tmp_path):
     config.write_text('run = "exp7"\nbatch-size = 128\nprecision = "float32"\n')
     args = parse_daemon_args(build_parser(), ["--config", str(config), "--batch-size", "32"])
     assert (args.run, args.batch_size, args.precision) == ("exp7", 32, "float32")
+
+
+def test_resume_from_a_corrupt_checkpoint_fails_clearly_and_keeps_the_file(tmp_path, caplog):
+    path = tmp_path / "learner" / "checkpoint.pt"
+    path.parent.mkdir()
+    path.write_bytes(b"not a checkpoint")
+    # Fails before any network traffic, so the endpoint need not exist.
+    code = cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu",
+                "--connect", "tcp/127.0.0.1:9"])
+    assert code == 1
+    assert "cannot read checkpoint" in caplog.text
+    assert path.read_bytes() == b"not a checkpoint"
