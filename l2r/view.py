@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from mcap.reader import SeekingReader
+from mcap.records import Metadata
 
 from l2r.episodes.body import BodyModel, Shape, rotate
 from l2r.episodes.read import Episode, iter_records, read_episode
@@ -198,12 +200,13 @@ def best_episode(directory: str | Path, kind: str | None = "eval") -> Path | Non
 
 
 def episode_metadata(path: str | Path) -> dict[str, dict[str, str]]:
-    """The metadata records of an episode file, by name (reads the whole file once)."""
-    out = {}
-    for record in iter_records(path):
-        if type(record).__name__ == "Metadata":
-            out[record.name] = dict(record.metadata)
-    return out
+    """The metadata records of an episode file, by name: read through the summary's index in
+    a complete file, by a scan in a damaged one."""
+    try:
+        with open(path, "rb") as f:
+            return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
+    except Exception:  # no usable summary: scan what can be read
+        return {r.name: dict(r.metadata) for r in iter_records(path) if isinstance(r, Metadata)}
 
 
 # ------------------------------------------------------------------------------------ live

@@ -94,6 +94,10 @@ def test_best_episode_and_write_recording(episodes, tmp_path):
     assert best_episode(files[0].parent, kind="eval") == files[1]
     assert best_episode(files[0].parent, kind=None) == files[int(np.sum(produced[1]["reward"]) > np.sum(produced[0]["reward"]))]
     assert best_episode(tmp_path) is None
+    damaged = tmp_path / "damaged-eval.mcap"  # a cut-off file among good ones is passed over
+    damaged.write_bytes(files[1].read_bytes()[:5000])
+    (tmp_path / files[0].name).write_bytes(files[0].read_bytes())
+    assert best_episode(tmp_path, kind=None) == tmp_path / files[0].name
     out = write_recording([files[1]], tmp_path / "best.rrd")
     rewards = [v[0] for v in temporal(rr.chunk.RrdReader(out).stream().to_chunks(), "/plots/reward", "Scalars:scalars")]
     assert rewards == list(produced[1]["reward"])
