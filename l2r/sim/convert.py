@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -200,15 +201,19 @@ def tune_contact(osim: Osim, mjcf: str) -> float:
     return round(float(np.exp(0.5 * (lo + hi))), 4)
 
 
-def generate(osim_path: Path | str = OSIM_PATH) -> str:
-    """The MJCF text for an .osim file."""
+def generate(osim_path: Path | str = OSIM_PATH, progress: Callable[[str], None] | None = None) -> str:
+    """The MJCF text for an .osim file; `progress` receives a line per stage."""
     osim = read_osim(osim_path)
     paths, curves = {}, {}
-    for muscle in osim.muscles:
+    for i, muscle in enumerate(osim.muscles):
+        if progress:
+            progress(f"fitting muscle {i + 1}/{len(osim.muscles)}: {muscle.name}")
         paths[muscle.name] = fit_muscle_path(osim, muscle)
         pose = pose_grid(osim, spanned_coordinates(osim, muscle))
         curves[muscle.name] = fit_curves(muscle, opensim_length(osim, muscle, pose))
     contact = {"friction": osim.contact["static_friction"], "timeconst": 0.02}
+    if progress:
+        progress("tuning foot contacts to the Hunt-Crossley resting height")
     contact["timeconst"] = tune_contact(osim, build_mjcf(osim, paths, curves, contact))
     return build_mjcf(osim, paths, curves, contact)
 
@@ -220,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true", help="do not write; exit 1 when OUT differs from a fresh conversion")
     args = parser.parse_args(argv)
     try:
-        text = generate(args.osim)
+        text = generate(args.osim, progress=lambda line: print(line, file=sys.stderr))
     except ValueError as e:
         print(f"convert: {e}", file=sys.stderr)
         return 2

@@ -31,7 +31,7 @@ def test_converter_reproduces_the_committed_model(generated):
 
 
 def test_check_flags_a_stale_model(generated, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(convert, "generate", lambda path: generated)  # reuse the conversion above
+    monkeypatch.setattr(convert, "generate", lambda path, progress=None: generated)  # reuse the conversion above
     assert convert.main(["--check"]) == 0
     stale = tmp_path / "runner.xml"
     stale.write_text(generated.replace('mass="34.2366"', 'mass="34.2"'))
