@@ -86,30 +86,30 @@ class Storage:
     def insert(self, chunk: ExperienceChunk) -> int:
         """Store all transitions of ``chunk``; return how many."""
         self.check(chunk)
-        t = chunk.size
-        ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
-        slots = (self.written + np.arange(t)) % self.capacity
-        self._evict(slots)
-        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(ends) else chunk.obs[-1:]
-        side_slots = np.append(slots[ends], slots[-1])
-        rows = self._side_write(side_values, side_slots)
-        generations = self.written + np.arange(t, dtype=np.int64)
+        t, start = chunk.size, self.written % self.capacity
+        first = min(t, self.capacity - start)
+        # at most two contiguous pieces of the ring: slices are cheaper than index arrays
+        for ring, lo, hi in ((start, 0, first), (0, first, t)):
+            if lo == hi:
+                continue
+            at = slice(ring, ring + hi - lo)
+            self.live -= int(np.count_nonzero(self.generation[at] >= 0))
+            self.obs[at] = chunk.obs[lo:hi]
+            self.actions[at] = chunk.actions[lo:hi]
+            self.rewards[at] = chunk.rewards[lo:hi]
+            self.terminated[at] = chunk.terminated[lo:hi]
+            self.truncated[at] = chunk.truncated[lo:hi]
+            self.versions[at] = chunk.policy_version
+            self.generation[at] = np.arange(self.written + lo, self.written + hi)
+            self.next_row[at] = -1
+            self.tree.set_range(ring, hi - lo, self.max_priority)
 
-        for name, values in (("obs", chunk.obs[:-1]), ("actions", chunk.actions), ("rewards", chunk.rewards),
-                             ("terminated", chunk.terminated), ("truncated", chunk.truncated)):
-            _ring_put(getattr(self, name), self.written % self.capacity, values)
-        self.versions[slots] = chunk.policy_version
-        self.generation[slots] = generations
-        self.next_row[slots] = -1
+        ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
+        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(ends) else chunk.obs[-1:]
+        side_slots = (start + np.append(ends, t - 1)) % self.capacity
+        rows = self._side_write(side_values, side_slots)
         self.next_row[side_slots] = rows
         self.side_owner_generation[rows] = self.generation[side_slots]
-
-        priority = self.max_priority
-        start = self.written % self.capacity
-        first = min(t, self.capacity - start)
-        self.tree.set_range(start, np.full(first, priority))
-        if first < t:
-            self.tree.set_range(0, np.full(t - first, priority))
         self.written += t
         self.live += t
         return t
@@ -202,7 +202,7 @@ class Storage:
             values = state[name]
             getattr(self, name)[:len(values)] = values
         if len(state["priorities"]):
-            self.tree.set_range(0, state["priorities"])
+            self.tree.set_range(0, len(state["priorities"]), state["priorities"])
         self.written, self.side_written, self.live = written, side_written, live
         self.max_priority = float(state["max_priority"])
 
@@ -261,10 +261,3 @@ class StateCopy:
                 self.arrays["priorities"][rows] = st.tree.get(rows)
             self._next[ring] = end
         return all(n >= c for n, c in zip(self._next, (st.capacity, st.side_capacity)))
-
-
-def _ring_put(ring: np.ndarray, start: int, values: np.ndarray) -> None:
-    first = min(len(values), len(ring) - start)
-    ring[start:start + first] = values[:first]
-    if first < len(values):
-        ring[:len(values) - first] = values[first:]

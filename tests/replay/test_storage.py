@@ -106,7 +106,7 @@ def test_sumtree_matches_a_cumulative_sum():
     rng = np.random.default_rng(1)
     tree = SumTree(37)
     values = rng.random(37)
-    tree.set_range(0, values[:20])
+    tree.set_range(0, 20, values[:20])
     tree.set(np.arange(20, 37), values[20:])
     assert tree.total == pytest.approx(values.sum())
     targets = rng.random(1000) * values.sum()
@@ -162,3 +162,20 @@ def test_block_copy_notices_when_inserts_overtake_it():
     storage.insert(make_chunk(seq=12, steps=30))
     with pytest.raises(Overtaken):
         copy.step(block=10)
+
+
+def test_sumtree_sums_stay_right_across_many_lazy_range_updates():
+    rng = np.random.default_rng(2)
+    tree = SumTree(100)
+    values = np.zeros(100)
+    for _ in range(300):  # more ranges than the tree keeps apart, some overlapping the others
+        start, count = int(rng.integers(0, 90)), int(rng.integers(1, 10))
+        values[start:start + count] = rng.random()
+        tree.set_range(start, count, values[start:start + count])
+        if rng.random() < 0.1:
+            slot = int(rng.integers(0, 100))
+            values[slot] = rng.random()
+            tree.set(np.array([slot]), values[slot:slot + 1])
+    assert tree.total == pytest.approx(values.sum())
+    level = tree.tree[tree.leaves // 2:tree.leaves]
+    np.testing.assert_allclose(level, tree.tree[tree.leaves::2] + tree.tree[tree.leaves + 1::2])
