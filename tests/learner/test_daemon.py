@@ -109,7 +109,7 @@ def test_learner_waits_through_a_replay_restart(network, tmp_path):
         seen = len(watcher.versions)
         watcher.wait(lambda v: len(v) >= seen + 3, 60, "training after the restart", learner)
         assert learner.stop() == 0
-        assert all("rejected" not in daemon.log() for daemon in (learner, network.replay, replay))
+        assert all("rejected message" not in daemon.log() for daemon in (learner, network.replay, replay))
     finally:
         feeder.stop()
 
