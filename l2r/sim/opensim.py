@@ -169,7 +169,7 @@ class Osim:
             for c in body.joint.coordinates if body.joint else ():
                 if c.name == name:
                     return c
-        raise KeyError(name)
+        raise ValueError(f"the model has no coordinate {name!r}")
 
 
 def _read_joint(body_el: ET.Element) -> Joint | None:
@@ -211,6 +211,13 @@ def read_osim(path: Path | str) -> Osim:
     model = root.find("Model")
     if model is None:
         raise ValueError(f"{path}: no <Model> element; is this an .osim file?")
+    try:
+        return _read_model(model)
+    except (AttributeError, TypeError, StopIteration) as e:  # a missing element somewhere
+        raise ValueError(f"{path}: not a complete OpenSim model ({type(e).__name__}: {e})") from e
+
+
+def _read_model(model: ET.Element) -> Osim:
     bodies = {}
     for b in model.find("BodySet").iter("Body"):
         inertia = np.array([_num(b, f"inertia_{a}") for a in ("xx", "yy", "zz", "xy", "xz", "yz")])
