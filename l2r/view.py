@@ -244,8 +244,8 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
         counts["frames"] += 1
 
     with zenoh.open(conf) as session:
+        subscriber = session.declare_subscriber(keys.all_frames, on_frame)  # before the token asks for frames
         token = session.liveliness().declare_token(keys.alive("viewer", uuid.uuid4().hex[:12]))
-        subscriber = session.declare_subscriber(keys.all_frames, on_frame)
         print(f"l2r view: watching run {run!r} (frames on {keys.all_frames}); Ctrl-C stops", file=sys.stderr)
         deadline = None if duration is None else time.monotonic() + duration
         try:
