@@ -18,10 +18,12 @@ import random
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
 from multiprocessing.managers import BaseManager
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -164,6 +166,28 @@ def numpy_sampling(capacity: int, seconds: float) -> float:
     return batches / (time.perf_counter() - start)
 
 
+def snapshot_figures(capacity: int, steps: int) -> dict:
+    """A full storage snapshotted in-process: how long inserts are held up, and the write."""
+    from l2r.replay import snapshot
+    from l2r.replay.rate_limiter import RateLimiter
+    from l2r.replay.server import ReplayServer, ServerConfig
+    from l2r.replay.storage import Storage, StorageConfig
+
+    server = ReplayServer(ServerConfig(), Storage(StorageConfig(capacity=capacity)), RateLimiter())
+    chunk = decode(make_payloads(0, 1, steps)[0])
+    for _ in range(capacity // steps + 1):
+        server.storage.insert(chunk)
+    start = time.perf_counter()
+    arrays, meta = server.capture()
+    copied = time.perf_counter()
+    with tempfile.TemporaryDirectory() as directory:
+        size = snapshot.write(Path(directory) / "replay-shard0.npz", arrays, meta)
+    written = time.perf_counter()
+    return {"snapshot_longest_hold_up_s": round(server.snapshot_pause, 4), "snapshot_copy_s": round(copied - start, 3),
+            "snapshot_write_s": round(written - copied, 3), "snapshot_bytes": size,
+            "bytes_per_transition": round(server.storage.nbytes / capacity, 1)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="smaller capacity and shorter phases")
@@ -247,8 +271,7 @@ def main() -> None:
 
     numpy_rate = numpy_sampling(capacity, seconds)
     base_ingest, base_sample = measure_baseline(args.publishers, seconds, capacity)
-    from l2r.replay.storage import Storage, StorageConfig
-    bytes_per_transition = Storage(StorageConfig(capacity=capacity)).nbytes / capacity
+    snapshots = snapshot_figures(capacity, args.steps)
     ingest_bytes_per_s = ingest * payload_bytes / args.steps
     print(json.dumps({
         "capacity": capacity,
@@ -268,8 +291,8 @@ def main() -> None:
         "baseline_sample_batches_per_s": round(base_sample, 1),
         "ingest_vs_baseline": round(ingest / base_ingest, 1),
         "sample_vs_baseline": round(sample_rate / base_sample, 1),
-        "bytes_per_transition": round(bytes_per_transition, 1),
         "resident_bytes_at_capacity": resident,
+        **snapshots,
     }))
 
 
