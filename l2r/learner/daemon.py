@@ -68,6 +68,15 @@ class LearnerConfig:
         return checkpoint_path(self.run_dir or Path("runs") / self.run)
 
 
+class Diverged(RuntimeError):
+    """Training produced NaN or infinite weights."""
+
+
+def _finite(state: TrainState) -> bool:
+    tensors = [*state.actor.parameters(), *state.critic.parameters(), state.log_alpha]
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
+
+
 class WeightsOutlet:
     """Publishes versioned policy weights and answers queries for the latest ones."""
 
@@ -149,6 +158,9 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
     except CheckpointError as e:
         log.error("%s", e)
         return 1
+    except Diverged as e:
+        log.error("%s: stopping without a checkpoint; --resume continues from the last good one", e)
+        return 1
     finally:
         close_distributed()
         for sig, handler in previous.items():
@@ -207,10 +219,13 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
     while True:
         batch = _next_batch(replay, config, stop)
         if batch is None and not stop.is_set():
-            waiting_since = waiting_since or time.monotonic()
-            if time.monotonic() - waiting_since > 10.0:
+            now = time.monotonic()
+            waiting_since = waiting_since or now
+            if now - waiting_since > 10.0:
                 log.info("waiting for replay (shards alive: %s, not-ready replies: %d)", replay.shards, replay.waits)
-                waiting_since = time.monotonic()
+                waiting_since = now
+            if now - meter.since >= config.metrics_interval:  # rates of zero are news too
+                _report(config, state, meter.report(now), metrics_out)
             continue
         waiting_since = None
         done = config.max_updates and state.updates >= config.max_updates
@@ -226,10 +241,16 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
         lag = float(state.version - np.mean(batch.policy_versions))
         meter.add(metrics, sac.update_repeat, len(batch.obs), lag)
 
+        state.extra["samples"] = state.extra.get("samples", 0) + len(batch.obs)
+
         now = time.monotonic()
-        if outlet and state.updates - last_publish >= config.publish_every:
-            outlet.publish(state)
-            replay.learner_version = state.version
+        if state.updates - last_publish >= config.publish_every:
+            # Every rank checks (their weights are identical), so all stop together.
+            if not _finite(state):
+                raise Diverged(f"weights hold NaN or infinity after {state.updates} updates")
+            if outlet:
+                outlet.publish(state)
+                replay.learner_version = state.version
             last_publish = state.updates
         if now - meter.since >= config.metrics_interval:
             _report(config, state, meter.report(now), metrics_out)
@@ -254,7 +275,7 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
 
 
 def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
-    values |= {"updates": state.updates, "version": state.version}
+    values |= {"updates": state.updates, "version": state.version, "samples": state.extra.get("samples", 0)}
     log.info("updates %d (%.1f/s), samples %.0f/s, version %d, lag %.1f, critic %.4g, actor %.4g, "
              "alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"], values["samples_per_s"],
              state.version, values["policy_lag"], values.get("critic_loss", math.nan),
@@ -265,8 +286,7 @@ def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], 
 
 def _checkpoint(config: LearnerConfig, sac: SACConfig, state: TrainState) -> None:
     """Save, unless training has diverged: a NaN state never replaces a good checkpoint."""
-    tensors = [*state.actor.parameters(), *state.critic.parameters(), state.log_alpha]
-    if not all(bool(torch.isfinite(t).all()) for t in tensors):
+    if not _finite(state):
         log.error("training state holds NaN or infinity: checkpoint NOT written, %s keeps the last good one",
                   config.checkpoint)
         return

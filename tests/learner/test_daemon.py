@@ -130,3 +130,18 @@ def test_two_data_parallel_learners_train_and_stop_together(network, tmp_path):
         assert load_checkpoint(run_dir).version == watcher.versions[-1]  # rank 0 wrote it last
     finally:
         feeder.stop()
+
+
+@pytest.mark.slow
+def test_a_diverging_learner_stops_without_overwriting_its_checkpoint(network, tmp_path):
+    run_dir = tmp_path / "run"
+    feeder = Feeder(network.session, network.run)
+    try:
+        # Rewards scaled past float32's range make the critics' targets infinite at once.
+        learner = network.start("l2r.learner", *learner_args(network, run_dir, "--reward-scale", "1e39",
+                                                             "--precision", "float32"), name="learner")
+        assert learner.proc.wait(60) == 1, learner.log()
+        assert "NaN or infinity" in learner.log()
+        assert not (run_dir / "learner" / "checkpoint.pt").exists()
+    finally:
+        feeder.stop()
