@@ -221,10 +221,30 @@ def _timed(durations: list[float]):
         durations.append(time.perf_counter() - start)
 
 
+def _guarded(handler):
+    """Run a Zenoh handler so that an unexpected error is logged, never raised into Zenoh."""
+    def run(item) -> None:
+        try:
+            handler(item)
+        except Exception:
+            log.exception("%s failed; the shard goes on", handler.__name__)
+    return run
+
+
+def _direct(handler) -> zenoh.handlers.Callback:
+    """Run on Zenoh's receiving thread itself: no hand-over to another thread, and a busy
+    shard slows its senders down (experience is published with congestion control BLOCK)."""
+    return zenoh.handlers.Callback(_guarded(handler), indirect=False)
+
+
 def _save(server: ReplayServer, path: Path) -> None:
     arrays, meta = server.capture()
     start = time.perf_counter()
-    size = snapshot.write(path, arrays, meta)
+    try:
+        size = snapshot.write(path, arrays, meta)
+    except OSError as e:
+        log.error("snapshot to %s failed (%s); the previous one is kept", path, e)
+        return
     log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",
              server.storage.live, size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
 
@@ -259,12 +279,12 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
     keys = server.keys
     with zenoh.open(zenoh_config) as session:
         entities = [
-            session.declare_subscriber(keys.experience_of_shard(config.shard), zenoh.handlers.Callback(server.on_experience, indirect=False)),
-            session.declare_queryable(keys.sample(config.shard), zenoh.handlers.Callback(server.on_sample_query, indirect=False)),
-            session.declare_subscriber(keys.priorities(config.shard), server.on_priorities),
-            session.declare_subscriber(keys.learner_version, server.on_learner_version),
+            session.declare_subscriber(keys.experience_of_shard(config.shard), _direct(server.on_experience)),
+            session.declare_queryable(keys.sample(config.shard), _direct(server.on_sample_query)),
+            session.declare_subscriber(keys.priorities(config.shard), _guarded(server.on_priorities)),
+            session.declare_subscriber(keys.learner_version, _guarded(server.on_learner_version)),
         ]
-        watcher = session.liveliness().declare_subscriber(keys.alive_all, server.on_alive, history=True)
+        watcher = session.liveliness().declare_subscriber(keys.alive_all, _guarded(server.on_alive), history=True)
         # declared last, so a peer that sees the token finds the handlers above in place
         token = session.liveliness().declare_token(keys.alive("replay", config.shard))
         stats_key = keys.stats("replay", config.shard)

@@ -135,6 +135,20 @@ def test_sigterm_writes_a_final_snapshot(start_replay, connect, stats_of, run_na
     again = start_replay(*args)
     connect(again)
     assert "restored 90 transitions" in again.log()
+    assert again.stop() == 0
+    other = start_replay(*args, "--capacity", "5000")  # a snapshot of another shape is not cut to fit
+    assert other.proc.wait(30) == 2
+    assert "this server is configured for (5000" in other.log()
+
+
+def test_an_unreadable_snapshot_is_kept_aside_and_the_shard_starts_empty(start_replay, connect, tmp_path):
+    snap = tmp_path / "snap"
+    snap.mkdir()
+    (snap / "replay-shard0.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    replay = start_replay("--snapshot-dir", str(snap))
+    connect(replay)
+    assert "is unreadable" in replay.log()
+    assert [p.name.split(".corrupt-")[0] for p in snap.glob("*.corrupt-*")] == ["replay-shard0.npz"]
 
 
 def test_two_shards_split_actors_and_serve_one_learner(start_replay, connect, stats_of, run_name):
