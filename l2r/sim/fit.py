@@ -26,8 +26,8 @@ ISOMETRIC_ACTIVATIONS = (0.0, 0.5, 1.0)
 @dataclass
 class MusclePath:
     """The MuJoCo path of one muscle: sites (body, local position) in order, and optionally a
-    wrapping cylinder (body, centre, radius, side-site position) between sites `wrap_after`
-    and `wrap_after + 1`."""
+    wrapping cylinder (body, centre, radius, unit direction of its side site from the centre)
+    between sites `wrap_after` and `wrap_after + 1`."""
 
     sites: list[tuple[str, np.ndarray]]
     wrap: tuple[str, np.ndarray, float, np.ndarray] | None = None
@@ -36,6 +36,8 @@ class MusclePath:
 
 @dataclass
 class MuscleCurves:
+    """MuJoCo's muscle curve parameters (normalised lengths; forces relative to max force)."""
+
     lmin: float = 0.5
     lmax: float = 1.6
     fpmax: float = 1.3
@@ -69,6 +71,7 @@ def knee_coupling(osim: Osim, body: str) -> np.ndarray:
 
 
 def knee_origin(osim: Osim, body: str) -> np.ndarray:
+    """Where the knee's translation splines put the tibia at knee angle 0 (femur frame)."""
     joint = osim.bodies[body].joint
     return np.array([f(np.zeros(1))[0] for _, _, f in joint.translations])
 
@@ -94,8 +97,9 @@ def spanned_coordinates(osim: Osim, muscle: Muscle) -> list[str]:
 
     first, last = chain(muscle.points[0].body), chain(muscle.points[-1].body)
     between = [b for b in first + last if (b in first) != (b in last)]
-    coords = [c.name for b in between if b != "pelvis" for c in osim.bodies[b].joint.coordinates if not c.locked]
-    return [c for name in osim.bodies for c in coords if c in [k.name for k in (osim.bodies[name].joint.coordinates if osim.bodies[name].joint else [])]]
+    spanned = {c.name for b in between if b != "pelvis" for c in osim.bodies[b].joint.coordinates if not c.locked}
+    in_file_order = [c.name for b in osim.bodies.values() if b.joint is not None for c in b.joint.coordinates]
+    return [c for c in in_file_order if c in spanned]
 
 
 def pose_grid(osim: Osim, coordinates: list[str]) -> dict[str, np.ndarray]:
@@ -239,7 +243,7 @@ def fit_muscle_path(osim: Osim, muscle: Muscle) -> MusclePath:
     return min(fits, key=lambda f: f[1])[0]
 
 
-def mujoco_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: float, c: "MuscleCurves") -> np.ndarray:
+def mujoco_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: float, c: MuscleCurves) -> np.ndarray:
     """MuJoCo's muscle force at rest with a rigid tendon (its FL and passive curves)."""
     x = (mtu_length - muscle.slack_length) / muscle.optimal_length
     a, b = 0.5 * (c.lmin + 1), 0.5 * (1 + c.lmax)
@@ -252,7 +256,7 @@ def mujoco_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: f
     return muscle.max_force * (activation * active + passive)
 
 
-def fit_curves(muscle: Muscle, mtu_lengths: np.ndarray) -> "MuscleCurves":
+def fit_curves(muscle: Muscle, mtu_lengths: np.ndarray) -> MuscleCurves:
     """lmin, lmax, fpmax matching Thelen's isometric tendon force over the lengths the muscle
     reaches, and fvmax matching Thelen's force-velocity curve (Af 0.25, Flen 1.4)."""
     from scipy.optimize import least_squares
@@ -265,7 +269,9 @@ def fit_curves(muscle: Muscle, mtu_lengths: np.ndarray) -> "MuscleCurves":
                                for a, t in zip(ISOMETRIC_ACTIVATIONS, targets)])
 
     fit = least_squares(residual, [0.5, 1.6, 1.3], bounds=([0.05, 1.05, 0.0], [0.95, 3.0, 20.0]), method="trf", diff_step=1e-4)
-    v = np.linspace(0.0, 1.0, 101)  # lengthening velocity in max-velocity units
+    # Thelen's lengthening branch at full activation, solved for force: v = (F - 1) / b with
+    # b = (2 + 2/Af) (Flen - F) / (Flen - 1), Af = 0.25; v in max-velocity units
+    v = np.linspace(0.0, 1.0, 101)
     f_len = 1.4  # OpenSim 4's Thelen2003Muscle default
     thelen = (10 * v * f_len + f_len - 1) / (10 * v + f_len - 1)
 
