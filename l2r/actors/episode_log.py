@@ -38,10 +38,8 @@ files written and removed, failures, and the writer thread's CPU seconds (``writ
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import logging
-import os
 import queue
 import threading
 import time
@@ -50,14 +48,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-from mcap.writer import CompressionType, Writer
-from mcap_protobuf.schema import build_file_descriptor_set
 
 import l2r
 from l2r.episodes import schema
 from l2r.episodes.body import BodyModel
-from l2r.episodes.encode import StepLayout, TransformEncoder, cdr_string
+from l2r.episodes.encode import StepLayout, TransformEncoder
+from l2r.episodes.write import CHUNK_BYTES, EpisodeFile, text
 from l2r.sim.env import FOOT_SPHERES
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.model import MODEL_PATH, load_model
@@ -65,7 +61,6 @@ from l2r.sim.model import MODEL_PATH, load_model
 log = logging.getLogger(__name__)
 
 BLOCK_STEPS = 100  # steps per hand-over to the writer thread (what a crash can lose at most)
-CHUNK_BYTES = 256 * 1024  # MCAP chunk size before compression (about 100 steps)
 INFO_VECTORS = ("muscle_activation", "muscle_force", "muscle_length", "ligament_force", "contact_force")
 
 
@@ -174,7 +169,7 @@ class EpisodeLogger:
     # ---------------------------------------------------------------------- writer thread
 
     def _write_loop(self) -> None:
-        open_files: dict[Recorder, _EpisodeFile] = {}
+        open_files: dict[Recorder, EpisodeFile] = {}
         while True:
             item = self._queue.get()
             what, recorder = item[0], item[1] if len(item) > 1 else None
@@ -185,9 +180,9 @@ class EpisodeLogger:
                 if recorder.dropped:
                     _discard(open_files.pop(recorder, None))
                 elif what == "begin":
-                    open_files[recorder] = _EpisodeFile(self, recorder)
+                    open_files[recorder] = _open_file(self, recorder)
                 elif what == "block":
-                    open_files[recorder].write_block(*item[2:])
+                    open_files[recorder].write_block(recorder.layout, *item[2:])
                 elif what == "end":
                     done = open_files.pop(recorder)
                     done.finish(item[2])
@@ -347,75 +342,19 @@ class Recorder:
                             stats["episodes_skipped"])
 
 
-class _EpisodeFile:
-    """One episode's MCAP file while the writer thread fills it."""
-
-    def __init__(self, logger: EpisodeLogger, recorder: Recorder):
-        self.logger, self.recorder = logger, recorder
-        self.part = recorder.path.with_name(recorder.path.name + ".part")
-        self.file = open(self.part, "wb")
-        w = self.writer = Writer(self.file, chunk_size=logger.chunk_bytes, compression=CompressionType.ZSTD)
-        w.start(profile=schema.PROFILE, library=f"l2r {l2r.__version__}")
-        body, meta = logger.body, recorder.meta
-        obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]
-        t0 = recorder.start_ns
-        w.add_metadata(schema.METADATA_EPISODE, _episode_metadata(logger, recorder))
-        w.add_metadata("body", {"json": logger.body_json})
-
-        string = w.register_schema(schema.STRING_SCHEMA_NAME, "ros2msg", schema.STRING_SCHEMA)
-        robot = w.register_channel(schema.TOPIC_ROBOT, "cdr", string)
-        w.add_message(robot, t0, cdr_string(body.urdf(obstacles)), t0)
-        scene_update = body.scene_update(t0, obstacles)
-        scene = w.register_channel(schema.TOPIC_SCENE, "protobuf", _register(w, type(scene_update)))
-        w.add_message(scene, t0, scene_update.SerializeToString(), t0)
-        self.tf = w.register_channel(schema.TOPIC_TF, "protobuf", _register(w, FrameTransforms))
-        self.step = None  # registered with the first block, when the vector sizes are known
-        self.file.flush()
-
-    def write_block(self, block, pos, quat, first_step: int, count: int) -> None:
-        w, rec = self.writer, self.recorder
-        if self.step is None:
-            self.step = self._register_step(rec.layout)
-        times = (rec.start_ns + np.rint(block["time"][:count] * 1e9).astype(np.int64)).tolist()
-        transforms = self.logger._transforms.encode_block(times, pos[:count], quat[:count])
-        for i, message in enumerate(rec.layout.messages(block, first_step, count)):
-            t = times[i]
-            w.add_message(self.tf, t, transforms[i], t, sequence=first_step + i)
-            w.add_message(self.step, t, message, t, sequence=first_step + i)
-        self.file.flush()
-
-    def finish(self, summary: dict[str, Any]) -> None:
-        self.writer.add_metadata(schema.METADATA_RESULT, {k: _text(v) for k, v in summary.items()})
-        self.writer.finish()
-        self.file.flush()
-        os.fsync(self.file.fileno())
-        self.file.close()
-        os.replace(self.part, self.recorder.path)
-
-    def _register_step(self, layout: StepLayout) -> int:
-        w, body = self.writer, self.logger.body
-        sid = w.register_schema(schema.STEP_MESSAGE, "protobuf", schema.step_schema())
-        names = {"muscles": body.muscles, "ligaments": LIGAMENTS, "contacts": FOOT_SPHERES, "bodies": body.bodies}
-        return w.register_channel(schema.TOPIC_STEP, "protobuf", sid, {k: ",".join(v) for k, v in names.items()})
-
-
-@functools.cache
-def _descriptor_set(message_class: type) -> bytes:
-    return build_file_descriptor_set(message_class).SerializeToString()
-
-
-def _register(writer: Writer, message_class: type) -> int:
-    return writer.register_schema(message_class.DESCRIPTOR.full_name, "protobuf", _descriptor_set(message_class))
-
-
-def _episode_metadata(logger: EpisodeLogger, recorder: Recorder) -> dict[str, str]:
-    meta = {k: _text(v) for k, v in recorder.meta.items() if k != "obstacles"}
-    meta.update(
+def _open_file(logger: EpisodeLogger, recorder: Recorder) -> EpisodeFile:
+    meta = recorder.meta
+    obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]
+    metadata = {k: text(v) for k, v in meta.items() if k != "obstacles"}
+    metadata.update(
         run=logger.run, actor=str(logger.actor_id), kind=recorder.kind, format=schema.FORMAT_VERSION,
-        env_version=l2r.__version__, model=logger.model_version, step_seconds=_text(logger.step_seconds),
-        obstacles=";".join(",".join(_text(float(v)) for v in o) for o in recorder.meta.get("obstacles", ())),
+        env_version=l2r.__version__, model=logger.model_version, step_seconds=text(logger.step_seconds),
+        obstacles=";".join(",".join(text(v) for v in o) for o in obstacles),
     )  # fmt: skip
-    return meta
+    body = logger.body
+    names = {"muscles": body.muscles, "ligaments": LIGAMENTS, "contacts": FOOT_SPHERES, "bodies": body.bodies}
+    return EpisodeFile(recorder.path, body, metadata, names, recorder.start_ns, obstacles,
+                       logger.chunk_bytes, logger._transforms, logger.body_json)  # fmt: skip
 
 
 def _model_version(path: Path) -> str:
@@ -423,15 +362,6 @@ def _model_version(path: Path) -> str:
     return "runner.xml sha256:" + hashlib.sha256(path.read_bytes()).hexdigest()[:16]
 
 
-def _text(value: Any) -> str:
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (bool, np.bool_)):
-        return "true" if value else "false"
-    return str(value)
-
-
-def _discard(episode_file: _EpisodeFile | None) -> None:
+def _discard(episode_file: EpisodeFile | None) -> None:
     if episode_file is not None:
-        episode_file.file.close()
-        episode_file.part.unlink(missing_ok=True)
+        episode_file.discard()

@@ -19,6 +19,7 @@ from l2r.actors import episode_log
 from l2r.actors.episode_log import EpisodeLogger, LogPolicy
 from l2r.episodes import schema
 from l2r.episodes.read import read_episode
+from l2r.episodes.write import EpisodeFile
 from l2r.sim.env import RunEnv
 from l2r.view import write_recording
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
@@ -190,13 +191,13 @@ def test_the_disk_budget_removes_the_oldest_files_first(tmp_path):
 
 
 def test_a_slow_disk_skips_the_episode_instead_of_blocking(tmp_path, monkeypatch):
-    write_block = episode_log._EpisodeFile.write_block
+    write_block = EpisodeFile.write_block
 
     def slow_write_block(self, *args):
         time.sleep(0.2)
         write_block(self, *args)
 
-    monkeypatch.setattr(episode_log._EpisodeFile, "write_block", slow_write_block)
+    monkeypatch.setattr(EpisodeFile, "write_block", slow_write_block)
     env = RunEnv(difficulty=DIFFICULTY)
     logger = EpisodeLogger(tmp_path, RUN, actor_id=2, policy=LogPolicy(every=1), block_steps=1, queue_blocks=2)
     env.reset(seed=0)
