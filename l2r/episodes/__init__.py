@@ -7,7 +7,9 @@
 - ``read``: one episode file back into numpy arrays (complete or interrupted files).
 - ``recover``: ``python -m l2r.episodes.recover FILE.mcap.part`` repairs an interrupted file.
 
-Actors log through ``l2r.actors.episode_log.EpisodeLogger`` (which episodes, off the
-stepping thread, under a disk budget); live frames for viewers come from ``live``; the viewer is ``l2r view``
-(``l2r.view``). docs/episodes.md describes the format and what each tool shows.
+- ``live``: the low-rate frames actors publish while a viewer watches.
+
+Actors log through ``l2r.actors.episode_log.EpisodeLogger`` (which episodes, off the stepping
+thread, under a disk budget); the viewer is ``l2r view`` (``l2r.view``). docs/episodes.md
+describes the format and what each tool shows.
 """
