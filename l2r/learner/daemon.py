@@ -112,7 +112,7 @@ class Meter:
     def reset(self, now: float) -> None:
         self.sums: dict[str, torch.Tensor] = {}
         self.updates = self.samples = 0
-        self.lag_sum = 0.0
+        self.lag_sum = self.waited = 0.0
         self.batches = 0
         self.since = now
 
@@ -129,7 +129,7 @@ class Meter:
         elapsed = max(now - self.since, 1e-9)
         values = {name: float(total) / max(self.batches, 1) for name, total in self.sums.items()}
         values |= {"updates_per_s": self.updates / elapsed, "samples_per_s": self.samples / elapsed,
-                   "policy_lag": self.lag_sum / max(self.batches, 1)}
+                   "policy_lag": self.lag_sum / max(self.batches, 1), "wait_fraction": self.waited / elapsed}
         self.reset(now)
         return values
 
@@ -217,7 +217,9 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
     meter = Meter()
     last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None
     while True:
+        asked = time.monotonic()
         batch = _next_batch(replay, config, stop)
+        meter.waited += time.monotonic() - asked
         if batch is None and not stop.is_set():
             now = time.monotonic()
             waiting_since = waiting_since or now
@@ -276,9 +278,9 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
 
 def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
     values |= {"updates": state.updates, "version": state.version, "samples": state.extra.get("samples", 0)}
-    log.info("updates %d (%.1f/s), samples %.0f/s, version %d, lag %.1f, critic %.4g, actor %.4g, "
-             "alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"], values["samples_per_s"],
-             state.version, values["policy_lag"], values.get("critic_loss", math.nan),
+    log.info("updates %d (%.1f/s), samples %.0f/s, waiting %.0f%%, version %d, lag %.1f, critic %.4g, "
+             "actor %.4g, alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"],
+             values["samples_per_s"], 100 * values["wait_fraction"], state.version, values["policy_lag"], values.get("critic_loss", math.nan),
              values.get("actor_loss", math.nan), values.get("alpha", math.nan), values.get("q_mean", math.nan),
              values.get("entropy", math.nan))
     out.put(encode(Stats("learner", str(config.rank), time.time(), values)))

@@ -68,7 +68,8 @@ def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp
         assert versions_before == sorted(set(versions_before)), "versions must increase"
         saved = load_checkpoint(run_dir)
         assert saved.updates >= 200 and 1 <= saved.version <= versions_before[-1]
-        assert any(m["updates_per_s"] > 0 and np.isfinite(m["critic_loss"]) for m in watcher.metrics)
+        assert any(m["updates_per_s"] > 0 and np.isfinite(m["critic_loss"]) and 0 <= m["wait_fraction"] <= 1
+                   for m in watcher.metrics)
 
         second = network.start("l2r.learner", *learner_args(network, run_dir, "--resume",
                                                              "--checkpoint-interval", "60"), name="learner2")
