@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import rerun as rr
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
 from l2r.actors import episode_log
@@ -100,6 +101,8 @@ def test_a_writer_process_leaves_complete_self_describing_files(tmp_path):
             assert pelvis.parent_frame_id == schema.GROUND_FRAME
             assert pelvis.translation.x == want["info"][0]["body_pos"][1][0]
 
+        with open(path, "rb") as f:  # every chunk and the data section pass their CRC checks
+            assert sum(1 for _ in StreamReader(f, validate_crcs=True).records) > 2 * n
         episode = read_episode(path)
         assert episode.complete
         assert_steps_equal(episode, want, n)
