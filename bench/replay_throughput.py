@@ -166,24 +166,31 @@ def numpy_sampling(capacity: int, seconds: float) -> float:
     return batches / (time.perf_counter() - start)
 
 
-def snapshot_figures(capacity: int, steps: int) -> dict:
-    """A full storage snapshotted in-process: how long inserts are held up, and the write."""
+def in_process_figures(capacity: int, steps: int) -> dict:
+    """In-process figures on a full storage: decode + insert speed without Zenoh (the
+    server's own ceiling), and a snapshot: how long inserts are held up, copy and write."""
     from l2r.replay import snapshot
     from l2r.replay.rate_limiter import RateLimiter
     from l2r.replay.server import ReplayServer, ServerConfig
     from l2r.replay.storage import Storage, StorageConfig
 
     server = ReplayServer(ServerConfig(), Storage(StorageConfig(capacity=capacity)), RateLimiter())
-    chunk = decode(make_payloads(0, 1, steps)[0])
-    for _ in range(capacity // steps + 1):
-        server.storage.insert(chunk)
+    payload = make_payloads(0, 1, steps)[0]
+    for _ in range(capacity // steps + 1):  # fill it, so the timed inserts below overwrite
+        server.storage.insert(decode(payload))
+    start, n = time.perf_counter(), 0
+    while time.perf_counter() - start < 1.0:  # the server's work per chunk, without Zenoh
+        server.storage.insert(decode(payload))
+        n += 1
+    in_process = n * steps / (time.perf_counter() - start)
     start = time.perf_counter()
     arrays, meta = server.capture()
     copied = time.perf_counter()
     with tempfile.TemporaryDirectory() as directory:
         size = snapshot.write(Path(directory) / "replay-shard0.npz", arrays, meta)
     written = time.perf_counter()
-    return {"snapshot_longest_hold_up_s": round(server.snapshot_pause, 4), "snapshot_copy_s": round(copied - start, 3),
+    return {"in_process_decode_insert_transitions_per_s": round(in_process),
+            "snapshot_longest_hold_up_s": round(server.snapshot_pause, 4), "snapshot_copy_s": round(copied - start, 3),
             "snapshot_write_s": round(written - copied, 3), "snapshot_bytes": size,
             "bytes_per_transition": round(server.storage.nbytes / capacity, 1)}
 
@@ -271,7 +278,7 @@ def main() -> None:
 
     numpy_rate = numpy_sampling(capacity, seconds)
     base_ingest, base_sample = measure_baseline(args.publishers, seconds, capacity)
-    snapshots = snapshot_figures(capacity, args.steps)
+    snapshots = in_process_figures(capacity, args.steps)
     ingest_bytes_per_s = ingest * payload_bytes / args.steps
     print(json.dumps({
         "capacity": capacity,
