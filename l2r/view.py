@@ -20,6 +20,7 @@ For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode fi
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import uuid
@@ -310,6 +311,9 @@ def cli(argv: list[str] | None = None) -> int:
     missing = [str(p) for p in args.files if not p.is_file()]
     if missing:
         parser.error(f"no such file: {', '.join(missing)}")
+    headless = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if headless and not (args.save or args.web):
+        parser.error("no screen here (DISPLAY is not set): use --save FILE.rrd, or --web to serve the web viewer")
 
     episodes = []
     for path in args.files:
@@ -333,14 +337,25 @@ def cli(argv: list[str] | None = None) -> int:
         rr.serve_web_viewer(web_port=args.web_port, open_browser=False, connect_to=url)
         print(f"l2r view: web viewer on http://localhost:{args.web_port} (Ctrl-C stops)", file=sys.stderr)
     else:
-        rec.spawn(default_blueprint=blueprint())
+        # The viewer binary comes with rerun-sdk next to this Python, which may not be on PATH.
+        os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+        try:
+            rec.spawn(default_blueprint=blueprint())
+        except RuntimeError as e:
+            print(f"l2r view: cannot start the Rerun viewer ({str(e).splitlines()[0]}); "
+                  "use --save FILE.rrd, or --web on a machine without a screen", file=sys.stderr)  # fmt: skip
+            return 1
 
     if args.live:
         status = watch_live(rec, config_from_args(args), args.run, args.duration)
     else:
         log_episodes(rec, episodes)
         status = 0
-    rec.flush()
+    try:
+        rec.flush()
+    except RuntimeError as e:  # the viewer went away (closed, or could not open a window)
+        print(f"l2r view: the Rerun viewer is gone: {e}", file=sys.stderr)
+        return 1
     if args.save:
         print(f"l2r view: wrote {args.save}", file=sys.stderr)
     elif args.web and not args.live:
