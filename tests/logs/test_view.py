@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -104,13 +105,18 @@ def test_best_episode_and_write_recording(episodes, tmp_path):
 
 
 @pytest.mark.slow
-def test_view_rejects_bad_input_clearly(tmp_path):
+def test_view_rejects_bad_input_clearly(episodes, tmp_path):
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+
     def view(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "l2r.cli", "view", *args], capture_output=True, text=True, timeout=60)
+        return subprocess.run([sys.executable, "-m", "l2r.cli", "view", *args], capture_output=True, text=True,
+                              timeout=60, env=headless)  # fmt: skip
 
     assert view().returncode == 2
     missing = view(str(tmp_path / "nope.mcap"), "--save", str(tmp_path / "x.rrd"))
     assert missing.returncode == 2 and "no such file" in missing.stderr
+    no_screen = view(str(episodes[0][0]))
+    assert no_screen.returncode == 2 and "--save" in no_screen.stderr
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
     result = view(str(junk), "--save", str(tmp_path / "x.rrd"))
