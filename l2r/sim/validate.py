@@ -132,12 +132,13 @@ def geometry_errors(m: mujoco.MjModel, samples: list[dict]) -> tuple[dict, dict,
     arm_err: dict[str, dict[str, list]] = {}
     arm_size: dict[str, dict[str, float]] = {}
     for sample in samples:
-        pose = dict(sample["pose"])
-        lengths = _tendon_lengths(m, d, pose)
+        body.reset_to_default(m, d)
+        lengths = _tendon_lengths(m, d, sample["pose"])
+        pose = {c: float(d.qpos[m.joint(c).qposadr[0]]) for c in body.COORDINATES}  # the whole pose
         shifted = {}
-        for c in {c for e in sample["muscles"].values() for c in e["moment_arms"]}:
-            up = _tendon_lengths(m, d, {**pose, c: pose.get(c, 0.0) + MOMENT_ARM_STEP})
-            down = _tendon_lengths(m, d, {**pose, c: pose.get(c, 0.0) - MOMENT_ARM_STEP})
+        for c in sorted({c for e in sample["muscles"].values() for c in e["moment_arms"]}):
+            up = _tendon_lengths(m, d, {**pose, c: pose[c] + MOMENT_ARM_STEP})
+            down = _tendon_lengths(m, d, {**pose, c: pose[c] - MOMENT_ARM_STEP})
             shifted[c] = -(up - down) / (2 * MOMENT_ARM_STEP)
             body.set_pose(m, d, pose)
         for name, entry in sample["muscles"].items():
@@ -145,13 +146,16 @@ def geometry_errors(m: mujoco.MjModel, samples: list[dict]) -> tuple[dict, dict,
             for c, arm in entry["moment_arms"].items():
                 arm_err.setdefault(name, {}).setdefault(c, []).append(shifted[c][tendon[name]] - arm)
                 arm_size.setdefault(name, {})[c] = max(arm_size.get(name, {}).get(c, 0.0), abs(arm))
-    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
     spans = {name: [c for c, size in arms.items() if size > SPANS_THRESHOLD] for name, arms in arm_size.items()}
     return (
-        {name: {c: rms(e) for c, e in arms.items()} for name, arms in arm_err.items()},
-        {name: rms(e) for name, e in length_err.items()},
+        {name: {c: _rms(e) for c, e in arms.items()} for name, arms in arm_err.items()},
+        {name: _rms(e) for name, e in length_err.items()},
         spans,
     )
+
+
+def _rms(errors: list[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(errors))))
 
 
 def isometric_force(m: mujoco.MjModel, actuator: int, length: float, activation: float) -> float:
@@ -167,14 +171,15 @@ def isometric_errors(m: mujoco.MjModel, samples: list[dict]) -> dict:
     body.reset_to_default(m, d)
     errors: dict[str, dict[str, list]] = {}
     for sample in samples:
-        lengths = _tendon_lengths(m, d, dict(sample["pose"]))
+        body.reset_to_default(m, d)
+        lengths = _tendon_lengths(m, d, sample["pose"])
         for name, by_act in sample["forces"].items():
             a = m.actuator(name).id
             fmax = m.actuator_gainprm[a, 2]
             for act, ref_force in by_act.items():
                 err = (isometric_force(m, a, lengths[m.tendon(name).id], float(act)) - ref_force) / fmax
                 errors.setdefault(name, {}).setdefault(act, []).append(err)
-    return {name: {act: float(np.sqrt(np.mean(np.square(e)))) for act, e in acts.items()} for name, acts in errors.items()}
+    return {name: {act: _rms(e) for act, e in acts.items()} for name, acts in errors.items()}
 
 
 # --------------------------------------------------------------------------- ligaments and rollouts
@@ -286,7 +291,10 @@ def summarize(report: dict) -> dict:
 
 def format_table(report: dict) -> str:
     """The per-muscle table and the headline figures, for people."""
-    mm = lambda v: f"{v * 1000:6.2f}"  # noqa: E731
+
+    def mm(v: float) -> str:
+        return f"{v * 1000:6.2f}"
+
     lines = [f"reference: {report['reference']}", "",
              f"{'muscle':<14} {'length':>7}  {'moment arm RMS (mm) per spanned joint':<44} {'force RMS (% max) a=0/0.5/1':>28}"]
     for name in body.MUSCLES:
@@ -299,7 +307,7 @@ def format_table(report: dict) -> str:
     s = report["summary"]
     fmt = {
         "moment_arm_median_m": lambda v: f"{v * 1000:.2f} mm", "moment_arm_worst_m": lambda v: f"{v * 1000:.2f} mm",
-        "mtu_length_worst_m": lambda v: f"{v * 1000:.2f} mm", "isometric_force_mean_frac": lambda v: f"{100 * v:.1f} % of max force",
+        "mtu_length_worst_m": lambda v: f"{v * 1000:.2f} mm", "isometric_force_mean_frac": lambda v: f"{100 * v:.1f} % of Fmax",
         "ligament_max_rel_error": lambda v: f"{100 * v:.3g} %", "reset_obs_max_abs_error": lambda v: f"{v:.3g}",
         "fall_step_rel_error": lambda v: f"{100 * v:.0f} % (step {report['fall_step']} vs {report['reference_fall_step']})",
     }
