@@ -11,8 +11,8 @@ from l2r.protocol.messages import (
 )
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
-    Rejections, add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args,
-    session_config, wait_alive,
+    DefaultsHelpFormatter, Rejections, add_daemon_arguments, config_from_args, configure_logging,
+    parse_daemon_args, session_config, wait_alive,
 )
 
 __all__ = [
@@ -20,7 +20,8 @@ __all__ = [
     "VERSION_QOS", "WEIGHTS_QOS", "Keys", "QoS", "check_name", "parse_alive", "shard_of",
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "EpisodeSummary", "ExperienceChunk", "Frame",
     "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "SampleBatch",
-    "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient", "Rejections",
+    "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
+    "DefaultsHelpFormatter", "Rejections",
     "add_daemon_arguments", "config_from_args", "configure_logging", "parse_daemon_args",
     "session_config", "wait_alive",
 ]

@@ -42,6 +42,16 @@ def session_config(
     return conf
 
 
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows "(default: X)" after each flag's help, except where there is no default to show."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.default is None or action.default is False or action.default is argparse.SUPPRESS \
+                or action.default == []:
+            return action.help or ""
+        return super()._get_help_string(action)
+
+
 def add_daemon_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the flags every daemon takes: run name, Zenoh endpoints and config, TOML config, logging."""
     g = parser.add_argument_group("run and network (common to all l2r daemons)")

@@ -119,8 +119,8 @@ class ReplayServer:
             return
         with self.lock:
             applied = self.storage.update_priorities(update.indices, update.generations, update.priorities)
-        self.priority_updates[0] += applied
-        self.priority_updates[1] += len(update.indices) - applied
+            self.priority_updates[0] += applied
+            self.priority_updates[1] += len(update.indices) - applied
 
     def on_learner_version(self, sample: zenoh.Sample) -> None:
         try:
