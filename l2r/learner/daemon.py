@@ -278,11 +278,11 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
 
 def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
     values |= {"updates": state.updates, "version": state.version, "samples": state.extra.get("samples", 0)}
+    losses = {name: values.get(name, math.nan) for name in ("critic_loss", "actor_loss", "alpha", "q_mean", "entropy")}
     log.info("updates %d (%.1f/s), samples %.0f/s, waiting %.0f%%, version %d, lag %.1f, critic %.4g, "
              "actor %.4g, alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"],
-             values["samples_per_s"], 100 * values["wait_fraction"], state.version, values["policy_lag"], values.get("critic_loss", math.nan),
-             values.get("actor_loss", math.nan), values.get("alpha", math.nan), values.get("q_mean", math.nan),
-             values.get("entropy", math.nan))
+             values["samples_per_s"], 100 * values["wait_fraction"], state.version, values["policy_lag"],
+             *losses.values())
     out.put(encode(Stats("learner", str(config.rank), time.time(), values)))
 
 

@@ -116,8 +116,8 @@ class TwinCritic(nn.Module):
         x = torch.cat([obs, action], dim=-1).expand(self.n, -1, -1)
         for i, (w, b) in enumerate(zip(weights[:-1], biases[:-1])):
             x = torch.baddbmm(b, x, w)
-            if scales:
-                x = torch.addcmul(shifts[i], F.layer_norm(x, x.shape[-1:]), scales[i])
+            if scales:  # affine cast to x's dtype, so bfloat16 activations stay bfloat16 (half the bytes)
+                x = torch.addcmul(shifts[i].to(x.dtype), F.layer_norm(x, x.shape[-1:]), scales[i].to(x.dtype))
             x = self.activation(x)
         # The Q head stays in float32 under mixed precision: TD errors are small differences.
         with torch.autocast(obs.device.type, enabled=False):
