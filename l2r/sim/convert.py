@@ -58,6 +58,8 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
     contact_attrs = dict(condim="3", friction=_fmt(contact["friction"], 0.005, 0.0001), solref=_fmt(contact["timeconst"], 1.0), solimp=_fmt(CONTACT_IMPEDANCE))
     foot = ET.SubElement(default, "default", attrib={"class": "foot"})
     ET.SubElement(foot, "geom", type="sphere", contype="1", conaffinity="2", rgba="0.8 0.3 0.3 1", **contact_attrs)
+    bone = ET.SubElement(default, "default", attrib={"class": "bone"})
+    ET.SubElement(bone, "geom", type="capsule", size="0.025", contype="0", conaffinity="0", group="1", mass="0", rgba="0.9 0.85 0.75 1")
     world_geom = ET.SubElement(default, "default", attrib={"class": "world"})
     ET.SubElement(world_geom, "geom", contype="2", conaffinity="1", rgba="0.6 0.6 0.6 1", **contact_attrs)
 
@@ -124,6 +126,13 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
             if wrap is not None and wrap[0] == name:
                 ET.SubElement(el, "geom", name=f"{muscle.name}_wrap", type="cylinder", pos=_fmt(wrap[1]), size=_fmt(wrap[2], 0.02),
                               contype="0", conaffinity="0", group="3", mass="0")
+        # bones to look at, from each joint to the next; they neither collide nor weigh
+        for child in children.get(name, []):
+            joint = osim.bodies[child].joint
+            end = joint.offset + (knee_origin(osim, child) if joint.kind == "CustomJoint" else 0.0)
+            ET.SubElement(el, "geom", attrib={"class": "bone"}, fromto=_fmt(np.zeros(3), end))
+        if not children.get(name):
+            ET.SubElement(el, "geom", attrib={"class": "bone"}, type="sphere", size="0.08" if name == "head" else "0.02")
         for child in children.get(name, []):
             add_body(el, child)
 
