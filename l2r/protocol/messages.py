@@ -23,7 +23,10 @@ MAX_ARRAY_DIMS = 4
 # Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
 # msgpack-native), "arrays" (str -> float array), or an array of one dtype such as "float32[]".
 _SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)}
-_WEIGHT_DTYPES = {"float16", "float32", "float64"}
+# the dtypes arrays may have, by their little-endian wire name ("<f4", "|b1", ...)
+_DTYPES = {d.str: d for d in map(np.dtype, ("float16", "float32", "float64", "int32", "int64", "uint8", "bool"))}
+_BY_NAME = {d.name: d for d in _DTYPES.values()}
+_WEIGHT_DTYPES = (_BY_NAME["float16"], _BY_NAME["float32"], _BY_NAME["float64"])
 
 
 class ProtocolError(ValueError):
@@ -276,7 +279,7 @@ def encode(message: Message) -> bytes:
         if kind == "arrays":
             out[name] = {k: _pack_array(np.asarray(a)) for k, a in value.items()}
         elif kind.endswith("[]"):
-            out[name] = _pack_array(np.asarray(value, dtype=kind[:-2]))
+            out[name] = _pack_array(np.asarray(value, dtype=_BY_NAME[kind[:-2]]))
         elif kind == "numbers":
             out[name] = {str(k): (v if isinstance(v, int) else float(v)) for k, v in value.items()}
         else:
@@ -362,24 +365,22 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
 
 
 def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:
-    if not isinstance(value, dict) or set(value) != {"dtype", "shape", "data"}:
+    if not isinstance(value, dict) or len(value) != 3:
         raise ProtocolError(f"{where}: expected an array map with dtype, shape and data")
-    dtype_str, shape, data = value["dtype"], value["shape"], value["data"]
+    dtype_str, shape, data = value.get("dtype"), value.get("shape"), value.get("data")
     if not isinstance(dtype_str, str) or not isinstance(data, bytes):
-        raise ProtocolError(f"{where}: dtype must be a string and data bytes")
-    try:
-        dtype = np.dtype(dtype_str)
-    except TypeError:
-        raise ProtocolError(f"{where}: unknown dtype {dtype_str!r}") from None
-    allowed = {dtype_name} if dtype_name else _WEIGHT_DTYPES
-    if dtype.name not in allowed or dtype.byteorder == ">":
-        raise ProtocolError(f"{where}: dtype {dtype_str}, expected {' or '.join(sorted(allowed))} (little-endian)")
+        raise ProtocolError(f"{where}: expected an array map with dtype (a string), shape and data (bytes)")
+    dtype = _DTYPES.get(dtype_str)
+    allowed = (_BY_NAME[dtype_name],) if dtype_name else _WEIGHT_DTYPES
+    if dtype is None or dtype not in allowed:  # (None == float64 in numpy: test it first)
+        names = " or ".join(d.name for d in allowed)
+        raise ProtocolError(f"{where}: dtype {dtype_str}, expected {names} (little-endian)")
     if (not isinstance(shape, list) or len(shape) > MAX_ARRAY_DIMS
             or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
         raise ProtocolError(f"{where}: bad shape {shape!r}")
     expected_bytes = math.prod(shape) * dtype.itemsize
     if expected_bytes != len(data):
-        raise ProtocolError(f"{where}: shape {shape} of {dtype.name} needs {expected_bytes} bytes, got {len(data)}")
+        raise ProtocolError(f"{where}: shape {shape} of {dtype_str} needs {expected_bytes} bytes, got {len(data)}")
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 

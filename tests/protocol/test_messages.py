@@ -129,7 +129,7 @@ def test_rejects_big_endian_and_nonsense_dtypes():
     raw["rewards"] = {"dtype": ">f4", "shape": [10], "data": np.zeros(10, ">f4").tobytes()}
     rejected(pack(raw), match="little-endian")
     raw["rewards"] = {"dtype": "no such", "shape": [10], "data": b""}
-    rejected(pack(raw), match="unknown dtype")
+    rejected(pack(raw), match="dtype no such, expected float32")
 
 
 def test_rejects_nan_actions():
