@@ -162,10 +162,14 @@ def test_two_shards_split_actors_and_serve_one_learner(start_replay, connect, st
             {f"actor.{a}.transitions" for a in range(i, 4, 2)}
     with ReplayClient(session, run_name, batch_size=64, in_flight=4) as client:
         batches = drain(client, 20)
-    assert {b.shard for b in batches} == {0, 1}
-    for b in batches:
-        actors = (b.obs[:, 0] // 1_000_000).astype(int)
-        assert set(actors) <= {b.shard, b.shard + 2}
+        assert {b.shard for b in batches} == {0, 1}
+        for b in batches:
+            actors = (b.obs[:, 0] // 1_000_000).astype(int)
+            assert set(actors) <= {b.shard, b.shard + 2}
+        shards[1].proc.kill()  # a lost shard: the learner goes on with the other
+        shards[1].proc.wait()
+        time.sleep(0.5)
+        assert {b.shard for b in drain(client, 40)[-20:]} == {0}
 
 
 def test_cli_help_and_bad_flags():
