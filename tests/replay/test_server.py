@@ -37,8 +37,10 @@ def test_store_sample_duplicates_gaps_rejections_and_lag(start_replay, connect, 
     publish(session, run_name, chunks)
     session.put(Keys(run_name).experience(5), b"\x93not a message")
     publish(session, run_name, [make_chunk(actor_id=5, seq=9, obs_dim=40)])
-    values = stats.wait(lambda v: v["inserted"] >= 60 and v["rejected"] >= 2)
-    assert (values["size"], values["duplicates"], values["gaps"], values["rejected"]) == (60, 1, 1, 2)
+    replies = list(session.get(Keys(run_name).sample(0), payload=b"\xc1junk", timeout=5))
+    assert len(replies) == 1 and "malformed msgpack" in replies[0].err.payload.to_string()
+    values = stats.wait(lambda v: v["inserted"] >= 60 and v["rejected"] >= 3)
+    assert (values["size"], values["duplicates"], values["gaps"], values["rejected"]) == (60, 1, 1, 3)
     assert values["actor.5.transitions"] == 60
 
     with ReplayClient(session, run_name, batch_size=128, in_flight=3) as client:
