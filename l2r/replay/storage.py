@@ -69,6 +69,8 @@ class Storage:
         self.side_written = 0
         self.live = 0  # slots holding a sampleable transition
         self.max_priority = 1.0
+        for name in ("all_obs", "actions", "rewards", "terminated", "truncated", "versions"):
+            getattr(self, name).fill(0)  # fault the pages in now: no stalls on first writes, no late OOM
 
     @property
     def nbytes(self) -> int:
