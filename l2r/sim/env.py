@@ -3,7 +3,8 @@
 One step is 0.01 s of simulated time: the 18 excitations are held while MuJoCo takes the
 physics substeps, and the six joint-limit ligaments (`ligaments.py`) are recomputed from the
 state before every substep, as OpenSim evaluates its `CoordinateLimitForce`s inside its
-integrator. The observation, reward, done rules and episode generation follow the 2017
+integrator: their springs as generalised forces, their damping as joint damping, which MuJoCo's
+implicit integrator keeps stable. The observation, reward, done rules and episode generation follow the 2017
 `RunEnv`; docs/environment.md has the observation table and the choices made.
 """
 
@@ -136,7 +137,7 @@ class RunEnv(gym.Env):
         self._steps = 0
         self._x = 0.0  # pelvis x
         self._lig_force: list[float] = []  # the ligament forces of the current state
-        self._lig_applied: list[float] = []  # what qfrc_applied holds
+        self._lig_applied: tuple[list[float], list[float]] = ([], [])  # (springs, dampings) in effect
         self._running = False
 
     # Read-only views for the validator and loggers; the env alone changes the simulation.
@@ -180,8 +181,10 @@ class RunEnv(gym.Env):
         m.actuator_biasprm[:, 2] = force
 
         body.reset_to_default(m, d)  # the .osim default pose, at rest (includes mj_forward)
-        self._lig_force = self._lig_kernel(d.qpos.tolist(), d.qvel.tolist())
-        self._lig_applied = [0.0] * len(LIGAMENTS)  # the reset cleared qfrc_applied
+        self._lig_applied = ([], [])  # the reset cleared qfrc_applied: write both again
+        self._apply_ligaments(self._lig_kernel(d.qpos.tolist()))
+        mujoco.mj_forward(m, d)  # the passive forces, with this pose's ligament damping
+        self._lig_force = self._lig_kernel.total(*self._lig_applied, d.qvel.tolist())
         self._x = float(d.qpos[self._x_adr])
         self._steps = 0
         self._running = True
@@ -205,19 +208,16 @@ class RunEnv(gym.Env):
 
         # Substeps as step2 then step1, so that after the loop the kinematics (body positions,
         # centre of mass, tendon lengths) describe the final state without an extra mj_forward.
+        # The ligaments depend on positions alone, so they are set between the two halves, after
+        # the integration moved the joints and before step1 computes the passive (damping) forces.
         t_before = d.time
-        qfrc, dofs, kernel = d.qfrc_applied, self._lig_dofs, self._lig_kernel
-        forces, applied = self._lig_force, self._lig_applied
+        kernel = self._lig_kernel
         for _ in range(self.substeps):
-            if forces != applied:  # unchanged (e.g. all joints within their limits): no rewrite
-                for dof, f in zip(dofs, forces):
-                    qfrc[dof] = f
-                applied = forces
             mujoco.mj_step2(m, d)
-            mujoco.mj_step1(m, d)
             qpos = d.qpos.tolist()
-            forces = kernel(qpos, d.qvel.tolist())
-        self._lig_force, self._lig_applied = forces, applied
+            self._apply_ligaments(kernel(qpos))
+            mujoco.mj_step1(m, d)
+        forces = self._lig_force = kernel.total(*self._lig_applied, d.qvel.tolist())
         self._steps += 1
 
         x_before, self._x = self._x, qpos[self._x_adr]
@@ -232,6 +232,17 @@ class RunEnv(gym.Env):
             terminated, reward, info["diverged"] = True, 0.0, True
         self._running = not (terminated or truncated)
         return self._observe(), reward, terminated, truncated, info
+
+    def _apply_ligaments(self, state: tuple[list[float], list[float]]) -> None:
+        """Put the ligaments' springs in qfrc_applied and their damping in dof_damping (the body
+        has no other joint damping); skipped when nothing changed, as within every limit."""
+        if state == self._lig_applied:
+            return
+        qfrc, damping = self._d.qfrc_applied, self._m.dof_damping
+        for dof, f, c in zip(self._lig_dofs, *state):
+            qfrc[dof] = f
+            damping[dof] = c
+        self._lig_applied = state
 
     def _diverged(self) -> bool:
         """Whether MuJoCo has reset a diverging simulation since the episode began."""

@@ -1,5 +1,6 @@
 """RunEnv: the 2017 observation, reward, done rules, episode generation and determinism."""
 
+import copy
 import json
 import math
 import warnings
@@ -124,10 +125,11 @@ def test_reward_is_distance_minus_ligament_penalty():
 
 
 def test_ligaments_act_on_the_joints_every_substep():
-    """The env's trajectory equals a plain MuJoCo loop applying the ligaments before each mj_step."""
+    """The env's trajectory equals a plain MuJoCo loop applying the ligaments before each mj_step:
+    springs as generalised forces, damping as joint damping."""
     env = RunEnv()
     env.reset(seed=0)
-    m = env.model
+    m = copy.deepcopy(env.model)  # the loop sets its own joint damping
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, m.keyframe("default").id)
     lig_q = [m.joint(c).qposadr[0] for c in default_limits().coordinates]
@@ -137,9 +139,11 @@ def test_ligaments_act_on_the_joints_every_substep():
         _, _, terminated, truncated, _ = env.step(a)
         d.ctrl[:] = a
         for _ in range(env.substeps):
-            forces = ligament_forces(d.qpos[lig_q], d.qvel[lig_v])
-            strained += np.any(forces != 0)
-            d.qfrc_applied[lig_v] = forces
+            q = d.qpos[lig_q]
+            springs = ligament_forces(q, np.zeros(6))
+            strained += np.any(springs != 0)
+            d.qfrc_applied[lig_v] = springs
+            m.dof_damping[lig_v] = springs - ligament_forces(q, np.ones(6))
             mujoco.mj_step(m, d)
         np.testing.assert_allclose(env.data.qpos, d.qpos, rtol=0, atol=1e-9)
         np.testing.assert_allclose(env.data.qvel, d.qvel, rtol=0, atol=1e-6)
