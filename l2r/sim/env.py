@@ -49,6 +49,10 @@ DIVERGENCE_WARNINGS = tuple(
 
 Obstacle = tuple[float, float, float]  # (x, y, radius) in m
 
+# MuJoCo's own warnings go to the log, not to a MUJOCO_LOG.TXT in whatever directory the
+# process runs in (an actor would grow one without bound).
+mujoco.set_mju_user_warning(lambda message: log.warning("MuJoCo: %s", message))
+
 
 class RunEnv(gym.Env):
     """Run as far as possible in 1000 steps of 0.01 s by exciting 18 muscles.
