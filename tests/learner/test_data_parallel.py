@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from tests.learner.conftest import free_port
@@ -37,6 +38,7 @@ def worker(rank: int, world_size: int, url: str, out: str) -> None:
     close_distributed()
 
 
+@pytest.mark.slow
 def test_two_learners_hold_identical_weights_after_every_step(tmp_path):
     url = f"tcp://127.0.0.1:{free_port()}"
     outs = [tmp_path / f"rank{r}.json" for r in range(2)]
