@@ -188,7 +188,8 @@ def run_baseline(seconds: float, workers: int) -> dict:
 
 # -- l2r -------------------------------------------------------------------------------------------
 
-def run_l2r(seconds: float, actors: int, samples_per_insert: float, runs_dir: Path, warmup: float) -> dict:
+def run_l2r(seconds: float, actors: int, samples_per_insert: float, runs_dir: Path, warmup: float,
+            extra: list[str]) -> dict:
     """`l2r up` for warm-up + seconds; rates over the measured window from its metrics.jsonl."""
     name = f"bench-{'matched' if samples_per_insert else 'free'}"
     cmd = [sys.executable, "-m", "l2r.cli", "up", "--seconds", str(seconds + warmup), "--name", name,
@@ -196,7 +197,7 @@ def run_l2r(seconds: float, actors: int, samples_per_insert: float, runs_dir: Pa
            "--no-episode-logs", "--random-steps", "0", "--min-replay", str(4 * BATCH),
            "--batch-size", str(BATCH), "--samples-per-insert", str(samples_per_insert),
            "--device", "cpu", "--status-interval", "1", "--log-level", "WARNING",
-           "--learner-arg=--update-repeat=3", "--learner-arg=--metrics-interval=1"]
+           "--learner-arg=--update-repeat=3", "--learner-arg=--metrics-interval=1", *extra]
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     run_dir = max(runs_dir.glob(f"{name}-*"))
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
@@ -213,14 +214,17 @@ def main() -> None:
     p.add_argument("--warmup", type=float, default=15.0, help="seconds of each l2r phase not measured (start-up)")
     p.add_argument("--workers", type=int, default=2, help="baseline workers = l2r actors")
     p.add_argument("--quick", action="store_true", help="20 s phases")
+    p.add_argument("--learner-threads", type=int, default=0, help="passed to l2r up (0: its default)")
+    p.add_argument("--actor-nice", type=int, default=10, help="passed to l2r up")
     args = p.parse_args()
     seconds = 20.0 if args.quick else args.seconds
     base = run_baseline(seconds, args.workers)
     # The baseline's samples-per-insert: transitions sampled (one batch per 3 steps) per transition stored.
     ratio = base["updates_per_s"] / REPEAT * BATCH / max(base["env_steps_per_s"], 1e-9)
+    extra = ["--learner-threads", str(args.learner_threads), "--actor-nice", str(args.actor_nice)]
     with tempfile.TemporaryDirectory() as tmp:
-        matched = run_l2r(seconds, args.workers, ratio, Path(tmp), args.warmup)
-        free = run_l2r(seconds, args.workers, 0.0, Path(tmp), args.warmup)
+        matched = run_l2r(seconds, args.workers, ratio, Path(tmp), args.warmup, extra)
+        free = run_l2r(seconds, args.workers, 0.0, Path(tmp), args.warmup, extra)
     out = {
         "matched_updates_per_s": matched["updates_per_s"],
         "matched_env_steps_per_s": matched["env_steps_per_s"],
@@ -231,7 +235,7 @@ def main() -> None:
         "baseline_updates_per_s": base["updates_per_s"],
         "matched_updates_ratio": matched["updates_per_s"] / max(base["updates_per_s"], 1e-9),
         "free_env_steps_ratio": free["env_steps_per_s"] / max(base["env_steps_per_s"], 1e-9),
-        "workers": args.workers, "batch_size": BATCH, "update_repeat": REPEAT, "seconds_per_phase": seconds,
+        "learner_threads": args.learner_threads, "actor_nice": args.actor_nice, "workers": args.workers, "batch_size": BATCH, "update_repeat": REPEAT, "seconds_per_phase": seconds,
         "cpus": os.cpu_count(),
     }
     print(json.dumps(out))
