@@ -2,7 +2,6 @@
 loopback Zenoh. The environment is a stand-in with the runner's shapes (tests/actors/standin.py),
 so these tests are about the actor; the real runner is exercised in tests/system."""
 
-import os
 import signal
 import subprocess
 import sys
