@@ -41,6 +41,7 @@ import zenoh
 from l2r.protocol import (
     EpisodeSummary, Keys, LearnerVersion, ProtocolError, Stats, decode, session_config,
 )
+from l2r.view import best_episode, write_recording
 
 log = logging.getLogger("l2r.up")
 
@@ -381,9 +382,15 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
 
 
 def after_run(run_dir: Path, board: StatusBoard) -> dict:
-    """What the run leaves besides logs and checkpoints: summary.json (and the place for
-    artefacts made from the finished run, such as a recording of the best evaluation episode)."""
+    """What the run leaves besides logs and checkpoints: summary.json, and best_eval.rrd, a Rerun
+    recording of the logged evaluation episode with the highest return."""
     summary = board.summary()
+    best = best_episode(run_dir / "episodes")
+    if best is not None:
+        try:
+            summary["best_eval_recording"] = str(write_recording([best], run_dir / "best_eval.rrd"))
+        except Exception as e:  # a convenience: the run's results are saved whatever happens here
+            log.warning("no recording of the best evaluation episode (%s): %s", best.name, e)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -451,6 +458,8 @@ def cli(argv: list[str] | None = None) -> int:
     checkpoint = run_dir / "learner" / "checkpoint.pt"
     print(f"l2r up: done. {summary['env_steps']:,} env steps, {summary['updates']:,} updates, best evaluation "
           f"distance {'-' if best is None else f'{best:.2f} m'}\n        run directory: {run_dir}\n        "
-          + (f"evaluate with: l2r eval {run_dir}" if checkpoint.exists() else "no learner checkpoint was written"),
+          + (f"evaluate with: l2r eval {run_dir}" if checkpoint.exists() else "no learner checkpoint was written")
+          + (f"\n        watch the best evaluation episode: rerun {summary['best_eval_recording']}"
+             if "best_eval_recording" in summary else ""),
           file=sys.stderr)
     return code

@@ -84,6 +84,8 @@ def test_up_trains_restarts_resumes_and_leaves_a_checkpoint_eval_loads(tmp_path)
     assert any(r["type"] == "episode" and r["evaluation"] for r in rows)
     for name in ("up", "replay", "learner", "actor-0", "evaluator-0"):
         assert (run_dir / "logs" / f"{name}.log").stat().st_size > 0
+    assert summary["best_eval_recording"] == str(run_dir / "best_eval.rrd")
+    assert (run_dir / "best_eval.rrd").stat().st_size > 0
 
     ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "2", "--json"],
                         cwd=ROOT, capture_output=True, text=True, timeout=120)
