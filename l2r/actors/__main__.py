@@ -47,6 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds after which a partial chunk is sent anyway")
     e.add_argument("--num-shards", type=int, default=DEFAULTS.num_shards,
                    help="replay shards of the run; this actor feeds shard actor-id %% num-shards")
+    e.add_argument("--resend-buffer-mb", type=float, default=DEFAULTS.resend_buffer_mb,
+                   help="sent chunks kept until the replay shard acknowledges them, and sent again when lost in "
+                        "flight (a cut link, a restarted shard); beyond this the oldest are given up (0: no resends)")
+    e.add_argument("--resend-delay", type=float, default=DEFAULTS.resend_delay,
+                   help="seconds after its last send before an unacknowledged chunk is sent again; the wait "
+                        "doubles with each resend, up to 30 s")
     v = p.add_argument_group("evaluation role")
     v.add_argument("--evaluate", action="store_true",
                    help="run deterministic episodes on fixed seeds for each new policy, report them as "
@@ -66,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from(args: argparse.Namespace) -> ActorConfig:
+    if args.resend_buffer_mb < 0 or args.resend_delay <= 0:
+        raise SystemExit("l2r-actor: --resend-buffer-mb must be at least 0 and --resend-delay above 0")
     for name in ("num_envs", "action_repeat", "chunk_size", "num_shards", "eval_episodes", "torch_threads"):
         if getattr(args, name) < 1:
             raise SystemExit(f"l2r-actor: --{name.replace('_', '-')} must be at least 1")
@@ -80,6 +88,7 @@ def config_from(args: argparse.Namespace) -> ActorConfig:
         num_shards=args.num_shards, evaluate=args.evaluate, eval_episodes=args.eval_episodes,
         eval_interval=args.eval_interval, torch_threads=args.torch_threads, max_steps=args.max_steps,
         stats_interval=args.stats_interval, max_speed=args.max_speed,
+        resend_buffer_mb=args.resend_buffer_mb, resend_delay=args.resend_delay,
         episode_log=episode_log,
     )
 

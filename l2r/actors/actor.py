@@ -5,6 +5,8 @@ environments at once (uniform random excitations during warm-up, the stochastic 
 training, its mean when evaluating), steps every environment, and hands finished chunks and
 episodes to Zenoh. Nothing here blocks on the learner: without new weights the actor goes on
 with the policy it has. Without any live replay shard it waits, since its experience would be lost.
+Sent chunks stay in a resend buffer until the replay shard acknowledges them; a background
+thread sends the unacknowledged ones again, so chunks lost in flight (a cut link) are not lost.
 """
 
 from __future__ import annotations
@@ -20,18 +22,20 @@ import torch
 import zenoh
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
-from l2r.actors.experience import ChunkBuilder
+from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.weights import WeightFollower
 from l2r.episodes.live import LiveFrames
 from l2r.policy import act
 from l2r.protocol import (
-    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode, parse_alive,
+    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ProtocolError, Rejections, ReplayAck, Stats,
+    decode, encode, parse_alive, shard_of,
 )
 from l2r.sim.wrappers import ActionRepeat
 
 log = logging.getLogger("l2r.actor")
 
 STEP_SECONDS = 0.01  # one inner step of the runner
+MAX_RESEND_DELAY = 30.0  # a chunk's resend wait doubles up to this while no shard acknowledges it
 
 
 def blew_up(reward: float, info: dict, max_speed: float) -> bool:
@@ -59,6 +63,10 @@ class ActorConfig:
     """Transitions per experience chunk."""
     chunk_delay: float = 1.0
     """A chunk older than this (seconds) is sent even when not full."""
+    resend_buffer_mb: float = 64.0
+    """Sent chunks kept until the replay shard acknowledges them (MiB; oldest dropped beyond; 0: off)."""
+    resend_delay: float = 3.0
+    """Seconds after its last send before an unacknowledged chunk is sent again (then doubling)."""
     seed: int = 0
     num_shards: int = 1
     evaluate: bool = False
@@ -162,6 +170,10 @@ class Actor:
             builder.begin(slot.obs)
         self.experience = session.declare_publisher(
             self.keys.experience(config.actor_id, config.num_shards), **EXPERIENCE_QOS.publisher())
+        self.resend = self.resender = None
+        if not config.evaluate and config.resend_buffer_mb > 0:
+            self.resend = ResendBuffer(int(config.resend_buffer_mb * 2**20), config.resend_delay, MAX_RESEND_DELAY)
+            self.resender = Resender(self, session)
         self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
         self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
         self.episode_logger = make_episode_logger(config)
@@ -270,8 +282,10 @@ class Actor:
         version = max(self.weights.version if version is None else version, 0)
         for builder in self.builders:
             if builder and (force or builder.full or builder.started_at < deadline):
-                chunk = builder.take(self.seq, version)
-                self.experience.put(encode(chunk))
+                payload = encode(builder.take(self.seq, version))
+                if self.resend is not None:
+                    self.resend.add(self.seq, payload, time.monotonic())
+                self.experience.put(payload)
                 self.seq += 1
                 self.chunks_sent += 1
 
@@ -319,17 +333,61 @@ class Actor:
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
             "num_envs": len(self.slots), "blowups": self.blowups,
         }
+        if self.resend is not None:
+            values |= {"chunks_acked": self.resend.acked, "chunks_resent": self.resend.resent,
+                       "unacked_chunks": len(self.resend), "unacked_bytes": self.resend.nbytes,
+                       "resend_dropped": self.resend.dropped, "rejected_acks": self.resender.rejections.total}
         self.stats.put(encode(Stats(self.config.role, str(self.config.actor_id), time.time(), values)))
 
     def close(self) -> None:
         if not self.config.evaluate:
             self.flush(force=True)
+        if self.resender is not None:
+            self.resender.close()
         if self.episode_logger is not None:
             self.episode_logger.close()
         self.weights.close()
         self.live.close()
         for slot in self.slots:
             slot.env.close()
+
+
+class Resender:
+    """Applies the shard's acks to the actor's resend buffer and sends due chunks again, on a
+    thread of its own: a put that blocks on a silent link never holds up the environments."""
+
+    def __init__(self, actor: Actor, session: zenoh.Session):
+        self.actor = actor
+        self.rejections = Rejections(log)
+        shard = shard_of(actor.config.actor_id, actor.config.num_shards)
+        self._acks = session.declare_subscriber(actor.keys.replay_ack(shard), self._on_ack)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="resend", daemon=True)
+        self._thread.start()
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        try:
+            ack = decode(sample.payload, ReplayAck)
+        except ProtocolError as e:
+            self.rejections.add(str(e), str(sample.key_expr))
+            return
+        mine = ack.of(self.actor.config.actor_id, self.actor.epoch)
+        if mine is not None:
+            self.actor.resend.ack(*mine)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.25):
+            if not self.actor.replay.any_alive:
+                continue  # nobody to send to; the waits are not used up meanwhile
+            for payload in self.actor.resend.due(time.monotonic()):
+                if self._stop.is_set():
+                    return
+                self.actor.experience.put(payload)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        self._acks.undeclare()
 
 
 def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop: threading.Event | None = None,

@@ -3,9 +3,16 @@
 A chunk holds T steps and T+1 observations: consecutive steps share their observation rows.
 When an episode ends inside a chunk, the step's true next observation goes to ``final_obs``
 and the chunk continues from the first observation of the next episode.
+
+`ResendBuffer` keeps the encoded chunks a replay shard has not acknowledged yet, so that the
+ones lost in flight (a cut link, a restarted shard) are sent again.
 """
 
 from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -79,3 +86,76 @@ class ChunkBuilder:
         self._actions, self._rewards, self._terminated, self._truncated, self._final_obs = [], [], [], [], []
         self._obs = [current]
         return chunk
+
+
+@dataclass
+class _Sent:
+    payload: bytes
+    sent_at: float  # monotonic time of the last send
+    wait: float  # seconds after sent_at before the next resend
+
+
+class ResendBuffer:
+    """Sent chunks by sequence number until a replay shard acknowledges them.
+
+    At most ``max_bytes`` of payloads are kept; beyond that the oldest are dropped (and counted).
+    An unacknowledged chunk is due again ``delay`` seconds after it was last sent, and each
+    resend doubles its wait up to ``max_delay``, so a shard that never acknowledges (an older
+    one) is not flooded. A chunk the shard reports missing is due ``delay`` after its last send
+    again: the shard is there and still lacks it. Thread-safe: chunks are added by the stepping
+    loop, acks arrive on Zenoh's threads and resends go out from another thread.
+    """
+
+    def __init__(self, max_bytes: int, delay: float = 3.0, max_delay: float = 30.0):
+        self.max_bytes, self.delay, self.max_delay = max_bytes, delay, max_delay
+        self._chunks: OrderedDict[int, _Sent] = OrderedDict()  # in sending order = by seq
+        self._lock = threading.Lock()
+        self.nbytes = 0
+        self.acked = 0
+        self.resent = 0
+        self.dropped = 0  # unacknowledged chunks given up to stay within max_bytes
+
+    def __len__(self) -> int:
+        return len(self._chunks)
+
+    def add(self, seq: int, payload: bytes, now: float) -> None:
+        """Keep chunk ``seq`` (just sent) until it is acknowledged."""
+        with self._lock:
+            if len(payload) > self.max_bytes:
+                self.dropped += 1
+                return
+            self._chunks[seq] = _Sent(payload, now, self.delay)
+            self.nbytes += len(payload)
+            while self.nbytes > self.max_bytes:
+                _, oldest = self._chunks.popitem(last=False)
+                self.nbytes -= len(oldest.payload)
+                self.dropped += 1
+
+    def ack(self, highest: int, missing) -> int:
+        """Forget every chunk up to ``highest`` except those in ``missing``; returns how many."""
+        missing = set(int(s) for s in missing)
+        done = []
+        with self._lock:
+            for seq, sent in self._chunks.items():
+                if seq > highest:
+                    break
+                if seq in missing:
+                    sent.wait = self.delay
+                else:
+                    done.append(seq)
+            for seq in done:
+                self.nbytes -= len(self._chunks.pop(seq).payload)
+            self.acked += len(done)
+        return len(done)
+
+    def due(self, now: float) -> list[bytes]:
+        """Payloads to send again now (oldest first); each one's wait doubles."""
+        out = []
+        with self._lock:
+            for sent in self._chunks.values():
+                if now - sent.sent_at >= sent.wait:
+                    out.append(sent.payload)
+                    sent.sent_at = now
+                    sent.wait = min(2 * sent.wait, self.max_delay)
+            self.resent += len(out)
+        return out

@@ -1,12 +1,12 @@
 """What l2r daemons share: key expressions with their QoS, messages, session set-up, replay client."""
 
 from l2r.protocol.keys import (
-    EPISODE_QOS, EXPERIENCE_QOS, FRAMES_QOS, PRIORITY_QOS, SAMPLE_QOS, STATS_QOS, VERSION_QOS,
+    ACK_QOS, EPISODE_QOS, EXPERIENCE_QOS, FRAMES_QOS, PRIORITY_QOS, SAMPLE_QOS, STATS_QOS, VERSION_QOS,
     WEIGHTS_QOS, Keys, QoS, check_name, parse_alive, shard_of,
 )
 from l2r.protocol.messages import (
     MAX_MESSAGE_BYTES, PROTOCOL_VERSION, EpisodeSummary, ExperienceChunk, Frame, LearnerVersion,
-    Message, NotReady, PriorityUpdate, ProtocolError, SampleBatch, SampleRequest, Stats, Weights,
+    Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
     decode, encode,
 )
 from l2r.protocol.replay_client import ReplayClient
@@ -16,10 +16,10 @@ from l2r.protocol.session import (
 )
 
 __all__ = [
-    "EPISODE_QOS", "EXPERIENCE_QOS", "FRAMES_QOS", "PRIORITY_QOS", "SAMPLE_QOS", "STATS_QOS",
+    "ACK_QOS", "EPISODE_QOS", "EXPERIENCE_QOS", "FRAMES_QOS", "PRIORITY_QOS", "SAMPLE_QOS", "STATS_QOS",
     "VERSION_QOS", "WEIGHTS_QOS", "Keys", "QoS", "check_name", "parse_alive", "shard_of",
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "EpisodeSummary", "ExperienceChunk", "Frame",
-    "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "SampleBatch",
+    "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck", "SampleBatch",
     "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
     "DefaultsHelpFormatter", "Rejections",
     "add_daemon_arguments", "config_from_args", "configure_logging", "parse_daemon_args",

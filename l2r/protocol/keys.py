@@ -5,6 +5,7 @@ Read top to bottom, this module is the system's data-flow graph:
     actor   --experience/<shard>/<actor>-->  replay shard      (chunks of transitions)
     learner --replay/<shard>/sample?-->      replay shard      (query; reply = batch)
     learner --replay/<shard>/priorities-->   replay shard      (priority updates)
+    replay  --replay/<shard>/ack-->          actors            (what is stored; actors resend the rest)
     learner --weights-->                     actors            (new policy, versioned)
     actor   --weights/latest?-->             learner           (query on join)
     learner --learner/version-->             everyone          (small version beacon)
@@ -60,6 +61,8 @@ class QoS:
 
 # Experience is the training data: never dropped; a slow replay server slows actors down.
 EXPERIENCE_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
+# Acks are periodic and the next one says it all again; never hold the shard up for a slow actor.
+ACK_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH, express=True)
 # Only the newest weights matter, so a congested link may drop one; a newer one follows.
 WEIGHTS_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH)
 # Sample queries sit on the learner's critical path; replies inherit the query's QoS.
@@ -104,6 +107,10 @@ class Keys:
     # -- priority updates: learner -> replay shard (PRIORITY_QOS) --------------------------
     def priorities(self, shard: int) -> str:
         return f"{self.root}/replay/{shard}/priorities"
+
+    # -- acknowledgements: replay shard -> its actors (ACK_QOS) ------------------------------
+    def replay_ack(self, shard: int) -> str:
+        return f"{self.root}/replay/{shard}/ack"
 
     # -- weights: learner -> actors, published (WEIGHTS_QOS) and queryable on join ----------
     @property

@@ -189,6 +189,45 @@ class NotReady(Message):
 
 
 @dataclass
+class ReplayAck(Message):
+    """What a replay shard has stored of each actor's current epoch, so actors resend the rest.
+
+    Row i is about actor ``actor_ids[i]`` in epoch ``epochs[i]``: every chunk with
+    ``seq <= highest[i]`` is stored except the ``missing_counts[i]`` sequence numbers that are
+    its part of ``missing`` (rows in order, each part ascending). Nothing is said of chunks
+    above ``highest[i]``.
+    """
+
+    KIND: ClassVar[str] = "replay_ack"
+    SCHEMA: ClassVar[dict[str, str]] = {
+        "shard": "int", "actor_ids": "int64[]", "epochs": "int64[]", "highest": "int64[]",
+        "missing_counts": "int64[]", "missing": "int64[]",
+    }
+    shard: int
+    actor_ids: np.ndarray
+    epochs: np.ndarray
+    highest: np.ndarray
+    missing_counts: np.ndarray
+    missing: np.ndarray
+
+    def validate(self) -> None:
+        _ndim(self, actor_ids=1, epochs=1, highest=1, missing_counts=1, missing=1)
+        _rows(self, len(self.actor_ids), "epochs", "highest", "missing_counts")
+        if np.any(self.missing_counts < 0) or int(self.missing_counts.sum()) != len(self.missing):
+            raise ProtocolError(f"replay_ack: missing_counts sum to {int(self.missing_counts.sum())}, "
+                                f"but missing has {len(self.missing)} entries")
+
+    def of(self, actor_id: int, epoch: int) -> tuple[int, np.ndarray] | None:
+        """``(highest, missing)`` for this actor and epoch, or None when the ack says nothing of it."""
+        rows = np.flatnonzero((self.actor_ids == actor_id) & (self.epochs == epoch))
+        if not len(rows):
+            return None
+        i = int(rows[0])
+        start = int(self.missing_counts[:i].sum())
+        return int(self.highest[i]), self.missing[start:start + int(self.missing_counts[i])]
+
+
+@dataclass
 class PriorityUpdate(Message):
     """New priorities (before the server's exponent) for sampled slots of one shard.
     A slot whose generation changed since it was sampled has been overwritten: ignored."""

@@ -4,13 +4,17 @@ An actor numbers its chunks 0, 1, 2, ... within one ``epoch`` (one actor process
 already seen is a duplicate and is not stored again; a jump forward leaves a gap, which a
 late (reordered) chunk may still fill. A new epoch means the actor restarted: counting
 starts over for it.
+
+``acks`` says, per actor, what is stored of its current epoch, so the actor can resend the rest.
 """
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass, field
 
 MAX_MISSING = 10_000  # gaps remembered per actor; beyond this the oldest are forgotten
+MAX_ACK_MISSING = 4096  # missing sequence numbers per actor in one ack
 
 
 @dataclass
@@ -28,9 +32,11 @@ class SequenceTracker:
     def __init__(self) -> None:
         self.actors: dict[int, ActorRecord] = {}
         self.restarts = 0
+        self.received = 0  # chunks seen, duplicates included: an ack is due when this moves
 
     def accept(self, actor_id: int, epoch: int, seq: int) -> bool:
         """True if chunk ``seq`` of this actor is new; False for a duplicate."""
+        self.received += 1
         record = self.actors.get(actor_id)
         if record is None or epoch > record.epoch:
             if record is not None:
@@ -61,6 +67,21 @@ class SequenceTracker:
 
     def stored(self, actor_id: int, transitions: int) -> None:
         self.actors[actor_id].transitions += transitions
+
+    def acks(self, limit: int = MAX_ACK_MISSING) -> list[tuple[int, int, int, list[int]]]:
+        """``(actor_id, epoch, highest, missing)`` per actor: every ``seq <= highest`` is stored
+        except ``missing``. With more than ``limit`` missing, ``highest`` is lowered to just below
+        the first one left out, so the statement stays true (the actor resends the rest later)."""
+        out = []
+        for actor, record in self.actors.items():
+            highest, missing = record.highest, record.missing
+            if len(missing) > limit:
+                lowest = heapq.nsmallest(limit + 1, missing)
+                highest, missing = lowest[-1] - 1, lowest[:-1]
+            else:
+                missing = sorted(missing)
+            out.append((actor, record.epoch, highest, missing))
+        return out
 
     @property
     def duplicates(self) -> int:

@@ -1,7 +1,8 @@
 """The ``l2r-replay`` daemon: stores actors' experience and serves learners' sample queries.
 
 One shard of a run: it subscribes to ``experience/<shard>/*``, answers
-``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, publishes its stats,
+``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, tells its actors
+what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats,
 holds the liveliness token ``alive/replay/<shard>`` and logs who joins and leaves.
 Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
 """
@@ -20,8 +21,8 @@ import numpy as np
 import zenoh
 
 from l2r.protocol import (
-    STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
-    PriorityUpdate, ProtocolError, Rejections, SampleRequest, Stats, decode, encode,
+    ACK_QOS, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
+    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
 )
 from l2r.replay import snapshot
 from l2r.replay.rate_limiter import RateLimiter
@@ -45,6 +46,8 @@ class ServerConfig:
     restore: bool = True
     """Load the shard's snapshot from snapshot_dir at start."""
     stats_interval: float = 10.0
+    ack_interval: float = 0.5
+    """Seconds between acks to the actors (sent only when experience arrived since the last)."""
 
 
 class ReplayServer:
@@ -65,6 +68,7 @@ class ReplayServer:
         self.lag_sum = 0.0
         self.lag_batches = 0
         self.snapshot_pause = 0.0
+        self._acked_received = 0  # chunks received when the last ack was built
         self._last = (time.monotonic(), 0, 0)  # time, inserted, sampled batches at the last report
 
     # -- handlers -----------------------------------------------------------------------
@@ -135,6 +139,18 @@ class ReplayServer:
         if who == f"replay/{self.config.shard}":
             return
         log.info("%s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
+
+    def ack(self) -> ReplayAck | None:
+        """What is stored of each actor's current epoch; None when no chunk came since the last ack
+        (a resent duplicate counts: its sender has not heard an ack yet)."""
+        with self.lock:
+            if self.sequences.received == self._acked_received:
+                return None
+            self._acked_received = self.sequences.received
+            rows = self.sequences.acks()
+        actors, epochs, highest, missing = zip(*rows) if rows else ((), (), (), ())
+        return ReplayAck(self.config.shard, _int64(actors), _int64(epochs), _int64(highest),
+                         _int64([len(m) for m in missing]), _int64([s for m in missing for s in m]))
 
     # -- reporting ------------------------------------------------------------------------
     def _insert_rate(self) -> float:
@@ -212,6 +228,10 @@ class ReplayServer:
         self.learner_version = meta["learner_version"]
 
 
+def _int64(values) -> np.ndarray:
+    return np.array(values, dtype=np.int64)
+
+
 @contextmanager
 def _timed(durations: list[float]):
     start = time.perf_counter()
@@ -278,7 +298,9 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
 
     keys = server.keys
     with zenoh.open(zenoh_config) as session:
+        acks = session.declare_publisher(keys.replay_ack(config.shard), **ACK_QOS.publisher())
         entities = [
+            acks,
             session.declare_subscriber(keys.experience_of_shard(config.shard), _direct(server.on_experience)),
             session.declare_queryable(keys.sample(config.shard), _direct(server.on_sample_query)),
             session.declare_subscriber(keys.priorities(config.shard), _guarded(server.on_priorities)),
@@ -294,8 +316,14 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
         writer: threading.Thread | None = None
         next_stats = time.monotonic() + config.stats_interval
         next_snapshot = time.monotonic() + config.snapshot_interval
-        while not stop.wait(0.2):
+        next_ack = time.monotonic() + config.ack_interval
+        while not stop.wait(min(0.2, config.ack_interval)):
             now = time.monotonic()
+            if now >= next_ack:
+                next_ack = now + config.ack_interval
+                ack = server.ack()
+                if ack is not None:
+                    acks.put(encode(ack))
             if now >= next_stats:
                 next_stats = now + config.stats_interval
                 values = server.stats()

@@ -124,9 +124,14 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
         out = stop(proc)
     assert "rejected message" in out
 
-    versions = [c.policy_version for c in peer.chunks]
+    # This peer never acknowledges, so the actor sends chunks again after a while: first copies only.
+    firsts: dict[int, ExperienceChunk] = {}
+    for c in peer.chunks:
+        firsts.setdefault(c.seq, c)
+    first = list(firsts.values())
+    versions = [c.policy_version for c in first]
     assert versions == sorted(versions)  # a chunk never mixes or reverts versions
-    seqs = [c.seq for c in peer.chunks]
+    seqs = [c.seq for c in first]
     assert seqs == list(range(len(seqs)))  # one sequence across the actor's environments, none lost
     assert {c.env_id for c in peer.chunks} == {0, 1, 2}
     assert len({c.epoch for c in peer.chunks}) == 1

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from l2r.protocol import (
-    EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate, SampleBatch,
+    EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate, ReplayAck, SampleBatch,
     SampleRequest, Stats, Weights,
 )
 
@@ -41,6 +41,7 @@ def every_message() -> list:
                     np.arange(b, dtype=np.int64)),
         NotReady(0, "waiting for data", 12, 0.05),
         PriorityUpdate(np.arange(4, dtype=np.int64), np.arange(4, dtype=np.int64), np.ones(4, np.float32)),
+        ReplayAck(0, np.array([3, 5]), np.array([17, 2**62]), np.array([40, 9]), np.array([2, 0]), np.array([7, 31])),
         EpisodeSummary(1, 2, 12.5, 3.25, 300, 7, 1, 42, evaluation=True, time=1.5),
         Stats("replay", "0", 123.0, {"size": 10, "inserts_per_s": 2.5}),
         LearnerVersion(11, 2200, 5.0),

@@ -11,7 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from l2r.protocol import (
-    MAX_MESSAGE_BYTES, PROTOCOL_VERSION, ExperienceChunk, Message, ProtocolError, SampleRequest, Weights,
+    MAX_MESSAGE_BYTES, PROTOCOL_VERSION, ExperienceChunk, Message, ProtocolError, ReplayAck, SampleRequest,
+    Weights,
     decode, encode,
 )
 from l2r.protocol.messages import _KINDS
@@ -150,6 +151,18 @@ def test_rejects_wrong_scalar_types_and_missing_fields():
     raw = wire(SampleRequest())
     raw["prioritized"] = 1
     rejected(pack(raw), match="expected bool")
+
+
+def test_ack_parts_belong_to_their_actor_and_must_add_up():
+    ack = ReplayAck(0, np.array([3, 5, 8]), np.array([1, 1, 2]), np.array([40, 9, 2]), np.array([2, 0, 1]),
+                    np.array([7, 31, 0]))
+    assert decode(encode(ack)).of(3, 1)[0] == 40 and list(ack.of(3, 1)[1]) == [7, 31]
+    assert ack.of(5, 1)[0] == 9 and len(ack.of(5, 1)[1]) == 0
+    assert list(ack.of(8, 2)[1]) == [0]
+    assert ack.of(8, 1) is None and ack.of(4, 1) is None  # another epoch, another actor: nothing said
+    raw = wire(ack)
+    raw["missing_counts"]["data"] = np.array([2, 0, 2], np.int64).tobytes()
+    rejected(pack(raw), match="missing_counts sum to 4")
 
 
 def test_rejects_weights_of_integer_dtype():

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from l2r.protocol import decode, encode
 from l2r.replay.rate_limiter import RateLimiter
+from l2r.replay.server import ReplayServer, ServerConfig
 from l2r.replay.sequences import SequenceTracker
 from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
 from l2r.replay.sumtree import SumTree
@@ -123,6 +125,28 @@ def test_sequences_drop_duplicates_and_count_gaps():
     copy = SequenceTracker()
     copy.restore(seqs.state())
     assert copy.state() == seqs.state()
+
+
+def test_acks_say_what_is_stored_within_a_bounded_missing_list():
+    seqs = SequenceTracker()
+    for s in (0, 1, 4, 2, 9):
+        seqs.accept(1, 10, s)
+    seqs.accept(2, 20, 0)
+    assert seqs.acks() == [(1, 10, 9, [3, 5, 6, 7, 8]), (2, 20, 0, [])]
+    # Too many missing to list: highest drops below the first one left out, so the ack stays true.
+    assert seqs.acks(limit=2) == [(1, 10, 5, [3, 5]), (2, 20, 0, [])]
+
+
+def test_the_server_builds_an_ack_only_when_chunks_came():
+    server = ReplayServer(ServerConfig(shard=1), Storage(StorageConfig(capacity=100)), RateLimiter())
+    assert server.ack() is None
+    for seq in (0, 2):
+        server.sequences.accept(7, 5, seq)
+    ack = decode(encode(server.ack()))
+    assert ack.shard == 1 and ack.of(7, 5)[0] == 2 and list(ack.of(7, 5)[1]) == [1]
+    assert server.ack() is None
+    server.sequences.accept(7, 5, 2)  # a duplicate: its sender has not heard the ack
+    assert server.ack().of(7, 5)[0] == 2
 
 
 def test_rate_limiter_reverb_semantics():
