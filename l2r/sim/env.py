@@ -99,6 +99,7 @@ class RunEnv(gym.Env):
         self.ligament_names = LIGAMENTS
         self._lig_kernel = LigamentKernel(m.jnt_qposadr[lig_joints], m.jnt_dofadr[lig_joints], lig)
         self._lig_dofs = m.jnt_dofadr[lig_joints].tolist()
+        self._default_pose = m.keyframe(body.DEFAULT_KEYFRAME).id
 
         self.muscle_names = tuple(body.MUSCLES)
         muscles = [_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in self.muscle_names]
@@ -184,10 +185,12 @@ class RunEnv(gym.Env):
         m.actuator_gainprm[:, 2] = force
         m.actuator_biasprm[:, 2] = force
 
-        body.reset_to_default(m, d)  # the .osim default pose, at rest (includes mj_forward)
+        # The .osim default pose, at rest; its ligaments are set before the one forward pass,
+        # so the passive forces include their damping.
+        mujoco.mj_resetDataKeyframe(m, d, self._default_pose)
         self._lig_applied = ([], [])  # the reset cleared qfrc_applied: write both again
         self._apply_ligaments(self._lig_kernel(d.qpos.tolist()))
-        mujoco.mj_forward(m, d)  # the passive forces, with this pose's ligament damping
+        mujoco.mj_forward(m, d)
         self._lig_force = self._lig_kernel.total(*self._lig_applied, d.qvel.tolist())
         self._x = float(d.qpos[self._x_adr])
         self._steps = 0
