@@ -256,20 +256,17 @@ def main() -> None:
             resident = rss_bytes(server.pid)
             size = stats[-1][1]["size"]
 
-            with ReplayClient(session, run, batch_size=256, in_flight=16) as client:
-                client.sample(timeout=30)
-                n, start = 0, time.perf_counter()
-                while time.perf_counter() - start < seconds:
+            def batches_per_s(prioritized: bool) -> float:
+                with ReplayClient(session, run, batch_size=256, in_flight=16, prioritized=prioritized) as client:
                     client.sample(timeout=30)
-                    n += 1
-                sample_rate = n / (time.perf_counter() - start)
-            with ReplayClient(session, run, batch_size=256, in_flight=16, prioritized=True) as client:
-                client.sample(timeout=30)
-                n, start = 0, time.perf_counter()
-                while time.perf_counter() - start < seconds:
-                    client.sample(timeout=30)
-                    n += 1
-                prioritized_rate = n / (time.perf_counter() - start)
+                    n, start = 0, time.perf_counter()
+                    while time.perf_counter() - start < seconds:
+                        client.sample(timeout=30)
+                        n += 1
+                    return n / (time.perf_counter() - start)
+
+            sample_rate = batches_per_s(prioritized=False)
+            prioritized_rate = batches_per_s(prioritized=True)
     finally:
         server.terminate()
         server.wait(60)
