@@ -1,6 +1,8 @@
 """The Learning to Run body in MuJoCo and its gymnasium environment.
 
-Importing this package registers `l2r/Run-v0`; MuJoCo loads only when an env is made:
+Importing this package registers `l2r/Run-v0` (MuJoCo) and `l2r/RunOpenSim-v0` (the same
+environment on OpenSim 4.6, the 2017 simulator; `pip install 'l2r[opensim]'`). The simulator
+loads only when an env is made:
 
     import gymnasium, l2r.sim
     env = gymnasium.make("l2r/Run-v0", difficulty=2)
@@ -8,5 +10,6 @@ Importing this package registers `l2r/Run-v0`; MuJoCo loads only when an env is 
 
 import gymnasium
 
-# RunEnv truncates at 1000 steps itself, so no max_episode_steps (no second TimeLimit).
+# Both envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
 gymnasium.register(id="l2r/Run-v0", entry_point="l2r.sim.env:RunEnv")
+gymnasium.register(id="l2r/RunOpenSim-v0", entry_point="l2r.sim.opensim_env:RunOpenSimEnv")
