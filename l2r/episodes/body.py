@@ -3,7 +3,9 @@
 ``BodyModel`` holds each body's shapes (the model's own geoms: spheres, capsules, boxes,
 cylinders, ellipsoids; not the surfaces tendons wrap around) in the body's frame, and each
 muscle's path as the sites it runs through (drawn straight from site to site: where a tendon
-wraps a surface the line cuts across it). A body without a visual geom is drawn as bones:
+wraps a surface the line cuts across it; a muscle with a conditional point is drawn through it
+even while the env pulls it along its second path, and moving points where they sit at knee
+angle 0). A body without a visual geom is drawn as bones:
 capsules to its children.
 
 It travels inside every episode file as JSON, so an old log still draws after the model
@@ -23,6 +25,7 @@ import numpy as np
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
 from l2r.episodes.schema import GROUND_FRAME, WORLD_FRAME
+from l2r.sim.paths import OFF
 
 _KINDS = {
     mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
@@ -89,6 +92,8 @@ class BodyModel:
             shapes.append(Shape(body, "sphere", (LEAF_RADIUS,), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), BONE_RGBA))
         muscles, paths = [], []
         for t in range(m.ntendon):
+            if m.tendon(t).name.endswith(OFF):  # a muscle's second path: drawn as its first
+                continue
             start, count = int(m.tendon_adr[t]), int(m.tendon_num[t])
             sites = [int(s) for s, kind in zip(m.wrap_objid[start : start + count], m.wrap_type[start : start + count])
                      if int(kind) == int(mujoco.mjtWrap.mjWRAP_SITE)]  # fmt: skip

@@ -13,21 +13,24 @@ from __future__ import annotations
 import argparse
 import sys
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from l2r.sim.fit import MuscleCurves, MusclePath, fit_curves, fit_muscle_path, knee_coupling, knee_origin, pose_grid, spanned_coordinates
-from l2r.sim.opensim import Osim, hunt_crossley_sink, opensim_length, read_osim
+from l2r.sim.fit import MusclePaths, knee_coupling, knee_origin, muscle_paths
+from l2r.sim.model import OSIM_PATH
+from l2r.sim.opensim import Osim, read_osim
+from l2r.sim.paths import MOVING_TORQUE, OFF
 
 ASSETS = Path(__file__).parent / "assets"
-OSIM_PATH = ASSETS / "gait9dof18musc.osim"
 MJCF_PATH = ASSETS / "runner.xml"
-TIMESTEP = 0.005  # two physics steps per 0.01 s env step
+TIMESTEP = 0.0025  # four physics steps per 0.01 s env step (docs/model.md: what a longer step costs in accuracy)
 OBSTACLE_PARK = (-100.0, -10.0, 0.0)  # far behind and below the start until the env places them
-MUSCLE_RANGE = (0.5, 1.6)  # normalised fibre lengths that `lengthrange` maps onto
-CONTACT_IMPEDANCE = (0.9, 0.95, 0.001)  # MuJoCo's default solimp
+# The feet meet the ground through the env's Hunt-Crossley forces (`l2r.sim.contact`); only
+# the obstacles touch them through MuJoCo's own soft contact, with its default stiffness.
+OBSTACLE_SOLREF = (0.02, 1.0)
+OBSTACLE_SOLIMP = (0.9, 0.95, 0.001)
+GROUND_SITE = "ground_origin"
 # MuJoCo softens a joint coupling by the summed inverse weights of both joints, and the light
 # shank makes that large; an impedance near 1 keeps the knee translation on its curve.
 COUPLING_SOLREF = (2 * TIMESTEP, 1.0)
@@ -46,16 +49,21 @@ def _quat_z(angle: float) -> str:
     return _fmt(np.cos(angle / 2), 0, 0, np.sin(angle / 2), digits=9)
 
 
-def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, MuscleCurves], contact: dict) -> str:
+def build_mjcf(osim: Osim, paths: dict[str, MusclePaths]) -> str:
     """The MJCF text of the body: planar joints, welded lumbar, coupled knee translation,
-    muscles on spatial tendons, foot spheres, ground and parked obstacles."""
+    spatial tendons with a force actuator each (the env computes the muscles; a muscle with a
+    conditional path point has a second tendon without it), foot spheres with a contact site and
+    an x and a y force actuator each, ground and parked obstacles.
+
+    Actuators: the 18 muscles in action order, the 8 contact forces, the `_off` paths, then
+    one per coordinate that moves path points, for the work of that motion (`l2r.sim.paths`)."""
     root = ET.Element("mujoco", model="l2r_runner")
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
     ET.SubElement(root, "option", timestep=_fmt(TIMESTEP), gravity=_fmt(osim.gravity), integrator="implicitfast")
     default = ET.SubElement(root, "default")
     ET.SubElement(default, "joint", limited="false", armature="0", damping="0")
     ET.SubElement(default, "site", size="0.005", group="3")
-    contact_attrs = dict(condim="3", friction=_fmt(contact["friction"], 0.005, 0.0001), solref=_fmt(contact["timeconst"], 1.0), solimp=_fmt(CONTACT_IMPEDANCE))
+    contact_attrs = dict(condim="3", friction=_fmt(osim.contact["static_friction"], 0.005, 0.0001), solref=_fmt(OBSTACLE_SOLREF), solimp=_fmt(OBSTACLE_SOLIMP))
     foot = ET.SubElement(default, "default", attrib={"class": "foot"})
     ET.SubElement(foot, "geom", type="sphere", contype="1", conaffinity="2", rgba="0.8 0.3 0.3 1", **contact_attrs)
     bone = ET.SubElement(default, "default", attrib={"class": "bone"})
@@ -64,7 +72,11 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
     ET.SubElement(world_geom, "geom", contype="2", conaffinity="1", rgba="0.6 0.6 0.6 1", **contact_attrs)
 
     world = ET.SubElement(root, "worldbody")
-    ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 1", zaxis="0 1 0", attrib={"class": "world"})
+    # the ground collides with nothing (the env computes the feet's contact), yet keeps a collision
+    # class: the world body's bounding box for the broad phase comes from its colliding geoms, and
+    # the infinite plane keeps it wide enough for obstacles the env moves at run time
+    ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 1", zaxis="0 1 0", contype="4", conaffinity="4", attrib={"class": "world"})
+    ET.SubElement(world, "site", name=GROUND_SITE)
     for i in range(3):
         ET.SubElement(world, "geom", name=f"obstacle_{i}", type="sphere", size="0.05", pos=_fmt(OBSTACLE_PARK), attrib={"class": "world"})
 
@@ -74,12 +86,14 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
             children.setdefault(body.joint.parent, []).append(name)
     spheres = {s.body: s for s in osim.spheres}
     sites_by_body: dict[str, list] = {}
+    tendons = {}  # tendon name: its path
     for muscle in osim.muscles:
-        for i, (body, pos) in enumerate(paths[muscle.name].sites):
-            sites_by_body.setdefault(body, []).append((f"{muscle.name}_{i}", pos))
-        wrap = paths[muscle.name].wrap
-        if wrap is not None:
-            sites_by_body.setdefault(wrap[0], []).append((f"{muscle.name}_side", wrap[1] + wrap[3] * (wrap[2] + 0.01)))
+        tendons[muscle.name] = paths[muscle.name].on
+        if paths[muscle.name].off is not None:
+            tendons[muscle.name + OFF] = paths[muscle.name].off
+    for name, path in tendons.items():
+        for i, (body, pos) in enumerate(path.sites):
+            sites_by_body.setdefault(body, []).append((f"{name}_{i}", pos))
 
     qpos0: list[float] = []  # the .osim default pose, in MuJoCo's joint order
 
@@ -119,13 +133,10 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
         if name in spheres:
             s = spheres[name]
             ET.SubElement(el, "geom", name=s.name, size=_fmt(s.radius), pos=_fmt(s.location), attrib={"class": "foot"})
+            # where the ground's force acts; the env moves it to the contact point every step
+            ET.SubElement(el, "site", name=f"{s.name}_contact", pos=_fmt(s.location - np.array([0.0, s.radius, 0.0])))
         for site_name, pos in sites_by_body.get(name, []):
             ET.SubElement(el, "site", name=site_name, pos=_fmt(pos))
-        for muscle in osim.muscles:
-            wrap = paths[muscle.name].wrap
-            if wrap is not None and wrap[0] == name:
-                ET.SubElement(el, "geom", name=f"{muscle.name}_wrap", type="cylinder", pos=_fmt(wrap[1]), size=_fmt(wrap[2], 0.02),
-                              contype="0", conaffinity="0", group="3", mass="0")
         # bones to look at, from each joint to the next; they neither collide nor weigh
         for child in children.get(name, []):
             joint = osim.bodies[child].joint
@@ -150,24 +161,23 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
 
     tendon = ET.SubElement(root, "tendon")
     actuator = ET.SubElement(root, "actuator")
-    for muscle in osim.muscles:
-        path = paths[muscle.name]
-        spatial = ET.SubElement(tendon, "spatial", name=muscle.name, width="0.004")
+    for name, path in tendons.items():
+        spatial = ET.SubElement(tendon, "spatial", name=name, width="0.004")
         for i in range(len(path.sites)):
-            ET.SubElement(spatial, "site", site=f"{muscle.name}_{i}")
-            if path.wrap is not None and i == path.wrap_after:
-                ET.SubElement(spatial, "geom", geom=f"{muscle.name}_wrap", sidesite=f"{muscle.name}_side")
-        c = curves[muscle.name]
-        # MuJoCo normalises length as range0 + (L - lengthrange0) / L0 with
-        # L0 = (lengthrange1 - lengthrange0) / (range1 - range0); these bounds make the normalised
-        # length exactly (L - tendon slack) / optimal fibre length.
-        lengthrange = muscle.slack_length + np.array(MUSCLE_RANGE) * muscle.optimal_length
-        ET.SubElement(
-            actuator, "muscle", name=muscle.name, tendon=muscle.name, ctrlrange="0 1",
-            force=_fmt(muscle.max_force), lengthrange=_fmt(lengthrange, digits=8), range=_fmt(MUSCLE_RANGE),
-            timeconst=_fmt(muscle.activation_tau, muscle.deactivation_tau), vmax=_fmt(muscle.max_velocity),
-            lmin=_fmt(c.lmin, digits=4), lmax=_fmt(c.lmax, digits=4), fpmax=_fmt(c.fpmax, digits=4), fvmax=_fmt(c.fvmax, digits=4),
-        )
+            ET.SubElement(spatial, "site", site=f"{name}_{i}")
+    # the env sets the tendon force (negative: pulling) and its stiffness as damping
+    for muscle in osim.muscles:
+        ET.SubElement(actuator, "general", name=muscle.name, tendon=muscle.name, biastype="affine")
+    for sphere in osim.spheres:
+        for axis, gear in (("x", "1 0 0 0 0 0"), ("y", "0 1 0 0 0 0")):
+            ET.SubElement(actuator, "general", name=f"{sphere.name}_{axis}", site=f"{sphere.name}_contact",
+                          refsite=GROUND_SITE, gear=gear, biastype="affine")
+    for name in tendons:
+        if name.endswith(OFF):
+            ET.SubElement(actuator, "general", name=name, tendon=name, biastype="affine")
+    moving = sorted({p.coordinate for muscle in osim.muscles for p in muscle.points if p.kind == "moving"})
+    for coordinate in moving:
+        ET.SubElement(actuator, "general", name=coordinate + MOVING_TORQUE, joint=coordinate)
 
     keyframe = ET.SubElement(root, "keyframe")
     ET.SubElement(keyframe, "key", name="default", qpos=_fmt(qpos0))
@@ -176,57 +186,10 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePath], curves: dict[str, Muscl
     return header + ET.tostring(root, encoding="unicode") + "\n"
 
 
-def mujoco_sink(model, timeconst: float) -> float:
-    """The same test on the MuJoCo body: joints held by stiff springs at the default pose,
-    muscles off, foot contacts with this solref time constant, settled for 3 s."""
-    import mujoco
-
-    m = model.__copy__()
-    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
-    for g in range(m.ngeom):
-        m.geom_solref[g, 0] = timeconst
-    d = mujoco.MjData(m)
-    mujoco.mj_resetDataKeyframe(m, d, 0)
-    hinges = m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE
-    m.jnt_stiffness[hinges] = 3e4
-    m.dof_damping[m.jnt_dofadr[hinges]] = 300.0
-    m.qpos_spring[:] = d.qpos
-    start = d.qpos[1]
-    mujoco.mj_step(m, d, round(3.0 / TIMESTEP))
-    return float(start - d.qpos[1])
-
-
-def tune_contact(osim: Osim, mjcf: str) -> float:
-    """The solref time constant (damping ratio 1) under which the MuJoCo body rests at the
-    height the Hunt-Crossley contacts hold it: bisection, in log time."""
-    import mujoco
-
-    model = mujoco.MjModel.from_xml_string(mjcf)
-    target = hunt_crossley_sink(osim)
-    lo, hi = np.log(2 * TIMESTEP), np.log(1.0)
-    for _ in range(14):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if mujoco_sink(model, float(np.exp(mid))) < target else (lo, mid)
-    # 1 ms steps move the resting height by about 0.4 mm, and keep the value from flickering
-    # with a MuJoCo version's last bits
-    return round(float(np.exp(0.5 * (lo + hi))), 3)
-
-
-def generate(osim_path: Path | str = OSIM_PATH, progress: Callable[[str], None] | None = None) -> str:
-    """The MJCF text for an .osim file; `progress` receives a line per stage."""
+def generate(osim_path: Path | str = OSIM_PATH) -> str:
+    """The MJCF text for an .osim file."""
     osim = read_osim(osim_path)
-    paths, curves = {}, {}
-    for i, muscle in enumerate(osim.muscles):
-        if progress:
-            progress(f"fitting muscle {i + 1}/{len(osim.muscles)}: {muscle.name}")
-        paths[muscle.name] = fit_muscle_path(osim, muscle)
-        pose = pose_grid(osim, spanned_coordinates(osim, muscle))
-        curves[muscle.name] = fit_curves(muscle, opensim_length(osim, muscle, pose))
-    contact = {"friction": osim.contact["static_friction"], "timeconst": 0.02}
-    if progress:
-        progress("tuning foot contacts to the Hunt-Crossley resting height")
-    contact["timeconst"] = tune_contact(osim, build_mjcf(osim, paths, curves, contact))
-    return build_mjcf(osim, paths, curves, contact)
+    return build_mjcf(osim, {muscle.name: muscle_paths(muscle) for muscle in osim.muscles})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -236,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true", help="do not write; exit 1 when OUT differs from a fresh conversion")
     args = parser.parse_args(argv)
     try:
-        text = generate(args.osim, progress=lambda line: print(line, file=sys.stderr))
+        text = generate(args.osim)
     except ValueError as e:
         print(f"convert: {e}", file=sys.stderr)
         return 2

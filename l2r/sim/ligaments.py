@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-OSIM_PATH = Path(__file__).parent / "assets" / "gait9dof18musc.osim"
+from l2r.sim.model import OSIM_PATH
+
 
 # Order of the ligament forces everywhere in l2r (the right leg, then the left).
 LIGAMENTS = ("HipLimit_r", "KneeLimit_r", "AnkleLimit_r", "HipLimit_l", "KneeLimit_l", "AnkleLimit_l")

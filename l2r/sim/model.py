@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 
 MODEL_PATH = Path(__file__).parent / "assets" / "runner.xml"
+OSIM_PATH = Path(__file__).parent / "assets" / "gait9dof18musc.osim"  # the OpenSim model it ports
 
 # Action order: the .osim muscle order (right leg, then left).
 MUSCLES = (
@@ -63,3 +64,4 @@ def reset_to_default(model: mujoco.MjModel, data: mujoco.MjData) -> None:
     """Put the body in the .osim default pose, at rest, with all activations zero."""
     mujoco.mj_resetDataKeyframe(model, data, model.keyframe(DEFAULT_KEYFRAME).id)
     mujoco.mj_forward(model, data)
+

@@ -1,9 +1,8 @@
 """The OpenSim side of the port: the parts of an .osim model the MuJoCo body needs, and the
-geometry and muscle forces OpenSim would compute from them, in numpy.
+path geometry OpenSim would compute from them, in numpy.
 
 Everything here follows OpenSim 4 (`SimmSpline`, `CustomJoint`, conditional and moving path
-points, `Thelen2003Muscle`, Simbody's Hunt-Crossley contact), so that the converter can fit the
-MuJoCo body to OpenSim without running OpenSim.
+points), so that the converter and the env can follow OpenSim without running OpenSim.
 """
 
 from __future__ import annotations
@@ -237,8 +236,10 @@ def _read_model(model: ET.Element) -> Osim:
         Sphere(s.get("name"), s.findtext("body_name").strip(), _vec(s, "location"), _num(s, "radius"))
         for s in model.iter("ContactSphere")
     ]
-    hc = next(model.iter("HuntCrossleyForce__ContactParameters"))
-    contact = {k: _num(hc, k) for k in ("stiffness", "dissipation", "static_friction")}
+    force = next(model.iter("HuntCrossleyForce"))
+    hc = next(force.iter("HuntCrossleyForce__ContactParameters"))
+    contact = {k: _num(hc, k) for k in ("stiffness", "dissipation", "static_friction", "dynamic_friction", "viscous_friction")}
+    contact["transition_velocity"] = _num(force, "transition_velocity")
     return Osim(_vec(model, "gravity"), bodies, muscles, spheres, contact)
 
 
@@ -316,7 +317,7 @@ def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray], swit
     """Muscle-tendon length along OpenSim's path: fixed points, conditional points only
     inside their coordinate range (judged at `switch_pose`, default `pose`, so that moment
     arms can hold the path's points fixed as OpenSim does), moving points at their spline
-    positions."""
+    positions for the coordinate clamped to its range, as OpenSim 4.6 evaluates them."""
     frames = body_frames(osim, pose)
     switch_pose = pose if switch_pose is None else switch_pose
     n = len(next(iter(pose.values())))
@@ -330,6 +331,7 @@ def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray], swit
                 q = np.asarray(switch_pose[point.coordinate]) if point.coordinate in switch_pose else q
                 active = (q >= point.active_range[0]) & (q <= point.active_range[1])
             else:
+                q = np.clip(q, *osim.coordinate(point.coordinate).range)
                 local = np.stack([f(q) for f in point.moving], axis=1)
         position = place(frames, point.body, local)
         if previous is None:
@@ -338,54 +340,3 @@ def opensim_length(osim: Osim, muscle: Muscle, pose: dict[str, np.ndarray], swit
         length += np.where(active, np.linalg.norm(position - previous, axis=1), 0.0)
         previous = np.where(active[:, None], position, previous)
     return length
-
-
-def thelen_isometric_force(muscle: Muscle, mtu_length: np.ndarray, activation: float) -> np.ndarray:
-    """Tendon force (N) of OpenSim's Thelen2003Muscle at rest, fibre and tendon in equilibrium.
-
-    Thelen (2003): Gaussian active force-length (shape 0.45), exponential passive curve,
-    exponential-then-linear tendon, fixed-width pennation; OpenSim holds activation >= 0.01.
-    """
-    a = max(activation, 0.01)
-    l0, ls, e0t = muscle.optimal_length, muscle.slack_length, muscle.tendon_strain
-    width = l0 * np.sin(muscle.pennation)
-    kpe, e0m = muscle.passive_shape, muscle.muscle_strain
-    toe_strain, toe_force, k_toe = 99 * e0t * np.exp(3) / (166 * np.exp(3) - 67), 0.33, 3.0
-    k_lin = 0.67 / (e0t - toe_strain)
-
-    def tendon(strain):
-        toe = toe_force / (np.exp(k_toe) - 1) * (np.exp(k_toe * strain / toe_strain) - 1)
-        return np.where(strain > toe_strain, k_lin * (strain - toe_strain) + toe_force, np.where(strain > 0, toe, 0.0))
-
-    def fibre(along):  # fibre force along the tendon for fibre length projected on the tendon
-        lm = np.sqrt(along**2 + width**2) / l0
-        passive = np.where(lm > 1, (np.exp(kpe * (lm - 1) / e0m) - 1) / (np.exp(kpe) - 1), 0.0)
-        return (a * np.exp(-((lm - 1) ** 2) / 0.45) + passive) * along / (lm * l0)
-
-    # bisection on the projected fibre length: the tendon side falls as the fibre lengthens
-    lo, hi = np.full_like(mtu_length, 1e-6), np.maximum(mtu_length - ls, 2e-6)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        tendon_longer = fibre(mid) < tendon((mtu_length - mid) / ls - 1)
-        lo, hi = np.where(tendon_longer, mid, lo), np.where(tendon_longer, hi, mid)
-    force = muscle.max_force * tendon((mtu_length - 0.5 * (lo + hi)) / ls - 1)
-    return np.where(mtu_length > ls, force, 0.0)
-
-
-def hunt_crossley_sink(osim: Osim) -> float:
-    """How far the body, held rigid in its default pose, sinks from it until the .osim's
-    Hunt-Crossley spheres carry its weight (negative: it rises). Each sphere pushes with
-    4/3 k^1.5 sqrt(R) d^1.5, k = stiffness^(2/3) / 2 for two equally stiff surfaces (Simbody)."""
-    pose = {"pelvis_tilt": np.array([osim.coordinate("pelvis_tilt").default])}
-    frames = body_frames(osim, pose)
-    tilt = _axis_rotation(np.array([0.0, 0.0, 1.0]), pose["pelvis_tilt"][0])[0]
-    heights = np.array([osim.coordinate("pelvis_ty").default + (tilt @ place(frames, s.body, s.location)[0])[1] for s in osim.spheres])
-    radius = np.array([s.radius for s in osim.spheres])
-    weight = sum(b.mass for b in osim.bodies.values()) * float(np.linalg.norm(osim.gravity))
-    k = osim.contact["stiffness"] ** (2 / 3) / 2
-    lo, hi = -1.0, 1.0
-    for _ in range(80):
-        sink = 0.5 * (lo + hi)
-        depth = np.maximum(radius - heights + sink, 0.0)
-        lo, hi = (sink, hi) if np.sum(4 / 3 * k**1.5 * np.sqrt(radius) * depth**1.5) < weight else (lo, sink)
-    return 0.5 * (lo + hi)

@@ -84,7 +84,8 @@ def test_muscle_paths_follow_the_sites_mujoco_computes():
     body = BodyModel.from_model(m)
     assert set(BODIES) <= set(body.bodies) and body.muscles == MUSCLES
     points = body.muscle_points(d.xpos[1:], d.xquat[1:])
-    for t, path in enumerate(points):  # the sites; wrapping surfaces between them are not drawn
+    for name, path in zip(MUSCLES, points):  # the sites; wrapping surfaces between them are not drawn
+        t = m.tendon(name).id
         start, count = m.tendon_adr[t], m.tendon_num[t]
         kinds, ids = m.wrap_type[start : start + count], m.wrap_objid[start : start + count]
         sites = ids[kinds == mujoco.mjtWrap.mjWRAP_SITE]

@@ -6,7 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from l2r.sim import convert, fit, model as body, opensim
+from l2r.sim import convert, model as body, opensim, thelen
+from l2r.sim.paths import OFF, MovingPoints, PathSwitches
 
 REFERENCE = json.loads((convert.ASSETS / "opensim_reference.json").read_text())
 
@@ -23,7 +24,7 @@ def osim() -> opensim.Osim:
 
 @pytest.fixture(scope="module")
 def generated() -> str:
-    return convert.generate(convert.OSIM_PATH)  # the whole conversion, fits included (seconds)
+    return convert.generate(convert.OSIM_PATH)
 
 
 def test_converter_reproduces_the_committed_model(generated):
@@ -86,55 +87,67 @@ def test_default_pose_matches_the_2017_reset_observation(m):
     np.testing.assert_allclose(d.subtree_com[0][:2], obs[18:20], atol=1e-6)
 
 
-def test_muscles_are_actuators_in_action_order_with_thelen_parameters(m):
-    assert tuple(m.actuator(i).name for i in range(m.nu)) == body.MUSCLES
-    for i, fact in enumerate(REFERENCE["facts"]["muscles"]):
-        a = m.actuator(fact["name"])
-        assert a.trntype[0] == mujoco.mjtTrn.mjTRN_TENDON and m.tendon(a.trnid[0]).name == fact["name"]
-        assert a.ctrllimited[0] and tuple(a.ctrlrange) == (0.0, 1.0)
-        assert a.gainprm[2] == pytest.approx(fact["max_isometric_force"])
-        # MuJoCo: L0 = (lengthrange1 - lengthrange0) / (range1 - range0), and the normalised
-        # length range0 + (L - lengthrange0) / L0 is 1 at L = slack + optimal fibre length
-        lr, rng = a.lengthrange, a.gainprm[:2]
-        l0 = (lr[1] - lr[0]) / (rng[1] - rng[0])
-        assert l0 == pytest.approx(fact["optimal_fiber_length"])
-        assert lr[0] + (1 - rng[0]) * l0 == pytest.approx(fact["tendon_slack_length"] + fact["optimal_fiber_length"])
-        assert a.gainprm[6] == pytest.approx(fact["max_contraction_velocity"])
-        assert tuple(a.dynprm[:2]) == (fact["activation_time_constant"], fact["deactivation_time_constant"])
+def test_actuators_are_muscle_tendons_then_contacts_then_second_paths(m, osim):
+    """The first 18 actuators pull on the muscles' tendons in action order, with force set by the
+    env (unlimited ctrl, an affine bias for the stiffness); then x and y forces per foot sphere;
+    then the tendons without a conditional point; then the knees' moving-point work."""
+    names = [m.actuator(i).name for i in range(m.nu)]
+    contacts = [f"{s}_{axis}" for s in body.CONTACT_SPHERES for axis in "xy"]
+    second = [mu.name + OFF for mu in osim.muscles if any(p.kind == "conditional" for p in mu.points)]
+    assert names == list(body.MUSCLES) + contacts + second + ["knee_angle_l_moving_points", "knee_angle_r_moving_points"]
+    for name in list(body.MUSCLES) + second:
+        a = m.actuator(name)
+        assert a.trntype[0] == mujoco.mjtTrn.mjTRN_TENDON and m.tendon(a.trnid[0]).name == name
+        assert not a.ctrllimited[0] and a.biastype[0] == mujoco.mjtBias.mjBIAS_AFFINE
+    for name in contacts:
+        a = m.actuator(name)
+        assert a.trntype[0] == mujoco.mjtTrn.mjTRN_SITE and m.site(a.trnid[0]).name == name[:-2] + "_contact"
+        assert m.site(a.trnid[1]).bodyid[0] == 0  # against a world site: Cartesian forces
 
 
-def test_feet_touch_ground_and_obstacles_but_not_each_other(m):
+def test_thelen_parameters_are_the_osims(osim):
+    table = thelen.muscle_parameters(osim.muscles)
+    for row, fact in zip(table, REFERENCE["facts"]["muscles"]):
+        assert row[thelen.MAX_FORCE] == pytest.approx(fact["max_isometric_force"])
+        assert row[thelen.OPTIMAL_LENGTH] == pytest.approx(fact["optimal_fiber_length"])
+        assert row[thelen.SLACK_LENGTH] == pytest.approx(fact["tendon_slack_length"])
+        assert row[thelen.MAX_SPEED] == pytest.approx(fact["max_contraction_velocity"] * fact["optimal_fiber_length"])
+        assert (row[thelen.TAU_ACTIVATION], row[thelen.TAU_DEACTIVATION]) == (fact["activation_time_constant"], fact["deactivation_time_constant"])
+
+
+def test_feet_touch_obstacles_but_neither_the_ground_nor_each_other(m):
+    """MuJoCo collides the feet with obstacles only: the env computes their ground contact."""
+
     def collide(a, b):
         ga, gb = m.geom(a), m.geom(b)
         return bool(ga.contype[0] & gb.conaffinity[0]) or bool(gb.contype[0] & ga.conaffinity[0])
 
     for foot in body.CONTACT_SPHERES:
         assert m.geom(foot).friction[0] == pytest.approx(0.8)
-        assert collide(foot, body.GROUND)
+        assert not collide(foot, body.GROUND)
         assert all(collide(foot, o) for o in body.OBSTACLES)
         assert not any(collide(foot, other) for other in body.CONTACT_SPHERES)
     for o in body.OBSTACLES:
         assert m.geom(o).bodyid[0] == 0 and m.geom(o).pos[1] < -1  # parked under the ground
-    colliding = [g for g in range(m.ngeom) if m.geom_contype[g] or m.geom_conaffinity[g]]
-    assert len(colliding) == 8  # four spheres, ground, three obstacles: nothing else costs time
+    assert not any(collide(body.GROUND, o) for o in body.OBSTACLES)
 
 
 def test_knee_translation_follows_the_osim_splines(m, osim):
     d = mujoco.MjData(m)
     body.reset_to_default(m, d)
     spline_x, spline_y = (f for _, _, f in osim.bodies["tibia_r"].joint.translations[:2])
-    for angle in np.linspace(-2.09, 0.17, 12):
+    for angle in np.linspace(-2.09, 0.5, 14):  # hyperextension too
         body.set_pose(m, d, {"knee_angle_r": angle, "hip_flexion_r": 0.0})
         mujoco.mj_kinematics(m, d)
         offset = d.body("tibia_r").xpos - d.body("femur_r").xpos
         offset = d.body("femur_r").xmat.reshape(3, 3).T @ offset
-        # the quartic coupling stays within 0.5 mm of the splines
+        # the quartic coupling stays within 0.5 mm of the splines (extrapolated linearly)
         assert offset[0] == pytest.approx(float(spline_x(angle)), abs=5e-4)
         assert offset[1] == pytest.approx(float(spline_y(angle)), abs=5e-4)
 
 
 def test_numpy_opensim_geometry_matches_opensim(osim):
-    # the converter fits against this geometry, so it has to be OpenSim's own
+    # the path tests below compare MuJoCo with this geometry, so it has to be OpenSim's own
     samples = REFERENCE["geometry"][:50]
     pose = {c: np.array([s["pose"][c] for s in samples]) for c in samples[0]["pose"]}
     for muscle in osim.muscles:
@@ -143,57 +156,72 @@ def test_numpy_opensim_geometry_matches_opensim(osim):
         np.testing.assert_allclose(ours, theirs, atol=1e-9)
 
 
-def test_numpy_thelen_matches_opensim_isometric_forces(osim):
+def test_thelen_equilibrium_matches_opensim_isometric_forces(osim):
     samples = REFERENCE["isometric_forces"]
     pose = {c: np.array([s["pose"][c] for s in samples]) for c in samples[0]["pose"]}
-    for muscle in osim.muscles:
+    table = thelen.muscle_parameters(osim.muscles)
+    for i, muscle in enumerate(osim.muscles):
         length = opensim.opensim_length(osim, muscle, pose)
         for a in ("0.0", "0.5", "1.0"):
             theirs = np.array([s["forces"][muscle.name][a] for s in samples])
-            ours = opensim.thelen_isometric_force(muscle, length, float(a))
-            assert np.max(np.abs(ours - theirs)) < 0.01 * muscle.max_force, (muscle.name, a)
+            ours = np.array([thelen.tendon_force(thelen.equilibrium_fiber_length(float(a), x, table[i]), x, table[i]) for x in length])
+            assert np.max(np.abs(ours - theirs)) < 1e-4 * muscle.max_force, (muscle.name, a)
 
 
-def test_converter_path_lengths_are_what_mujoco_computes(m, osim):
-    # the fit measures paths with its own copy of MuJoCo's geometry (sites, cylinder wraps);
-    # check that copy against MuJoCo on the fitted model
+def test_mujoco_paths_are_opensims_in_every_pose(m, osim):
+    """With the tendon each conditional point selects and the moving points placed, MuJoCo's
+    muscle-tendon lengths are OpenSim's to within the knee coupling's fit, from deep flexion
+    to hyperextension, and the moving points' work makes MuJoCo's generalised force -F dL/dq."""
     rng = np.random.default_rng(0)
     d = mujoco.MjData(m)
-    body.reset_to_default(m, d)
-    paths = {}
-    for muscle in osim.muscles:
-        sites = [(m.site_bodyid[m.site(f"{muscle.name}_{i}").id], m.site(f"{muscle.name}_{i}").pos.copy()) for i in range(len(muscle.points)) if _has_site(m, f"{muscle.name}_{i}")]
-        wrap = None
-        if _has_geom(m, f"{muscle.name}_wrap"):
-            g = m.geom(f"{muscle.name}_wrap")
-            side = m.site(f"{muscle.name}_side").pos - g.pos
-            wrap = (m.body(g.bodyid[0]).name, g.pos.copy(), float(g.size[0]), side / np.linalg.norm(side))
-        t = m.tendon(muscle.name).id
-        kinds = m.wrap_type[m.tendon_adr[t] : m.tendon_adr[t] + m.tendon_num[t]]
-        wrap_after = next((k - 1 for k, kind in enumerate(kinds) if kind == mujoco.mjtWrap.mjWRAP_CYLINDER), 0)
-        paths[muscle.name] = fit.MusclePath([(m.body(b).name, p) for b, p in sites], wrap, wrap_after)
-    for _ in range(20):
-        pose = {c: rng.uniform(-1.4, 1.4) for c in body.LEG_COORDINATES}
-        pose["knee_angle_r"] = pose["knee_angle_l"] = rng.uniform(-1.5, 0.1)
+    switches, moving = PathSwitches(m, osim.muscles), MovingPoints(m, osim, osim.muscles)
+    for _ in range(40):
+        body.reset_to_default(m, d)
+        pose = {c: rng.uniform(-1.5, 1.5) for c in body.LEG_COORDINATES}
+        pose["knee_angle_r"], pose["knee_angle_l"] = rng.uniform(-2.5, 0.5, 2)
         body.set_pose(m, d, pose)
+        moving.place(m, d.qpos)
         mujoco.mj_kinematics(m, d)
         mujoco.mj_tendon(m, d)
-        frames = opensim.body_frames(osim, {c: np.array([v]) for c, v in pose.items()}, fit.coupled_translations(osim))
-        for name, path in paths.items():
-            assert fit.path_length(frames, path)[0] == pytest.approx(d.ten_length[m.tendon(name).id], abs=1e-6), name
+        ours = d.ten_length[switches.tendons(d.qpos)]
+        theirs = [opensim.opensim_length(osim, mu, {c: np.array([v]) for c, v in pose.items()})[0] for mu in osim.muscles]
+        np.testing.assert_allclose(ours, theirs, atol=6e-4)
 
 
-def _has_site(m, name):
-    try:
-        m.site(name)
-        return True
-    except KeyError:
-        return False
+@pytest.mark.parametrize("knee", [-1.2, -0.4, 0.1])
+def test_moving_points_add_the_work_of_their_motion(m, osim, knee):
+    """OpenSim's generalised force of a muscle with a moving point is -F dL/dq along the knee;
+    MuJoCo's tendon moment arm holds the site fixed, and the knee's moving-point actuator adds
+    the rest. Checked for vasti and rectus femoris against OpenSim's lengths."""
+    d = mujoco.MjData(m)
+    moving, switches = MovingPoints(m, osim, osim.muscles), PathSwitches(m, osim.muscles)
+    step = 1e-6
 
+    def mujoco_length(tendon, q, place):
+        body.reset_to_default(m, d)
+        body.set_pose(m, d, {"knee_angle_r": q, "hip_flexion_r": 0.3})
+        if place:
+            moving.place(m, d.qpos)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_tendon(m, d)
+        return d.ten_length[tendon]
 
-def _has_geom(m, name):
-    try:
-        m.geom(name)
-        return True
-    except KeyError:
-        return False
+    for name in ("vasti_r", "rect_fem_r"):
+        index, muscle = next((i, mu) for i, mu in enumerate(osim.muscles) if mu.name == name)
+        body.set_pose(m, d, {"knee_angle_r": knee})
+        tendon = switches.tendons(d.qpos)[index]  # the path the knee selects
+        lengths = [opensim.opensim_length(osim, muscle, {"knee_angle_r": np.array([knee + s]), "hip_flexion_r": np.array([0.3])})[0] for s in (step, -step)]
+        dl_dq = (lengths[0] - lengths[1]) / (2 * step)
+        mujoco_length(tendon, knee, place=True)  # the sites where the knee puts them, then held
+        fixed = (mujoco_length(tendon, knee + step, False) - mujoco_length(tendon, knee - step, False)) / (2 * step)
+        mujoco_length(tendon, knee, place=True)
+        mujoco.mj_forward(m, d)
+        tension = np.zeros(m.ntendon)
+        tension[tendon] = 1000.0
+        ctrl = np.zeros(m.nu)
+        moving.rates(d)
+        moving.torques(tension, ctrl)
+        generalised = -1000.0 * fixed + ctrl[m.actuator("knee_angle_r_moving_points").id]
+        assert abs(ctrl[m.actuator("knee_angle_r_moving_points").id]) > 1.0  # the term matters
+        # within half a millimetre of moment arm: the knee coupling's fit to the splines
+        assert generalised == pytest.approx(-1000.0 * dl_dq, abs=0.5), name

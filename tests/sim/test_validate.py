@@ -66,7 +66,8 @@ def test_other_samples_of_the_same_format(tmp_path):
 
 def test_a_wrong_model_fails_the_targets():
     m = body.load_model()
-    m.site_pos[m.site("vasti_r_0").id, 0] += 0.02  # move the vasti origin 2 cm forward
+    for path in ("vasti_r", "vasti_r_off"):  # move the vasti origin 2 cm forward on both paths
+        m.site_pos[m.site(f"{path}_0").id, 0] += 0.02
     ref = validate.load_reference(validate.DEFAULT_REFERENCE)
     arms, lengths, _ = validate.geometry_errors(m, ref["geometry"])
     assert lengths["vasti_r"] > 0.005 and lengths["vasti_l"] < 0.001

@@ -1,0 +1,106 @@
+"""The feet on the ground as OpenSim's `HuntCrossleyForce` pushes them (Simbody's law).
+
+For a sphere of radius R sunk d into the ground at penetration rate v_n (positive going in):
+    f_H = 4/3 · k · d · sqrt(R · k · d),   k = stiffness^(2/3) / 2  (two equally stiff surfaces)
+    f   = f_H · (1 + 3/2 · c · v_n),       normal force max(f, 0)
+    friction = f · (min(s, 1) · (μd + 2 (μs - μd) / (1 + s²)) + μv · |v_t|),   s = |v_t| / v_transition
+against the slip v_t of the contact point, which lies midway between the sphere's lowest point
+and the ground. While f < 0 (the sphere leaving faster than the dissipation allows) there is no
+force at all: Simbody's formula would turn friction around there, but OpenSim 4.6 applies none
+(measured: the toe's friction reads 0 in OpenSim's records where this formula gives 450 N).
+
+The env applies each force through two MuJoCo actuators on a site it moves to the contact point
+(one along x, one along y, against a world site), and hands MuJoCo's implicit integrator the
+force's derivative with respect to the contact point's speed as actuator damping: the friction
+below the transition speed (0.8 f / 0.1 m/s) is a damper far too stiff for an explicit 5 ms step
+on a foot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from l2r.sim.opensim import Osim
+
+
+@dataclass(frozen=True)
+class ContactLaw:
+    stiffness: float  # N/m^2, the .osim's value (OpenSim hands Simbody stiffness^(2/3))
+    dissipation: float  # s/m
+    static_friction: float
+    dynamic_friction: float
+    viscous_friction: float  # s/m
+    transition_velocity: float  # m/s
+
+    def table(self) -> np.ndarray:
+        """The kernel's parameters: [k, c, μs, μd, μv, v_transition], k the Hertz constant."""
+        k = self.stiffness ** (2.0 / 3.0) / 2.0
+        return np.array([k, self.dissipation, self.static_friction, self.dynamic_friction,
+                         self.viscous_friction, self.transition_velocity])
+
+
+def contact_law(osim: Osim) -> ContactLaw:
+    c = osim.contact
+    return ContactLaw(c["stiffness"], c["dissipation"], c["static_friction"], c["dynamic_friction"],
+                      c["viscous_friction"], c["transition_velocity"])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _friction(f: float, slip: float, law: np.ndarray) -> tuple[float, float]:
+    """Friction magnitude against a slip speed, and its derivative with respect to that speed."""
+    us, ud, uv, vt = law[2], law[3], law[4], law[5]
+    s = slip / vt
+    shape = ud + 2.0 * (us - ud) / (1.0 + s * s)
+    dshape = -4.0 * (us - ud) * s / ((1.0 + s * s) ** 2) / vt
+    if s < 1.0:
+        return f * (s * shape + uv * slip), f * (shape / vt + s * dshape + uv)
+    return f * (shape + uv * slip), f * (dshape + uv)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def ground_forces(law: np.ndarray, radius: np.ndarray, centre: np.ndarray, body: np.ndarray,
+                  root: np.ndarray, xpos: np.ndarray, xmat: np.ndarray, cvel: np.ndarray,
+                  subtree_com: np.ndarray, point: np.ndarray, local: np.ndarray,
+                  force: np.ndarray, damping: np.ndarray) -> None:
+    """Hunt-Crossley forces of spheres on the ground plane y = 0.
+
+    radius (n,); centre (n, 3) world positions of the sphere centres; body (n,) their bodies,
+    root (n,) those bodies' roots; xpos, xmat, cvel, subtree_com: MuJoCo's arrays. Writes the
+    contact points in world (`point`, n x 3) and in their body's frame (`local`), the force on
+    each sphere (`force`, n x 2: x, y) and d force / d speed of the contact point along x and y
+    (`damping`, n x 2, never positive: only dampers go to the implicit integrator).
+    """
+    k, c = law[0], law[1]
+    for i in range(radius.shape[0]):
+        depth = radius[i] - centre[i, 1]
+        b = body[i]
+        point[i, 0] = centre[i, 0]
+        point[i, 1] = -0.5 * depth if depth > 0.0 else centre[i, 1] - radius[i]
+        point[i, 2] = centre[i, 2]
+        for j in range(3):
+            local[i, j] = 0.0
+            for r in range(3):  # xmat is row-major body-to-world: local = R^T (p - x)
+                local[i, j] += xmat[b, 3 * r + j] * (point[i, r] - xpos[b, r])
+        force[i, 0] = force[i, 1] = damping[i, 0] = damping[i, 1] = 0.0
+        if depth <= 0.0:
+            continue
+        # velocity of the body's material point at the contact: cvel is (angular, linear) at the
+        # root's subtree centre of mass
+        rx = point[i, 0] - subtree_com[root[i], 0]
+        ry = point[i, 1] - subtree_com[root[i], 1]
+        rz = point[i, 2] - subtree_com[root[i], 2]
+        w = cvel[b, 0:3]
+        vx = cvel[b, 3] + w[1] * rz - w[2] * ry
+        vy = cvel[b, 4] + w[2] * rx - w[0] * rz
+        hertz = 4.0 / 3.0 * k * depth * np.sqrt(radius[i] * k * depth)
+        f = hertz * (1.0 - 1.5 * c * vy)  # penetration rate is -vy
+        if f <= 0.0:
+            continue  # leaving faster than the dissipation allows: no force at all
+        force[i, 1] = f
+        damping[i, 1] = -1.5 * c * hertz
+        magnitude, slope = _friction(f, abs(vx), law)
+        force[i, 0] = -magnitude if vx > 0.0 else magnitude
+        damping[i, 0] = min(-slope, 0.0)
