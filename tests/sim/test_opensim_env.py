@@ -1,5 +1,5 @@
-"""RunOpenSimEnv: the 2017 environment on real OpenSim 4.6, against the reference rollouts and the
-MuJoCo env's layout."""
+"""RunOpenSimEnv: the 2017 environment on real OpenSim 4.6, against the reference rollouts, the
+MuJoCo env's layout, and `l2r eval` on it."""
 
 import json
 import math
@@ -14,6 +14,8 @@ import pytest
 
 import l2r.sim  # noqa: F401  (registers the envs)
 import l2r.sim.opensim_env as opensim_env
+from l2r.learner.checkpoint import save_checkpoint
+from l2r.learner.sac import SACConfig, init_state
 from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE
 from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 from l2r.sim.opensim_env import RunOpenSimEnv
@@ -286,3 +288,21 @@ def test_missing_opensim_is_one_clear_error():
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1] == f"ImportError: {opensim_env.MISSING_OPENSIM}"
     assert "pip install 'l2r[opensim]'" in opensim_env.MISSING_OPENSIM
+
+
+# ------------------------------------------------------------------------------ commands
+
+
+@pytest.mark.slow
+def test_eval_runs_a_checkpoint_on_opensim(tmp_path):
+    config = SACConfig(hidden=(16, 16), precision="float32")
+    checkpoint = save_checkpoint(tmp_path / "checkpoint.pt", init_state(config, 41, 18, seed=0), config, 41, 18)
+    result = subprocess.run(
+        [sys.executable, "-m", "l2r.cli", "eval", str(checkpoint), "--env-id", "l2r/RunOpenSim-v0",
+         "--episodes", "1", "--json", "--progress-every", "0.5"],
+        cwd=ROOT, capture_output=True, text=True, env=SUBPROCESS_ENV, timeout=300)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = json.loads(result.stdout)
+    assert out["env_id"] == "l2r/RunOpenSim-v0" and len(out["distances"]) == 1
+    assert 0 < out["lengths"][0] <= MAX_STEPS and math.isfinite(out["distances"][0])
+    assert "l2r eval: 0 of 1 episodes done" in result.stderr
