@@ -1,0 +1,148 @@
+"""The MuJoCo body's muscle and contact dynamics against live OpenSim 4.6."""
+
+import json
+
+import numpy as np
+import pytest
+
+from l2r.sim import dynamics, thelen
+from l2r.sim.model import MUSCLES, OSIM_PATH
+from l2r.sim.opensim import read_osim
+from l2r.sim.validate import cli
+
+osim = pytest.importorskip("opensim")
+
+STEP = 0.01
+
+
+def held_pose_muscles(excitations: np.ndarray) -> np.ndarray:
+    """OpenSim's (activation, fibre length, tendon force, muscle-tendon length) per step and
+    muscle, with every coordinate locked in the default pose and each row of excitations held
+    for 0.01 s: shape (steps + 1, 18, 4)."""
+    model = osim.Model(str(OSIM_PATH))
+    controller = osim.PrescribedController()
+    muscles = model.getMuscles()
+    for i in range(muscles.getSize()):
+        controller.addActuator(muscles.get(i))
+        controller.prescribeControlForActuator(muscles.get(i).getName(), osim.Constant(0.0))
+    model.addController(controller)
+    state = model.initSystem()
+    functions = [osim.Constant.safeDownCast(controller.get_ControlFunctions().get(i)) for i in range(muscles.getSize())]
+    coordinates = model.getCoordinateSet()
+    for i in range(coordinates.getSize()):
+        coordinates.get(i).setLocked(state, True)
+    for i in range(muscles.getSize()):
+        muscles.get(i).setActivation(state, thelen.DEFAULT_ACTIVATION)
+    model.equilibrateMuscles(state)
+
+    def record(s):
+        model.realizeDynamics(s)
+        # OpenSim's muscle order is the action order
+        return [[getattr(muscles.get(i), g)(s) for g in ("getActivation", "getFiberLength", "getTendonForce", "getLength")]
+                for i in range(len(MUSCLES))]
+
+    rows = [record(state)]
+    for k, u in enumerate(excitations):
+        for f, value in zip(functions, u):
+            f.setValue(float(value))
+        manager = osim.Manager(model)
+        manager.setIntegratorAccuracy(5e-5)
+        state.setTime(k * STEP)
+        manager.initialize(state)
+        state = osim.State(manager.integrate((k + 1) * STEP))
+        rows.append(record(state))
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("kind", ["half", "random"])
+def test_muscles_follow_opensims_in_a_held_pose(kind):
+    """Activation, fibre length and tendon force of the kernels, stepped as the env steps them
+    (0.0025 s physics steps), against OpenSim's own muscles in the same held pose."""
+    steps = 20
+    rng = np.random.default_rng(3)
+    excitations = np.full((steps, 18), 0.5) if kind == "half" else rng.integers(0, 2, (steps, 18)).astype(float)
+    theirs = held_pose_muscles(excitations)
+    table = thelen.muscle_parameters([{m.name: m for m in read_osim(OSIM_PATH).muscles}[n] for n in MUSCLES])
+    length = theirs[0, :, 3]
+    activation = np.full(18, thelen.DEFAULT_ACTIVATION)
+    fiber, force, stiffness = np.zeros(18), np.zeros(18), np.zeros(18)
+    thelen.equilibrate(table, activation, length, fiber, force)
+    ours = [np.stack([activation.copy(), fiber.copy(), force.copy()], axis=1)]
+    for u in excitations:
+        for _ in range(4):
+            thelen.advance(table, activation, fiber, u, length, np.zeros(18), 0.0025, 2, force, stiffness)
+        ours.append(np.stack([activation.copy(), fiber.copy(), force.copy()], axis=1))
+    ours = np.array(ours)
+    assert np.abs(ours[..., 0] - theirs[..., 0]).max() < 1e-3
+    assert (np.abs(ours[..., 1] - theirs[..., 1]) / table[:, thelen.OPTIMAL_LENGTH]).max() < 0.01
+    force_error = np.abs(ours[..., 2] - theirs[..., 2]) / table[:, thelen.MAX_FORCE]
+    assert force_error[0].max() < 1e-4  # the same equilibrium at reset
+    # RMS over muscles and steps; the worst single value is OpenSim's own integrator noise on
+    # the stiff, short-tendon gluteus (its force jumps by 400 N between steps at rest)
+    assert np.sqrt(np.mean(force_error**2)) < 0.01
+
+
+@pytest.fixture(scope="module")
+def short_rollouts():
+    """20 steps of zero and of half excitation in both simulators."""
+    sequences = {"zero": np.zeros((20, 18)), "half": np.full((20, 18), 0.5)}
+    return {k: (dynamics.rollout("l2r/Run-v0", u), dynamics.rollout("l2r/RunOpenSim-v0", u)) for k, u in sequences.items()}
+
+
+def test_a_short_rollout_follows_opensim(short_rollouts):
+    """Activations, tendon forces, joints, pelvis and ground reactions over the first 0.1 s."""
+    for label, (ours, theirs) in short_rollouts.items():
+        figures = dynamics.compare(ours, theirs)
+        assert figures["activation"] < 0.01, label
+        assert figures["0.1s"]["tendon_force_mean"] < 0.05, label
+        assert figures["0.1s"]["grf_bw"] < 0.15, label
+        assert figures["0.1s"]["joint_deg"] < (1.0 if label == "zero" else 4.0), label
+        assert figures["0.1s"]["pelvis_cm"] < 0.5, label
+
+
+def test_feet_push_as_opensims_contacts(short_rollouts):
+    """Per foot, the vertical ground reaction starts at OpenSim's (a body weight each) and over
+    the first 0.1 s stays within 10 % of body weight RMS, 20 % at any step, of OpenSim's."""
+    for label, (ours, theirs) in short_rollouts.items():
+        np.testing.assert_allclose(ours.foot_force[0], theirs.foot_force[0], atol=0.01)
+        error = ours.foot_force[:11] - theirs.foot_force[:11]
+        assert np.sqrt(np.mean(error**2, axis=0)).max() < 0.1 and np.abs(error).max() < 0.2, label
+
+
+def test_compare_sees_a_difference():
+    """The figures are not blind: a rollout against a delayed copy of itself shows errors."""
+    excitations = np.full((12, 18), 0.5)
+    ours = dynamics.rollout("l2r/Run-v0", excitations)
+    shifted = dynamics.Trajectory(np.roll(ours.observation, 3, axis=0), np.roll(ours.activation, 3, axis=0),
+                                  np.roll(ours.tendon_force, 3, axis=0), np.roll(ours.foot_force, 3, axis=0), None)
+    figures = dynamics.compare(ours, shifted)
+    assert figures["activation"] > 0.1 and figures["0.1s"]["joint_deg"] > 0.5
+    assert dynamics.compare(ours, ours)["0.1s"]["joint_deg"] == 0.0
+
+
+def test_targets_reflect_each_rollout():
+    good = {"activation": 0.001, "fall_step": 140, "opensim_fall_step": 142,
+            **{f"{h:g}s": {"joint_deg": 0.5, "pelvis_cm": 0.1, "tendon_force_mean": 0.01, "tendon_force_worst": 0.02, "grf_bw": 0.02}
+               for h in dynamics.HORIZONS}}
+    assert all(dynamics.targets_met({"a": good}).values())
+    bad = json.loads(json.dumps(good))
+    bad["0.2s"]["joint_deg"] = 2.5
+    bad["fall_step"] = 160
+    met = dynamics.targets_met({"a": good, "b": bad})
+    assert not met["joint_deg@0.2s"] and not met["fall_step"] and met["joint_deg@0.5s"]
+
+
+@pytest.mark.slow
+def test_validate_dynamics_cli_reports_every_rollout(capsys):
+    assert cli(["--dynamics", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert set(report["rollouts"]) == {"zero excitation", "all at 0.5", "random, seed 0"}
+    zero = report["rollouts"]["zero excitation"]
+    assert zero["opensim_fall_step"] == 142 and abs(zero["fall_step"] - 142) <= 7
+    assert set(report["targets_met"]) >= {"activation", "joint_deg@0.2s", "fall_step", "grf_bw@0.2s"}
+
+
+def test_policy_flag_needs_dynamics(capsys):
+    with pytest.raises(SystemExit):
+        cli(["--policy", "nowhere.pt"])
+    assert "--policy needs --dynamics" in capsys.readouterr().err
