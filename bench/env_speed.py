@@ -1,4 +1,4 @@
-"""Single-core speed of `RunEnv` against raw MuJoCo and OpenSim; prints one JSON line.
+"""Single-core speed of `l2r/Run-v0` against raw MuJoCo and `l2r/RunOpenSim-v0`; prints one JSON line.
 
 Rates are per second of this process's CPU time on one core (`time.thread_time`), so other work
 on a shared machine does not distort them; `wall_*` gives the same figures by the wall clock.
@@ -7,6 +7,8 @@ env_steps_per_s_d0 / _d2: env steps (0.01 s each) per second with uniform random
     resets included (random excitations make the body fall within ~1-2 s).
 mj_steps_per_s: raw `mujoco.mj_step` rate on the same model and controls, no Python in the loop.
 physics_share_d0: the fraction of an env step spent inside MuJoCo (substeps / mj rate / env rate).
+opensim_env_steps_per_s_d0: `l2r/RunOpenSim-v0` measured here, in this run, the same way.
+speedup_vs_opensim: env_steps_per_s_d0 over that (the issue's 100x is against this figure).
 speedup_vs_opensim_low / _high: env_steps_per_s_d0 over OpenSim's fastest / slowest rate for the
     same 0.01 s step, as recorded with the reference figures (about 110 and 40 steps/s).
 same_work: the two reference rollouts OpenSim timed, run here, with their own speedups.
@@ -21,9 +23,11 @@ import platform
 import time
 from pathlib import Path
 
+import gymnasium
 import mujoco
 import numpy as np
 
+import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim.env import RunEnv
 
 REFERENCE = Path(__file__).resolve().parents[1] / "l2r" / "sim" / "assets" / "opensim_reference.json"
@@ -39,9 +43,10 @@ class Clock:
         return time.thread_time() - self.cpu, time.perf_counter() - self.wall
 
 
-def env_rate(difficulty: int, seconds: float, seed: int = 0) -> tuple[float, float]:
-    """(CPU, wall) env steps per second with random excitations, resets included."""
-    env = RunEnv(difficulty=difficulty, seed=seed)
+def env_rate(difficulty: int, seconds: float, seed: int = 0, env_id: str = "l2r/Run-v0", chunk: int = 1024) -> tuple[float, float]:
+    """(CPU, wall) env steps per second with random excitations, resets included; the clock is
+    read every `chunk` steps."""
+    env = gymnasium.make(env_id, difficulty=difficulty, seed=seed).unwrapped
     actions = np.random.default_rng(seed).uniform(0.0, 1.0, (4096, env.action_space.shape[0]))
     env.reset()
     for a in actions[:50]:  # warm-up
@@ -50,11 +55,11 @@ def env_rate(difficulty: int, seconds: float, seed: int = 0) -> tuple[float, flo
     steps, clock = 0, Clock()
     while clock.elapsed()[0] < seconds:
         start = steps % 3072
-        for a in actions[start : start + 1024]:
+        for a in actions[start : start + chunk]:
             _, _, terminated, truncated, _ = env.step(a)
             if terminated or truncated:
                 env.reset()
-        steps += 1024
+        steps += chunk
     cpu, wall = clock.elapsed()
     return steps / cpu, steps / wall
 
@@ -101,6 +106,18 @@ def same_work(repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def cpu_flags() -> str:
+    """The vector extensions this CPU has, of those that decide numeric speed."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                have = set(line.split(":", 1)[1].split())
+                return " ".join(f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_bf16") if f in have)
+    except OSError:
+        pass
+    return "unknown"
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -126,6 +143,7 @@ def main() -> None:
     d0, wall_d0 = env_rate(0, seconds)
     d2, wall_d2 = env_rate(2, seconds)
     same = same_work(repeats=10 if args.quick else 50)
+    opensim, wall_opensim = env_rate(0, max(seconds, 5.0), env_id="l2r/RunOpenSim-v0", chunk=10)
     slow = min(r["opensim"] for r in same.values())
     fast = max(r["opensim"] for r in same.values())
     print(
@@ -137,6 +155,8 @@ def main() -> None:
                 "substeps_per_env_step": substeps,
                 "physics_bound_env_steps_per_s": round(mj / substeps, 1),
                 "physics_share_d0": round(d0 * substeps / mj, 3),
+                "opensim_env_steps_per_s_d0": round(opensim, 1),
+                "speedup_vs_opensim": round(d0 / opensim, 1),
                 "opensim_steps_per_s": [round(slow, 1), round(fast, 1)],
                 "speedup_vs_opensim_low": round(d0 / fast, 1),
                 "speedup_vs_opensim_high": round(d0 / slow, 1),
@@ -144,9 +164,11 @@ def main() -> None:
                 "wall_env_steps_per_s_d0": round(wall_d0, 1),
                 "wall_env_steps_per_s_d2": round(wall_d2, 1),
                 "wall_mj_steps_per_s": round(wall_mj, 1),
+                "wall_opensim_env_steps_per_s_d0": round(wall_opensim, 1),
                 "load_average_1min": round(os.getloadavg()[0], 2),
                 "mujoco": mujoco.__version__,
                 "machine": f"{cpu_model()}, {os.cpu_count()} CPUs",
+                "cpu_flags": cpu_flags(),
                 "seconds_per_figure": seconds,
             }
         )
