@@ -26,7 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="this actor's number; unique within the run (it names its keys and picks its replay shard)")
     a.add_argument("--num-envs", type=int, default=DEFAULTS.num_envs,
                    help="environments stepped together, their observations batched into one policy call")
-    a.add_argument("--env-id", default=DEFAULTS.env_id, help="gymnasium id of the environment")
+    a.add_argument("--env-id", default=DEFAULTS.env_id,
+                   help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or l2r/RunOpenSim-v0 "
+                        "(OpenSim 4.6, the 2017 simulator: about 100 steps/s; pip install 'l2r[opensim]')")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=DEFAULTS.difficulty,
                    help="0 flat ground, 1 obstacles, 2 obstacles and random psoas strengths")
     a.add_argument("--action-repeat", type=int, default=DEFAULTS.action_repeat,

@@ -247,13 +247,13 @@ class Actor:
     def begin_record(self, slot: EnvSlot) -> None:
         if self.episode_logger is not None:
             slot.recorder = self.episode_logger.begin_episode({
-                "seed": slot.seed, "difficulty": self.config.difficulty, "evaluation": False,
+                "env_id": self.config.env_id, "seed": slot.seed, "difficulty": self.config.difficulty, "evaluation": False,
                 "policy_version": -1 if self.acting_randomly else self.weights.version,
                 "obstacles": getattr(slot.env.unwrapped, "obstacles", [])})
 
     def record_evaluation(self, env: gymnasium.Env, seed: int):
         return self.episode_logger.begin_episode({
-            "seed": seed, "difficulty": self.config.difficulty, "evaluation": True,
+            "env_id": self.config.env_id, "seed": seed, "difficulty": self.config.difficulty, "evaluation": True,
             "policy_version": self.weights.version, "obstacles": getattr(env.unwrapped, "obstacles", [])})
 
     def end_episode(self, i: int, slot: EnvSlot, final_x: float, terminated: bool, truncated: bool) -> None:

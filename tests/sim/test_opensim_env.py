@@ -1,24 +1,33 @@
 """RunOpenSimEnv: the 2017 environment on real OpenSim 4.6, against the reference rollouts, the
-MuJoCo env's layout, and `l2r eval` on it."""
+MuJoCo env's layout, and the commands that take an env id: `l2r eval` and `l2r-actor`."""
 
 import json
 import math
 import os
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
+import zenoh
 
 import l2r.sim  # noqa: F401  (registers the envs)
 import l2r.sim.opensim_env as opensim_env
+from l2r.actors.__main__ import build_parser as actor_parser
+from l2r.episodes.read import read_episode
+from l2r.evaluate import build_parser as eval_parser
 from l2r.learner.checkpoint import save_checkpoint
 from l2r.learner.sac import SACConfig, init_state
+from l2r.protocol.keys import Keys
+from l2r.protocol.session import session_config
 from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE
 from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 from l2r.sim.opensim_env import RunOpenSimEnv
+from l2r.sim.wrappers import ActionRepeat
+from tests.logs.test_live import free_port
 
 opensim = pytest.importorskip("opensim")
 
@@ -306,3 +315,39 @@ def test_eval_runs_a_checkpoint_on_opensim(tmp_path):
     assert out["env_id"] == "l2r/RunOpenSim-v0" and len(out["distances"]) == 1
     assert 0 < out["lengths"][0] <= MAX_STEPS and math.isfinite(out["distances"][0])
     assert "l2r eval: 0 of 1 episodes done" in result.stderr
+
+
+@pytest.mark.slow
+def test_an_opensim_actor_logs_episodes_that_replay_exactly(tmp_path):
+    run, port = f"osim{uuid.uuid4().hex[:8]}", free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    with zenoh.open(session_config(listen=[endpoint])) as session:
+        # The actor steps only while a replay shard is alive: this test plays that part.
+        token = session.liveliness().declare_token(Keys(run).alive("replay", 0))
+        result = subprocess.run(
+            [sys.executable, "-m", "l2r.actors", "--run", run, "--connect", endpoint, "--env-id", "l2r/RunOpenSim-v0",
+             "--num-envs", "2", "--max-steps", "120", "--episode-log-dir", str(tmp_path), "--log-every", "1"],
+            cwd=ROOT, capture_output=True, text=True, timeout=300, env=SUBPROCESS_ENV)  # fmt: skip
+        token.undeclare()
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "l2r/RunOpenSim-v0" in result.stderr
+
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert files, "random excitations fall within 60 actions of 0.03 s"
+    env = ActionRepeat(gymnasium.make("l2r/RunOpenSim-v0"), 3)
+    for path in files:
+        episode = read_episode(path)
+        assert episode.episode["env_id"] == "l2r/RunOpenSim-v0"
+        steps = episode.steps
+        obs, info = env.reset(seed=int(episode.episode["seed"]))
+        for k, action in enumerate(steps["action"]):
+            obs, reward, terminated, truncated, info = env.step(action)
+            assert np.array_equal(steps["observation"][k], obs) and steps["reward"][k] == reward
+            assert np.array_equal(steps["contact_force"][k], info["contact_force"].ravel())
+            assert np.array_equal(episode.pos[k], info["body_pos"][1:])
+        assert terminated or truncated
+
+
+def test_the_commands_offer_the_opensim_env():
+    for parser in (actor_parser(), eval_parser()):
+        assert "l2r/RunOpenSim-v0" in " ".join(parser.format_help().split())
