@@ -301,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
     a.add_argument("--eval-episodes", type=int, default=2, help="episodes per evaluation round")
     a.add_argument("--eval-interval", type=float, default=20.0, help="least seconds between evaluation rounds")
+    a.add_argument("--eval-env-id", metavar="ENV_ID",
+                   help="gymnasium id of the evaluators' environment, e.g. l2r/RunOpenSim-v0 to measure the policy "
+                        "on OpenSim 4.6 as in 2017 while the actors train on MuJoCo; unset, the evaluators run the "
+                        "actors' environment (l2r/Run-v0 unless --actor-arg=--env-id=... names another)")
     a.add_argument("--log-every", type=int, default=10,
                    help="actors log every Nth training episode as MCAP under episodes/ (0: none); "
                         "evaluation episodes are always logged")
@@ -323,7 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--replay-arg", action="append", default=[], metavar="ARG",
                     help="extra argument for l2r-replay (repeatable)")
     le.add_argument("--actor-arg", action="append", default=[], metavar="ARG",
-                    help="extra argument for every l2r-actor (repeatable)")
+                    help="extra argument for every l2r-actor, evaluators included, e.g. "
+                         "--actor-arg=--env-id=l2r/RunOpenSim-v0 (repeatable)")
     o = p.add_argument_group("output")
     o.add_argument("--status-interval", type=float, default=2.0, help="seconds between status updates")
     o.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -370,6 +375,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice,
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
                                          "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
+    # Last on the evaluators' command line, so it overrides an --env-id among the actor arguments.
+    eval_env = [] if args.eval_env_id is None else ["--env-id", args.eval_env_id]
     for i in range(args.evaluators):
         # Evaluators take ids after the actors' so their keys never collide.
         children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice,
@@ -377,7 +384,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--actor-id", str(args.actors + i),
                                          "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
                                          "--eval-episodes", str(args.eval_episodes),
-                                         "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg]))
+                                         "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
+                                         *eval_env]))
     return children
 
 
