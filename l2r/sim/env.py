@@ -85,11 +85,7 @@ class RunEnv(gym.Env):
         left_psoas: str = "glut_max_l",
         max_steps: int = MAX_STEPS,
     ):
-        _check_difficulty(difficulty)
-        if left_psoas not in LEFT_PSOAS_CHOICES:
-            raise ValueError(f"left_psoas must be one of {LEFT_PSOAS_CHOICES}, got {left_psoas!r}")
-        if max_steps < 1:
-            raise ValueError(f"max_steps must be at least 1, got {max_steps}")
+        check_arguments(difficulty, left_psoas, max_steps)
         self.difficulty = difficulty
         self.left_psoas = left_psoas
         self.max_steps = max_steps
@@ -208,15 +204,8 @@ class RunEnv(gym.Env):
 
         options: {"difficulty": 0|1|2} changes the difficulty from this episode on.
         """
-        if seed is None:
-            seed, self._seed = self._seed, None
-        super().reset(seed=seed)
-        if options and "difficulty" in options:
-            _check_difficulty(options["difficulty"])
-            self.difficulty = options["difficulty"]
+        start_episode(self, seed, options)
         m, d = self._m, self._d
-
-        self.obstacles, self.psoas = draw_episode(self.np_random, self.difficulty)
         for i, g in enumerate(self._obstacle_geoms):
             if i < len(self.obstacles):
                 x, y, r = self.obstacles[i]
@@ -252,16 +241,8 @@ class RunEnv(gym.Env):
         other than (18,) raise ValueError."""
         if not self._running:
             raise RuntimeError("RunEnv.step() needs reset() first, and again after an episode ends")
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (NUM_MUSCLES,):
-            raise ValueError(
-                f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}"
-            )
-        # The sum is finite for every sane action; only otherwise is the element-wise test needed.
-        if not math.isfinite(a.sum()) and not np.isfinite(a).all():
-            raise ValueError(f"action contains NaN or inf: {a.tolist()}")
+        checked_excitations(action, out=self._excitation)
         m, d = self._m, self._d
-        np.minimum(np.maximum(a, 0.0, out=self._excitation), 1.0, out=self._excitation)
 
         # Substeps as step2 then step1, so that after the loop the kinematics (body positions,
         # centre of mass, tendon lengths) describe the final state without an extra mj_forward.
@@ -447,6 +428,40 @@ def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
         # intprm: data fields, reduction (3 = net force of all the geom's contacts, world frame), count
         add(f"l2r_contact_{g}", sensor.mjSENS_CONTACT, obj.mjOBJ_GEOM, g).intprm[:3] = [force, NET_FORCE, 1]
     return spec.compile()
+
+
+def check_arguments(difficulty: Any, left_psoas: Any, max_steps: Any) -> None:
+    """ValueError, saying what is wrong, for constructor arguments no backend accepts."""
+    _check_difficulty(difficulty)
+    if left_psoas not in LEFT_PSOAS_CHOICES:
+        raise ValueError(f"left_psoas must be one of {LEFT_PSOAS_CHOICES}, got {left_psoas!r}")
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be at least 1, got {max_steps}")
+
+
+def checked_excitations(action: Any, out: np.ndarray | None = None) -> np.ndarray:
+    """The action as 18 excitations clipped to [0, 1] (into `out` when given); ValueError for
+    another shape, NaN or inf."""
+    a = np.asarray(action, dtype=np.float64)
+    if a.shape != (NUM_MUSCLES,):
+        raise ValueError(f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}")
+    # The sum is finite for every sane action; only otherwise is the element-wise test needed.
+    if not math.isfinite(a.sum()) and not np.isfinite(a).all():
+        raise ValueError(f"action contains NaN or inf: {a.tolist()}")
+    return np.clip(a, 0.0, 1.0, out=out)
+
+
+def start_episode(env: gym.Env, seed: int | None, options: dict | None) -> None:
+    """What every backend's reset does first: seed the env's generator (with the constructor's
+    seed when the first reset passes none), take a difficulty option, and draw the episode's
+    obstacles and psoas strengths into `env.obstacles` and `env.psoas`."""
+    if seed is None:
+        seed, env._seed = env._seed, None
+    gym.Env.reset(env, seed=seed)
+    if options and "difficulty" in options:
+        _check_difficulty(options["difficulty"])
+        env.difficulty = options["difficulty"]
+    env.obstacles, env.psoas = draw_episode(env.np_random, env.difficulty)
 
 
 def draw_episode(rng: np.random.Generator, difficulty: int) -> tuple[list[Obstacle], tuple[float, float]]:

@@ -34,12 +34,12 @@ import gymnasium as gym
 import numpy as np
 
 from l2r.sim.env import (
-    FALL_HEIGHT, FOOT_SPHERES, JOINTS, LEFT_PSOAS_CHOICES, LIGAMENT_PENALTY, MAX_STEPS, NUM_MUSCLES,
-    OBS_SIZE, PELVIS, PSOAS_RIGHT, STEP_SECONDS, TRACKED_BODIES, Obstacle, _check_difficulty,
-    draw_episode, next_obstacle,
+    FALL_HEIGHT, FOOT_SPHERES, JOINTS, LIGAMENT_PENALTY, MAX_STEPS, NUM_MUSCLES,
+    OBS_SIZE, PELVIS, PSOAS_RIGHT, STEP_SECONDS, TRACKED_BODIES, Obstacle, check_arguments,
+    checked_excitations, next_obstacle, start_episode,
 )  # fmt: skip
-from l2r.sim.ligaments import LIGAMENTS, OSIM_PATH
-from l2r.sim.model import BODIES, MUSCLES, OBSTACLES
+from l2r.sim.ligaments import LIGAMENTS
+from l2r.sim.model import BODIES, MUSCLES, OBSTACLES, OSIM_PATH
 
 log = logging.getLogger(__name__)
 
@@ -66,16 +66,6 @@ def load_opensim():
     return opensim
 
 
-def checked_excitations(action: Any) -> np.ndarray:
-    """The action as 18 excitations clipped to [0, 1]; ValueError for another shape, NaN or inf."""
-    a = np.asarray(action, dtype=np.float64)
-    if a.shape != (NUM_MUSCLES,):
-        raise ValueError(f"action must have shape ({NUM_MUSCLES},), one excitation per muscle; got {a.shape}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"action contains NaN or inf: {a.tolist()}")
-    return np.clip(a, 0.0, 1.0)
-
-
 class RunOpenSimEnv(gym.Env):
     """Run as far as possible in 1000 steps of 0.01 s by exciting 18 muscles, in OpenSim.
 
@@ -93,11 +83,7 @@ class RunOpenSimEnv(gym.Env):
         max_steps: int = MAX_STEPS,
         accuracy: float = ACCURACY,
     ):
-        _check_difficulty(difficulty)
-        if left_psoas not in LEFT_PSOAS_CHOICES:
-            raise ValueError(f"left_psoas must be one of {LEFT_PSOAS_CHOICES}, got {left_psoas!r}")
-        if max_steps < 1:
-            raise ValueError(f"max_steps must be at least 1, got {max_steps}")
+        check_arguments(difficulty, left_psoas, max_steps)
         if not 0 < accuracy < 1:
             raise ValueError(f"accuracy must be between 0 and 1, got {accuracy}")
         osim = self._osim = load_opensim()
@@ -185,15 +171,8 @@ class RunOpenSimEnv(gym.Env):
 
         options: {"difficulty": 0|1|2} changes the difficulty from this episode on.
         """
-        if seed is None:
-            seed, self._seed = self._seed, None
-        super().reset(seed=seed)
-        if options and "difficulty" in options:
-            _check_difficulty(options["difficulty"])
-            self.difficulty = options["difficulty"]
+        start_episode(self, seed, options)
         osim, m = self._osim, self._model
-
-        self.obstacles, self.psoas = draw_episode(self.np_random, self.difficulty)
         strengths = [1.0] * NUM_MUSCLES
         for muscle, strength in zip(self._psoas, self.psoas):
             strengths[muscle] = strength

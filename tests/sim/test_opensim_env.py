@@ -15,6 +15,7 @@ import pytest
 import zenoh
 
 import l2r.sim  # noqa: F401  (registers the envs)
+import l2r.sim.env
 import l2r.sim.opensim_env as opensim_env
 from l2r.actors.__main__ import build_parser as actor_parser
 from l2r.episodes.read import read_episode
@@ -253,7 +254,7 @@ def test_obstacles_are_placed_and_push_the_feet(monkeypatch):
     _, flat = env.reset(seed=3, options={"difficulty": 0})
     heel = flat["body_pos"][env.body_names.index("calcn_r")]
     # An obstacle where the heels are (the spheres lie at z = 0, between the feet, as in 2017).
-    monkeypatch.setattr(opensim_env, "draw_episode", lambda rng, difficulty: ([(heel[0] + 0.03, 0.0, 0.1)], (1.0, 1.0)))
+    monkeypatch.setattr(l2r.sim.env, "draw_episode", lambda rng, difficulty: ([(heel[0] + 0.03, 0.0, 0.1)], (1.0, 1.0)))
     _, info = env.reset(seed=3)
     assert geometry.get("obstacle_0").get_location().get(0) == heel[0] + 0.03
     pushed = info["contact_force"] - flat["contact_force"]
