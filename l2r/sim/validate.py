@@ -5,7 +5,8 @@
 
 FILE has the format of `assets/opensim_reference.json` (any poses and samples): muscle-tendon
 lengths and moment arms per pose, isometric tendon forces at activations 0, 0.5 and 1,
-ligament forces, and rollouts from the default pose. Lengths are those of the tendon each
+ligament forces, and rollouts from the default pose (a constant `excitation`, or an `excitations`
+list of 18 per step, or the excitation named in the label). Lengths are those of the tendon each
 muscle's conditional point selects, with moving points placed; moment arms are -dL/dq along the
 knee's coupled translation with the pose's path held, as OpenSim differentiates; isometric forces
 are the env's Thelen muscles in equilibrium at those lengths. `l2r.sim.dynamics` compares the
@@ -102,8 +103,20 @@ def load_reference(path: Path | str) -> dict:
         _require(isinstance(r, dict), where, "must be an object")
         _require(isinstance(r.get("reset_observation"), list) and len(r["reset_observation"]) == 41, where, "'reset_observation' must hold 41 numbers")
         _require(isinstance(r.get("trajectory_first18"), list) and all(isinstance(x, list) and len(x) == 18 for x in r["trajectory_first18"]), where, "'trajectory_first18' must be a list of 18-number rows")
-        rollout_excitation(r, where)
+        rollout_excitations(r, len(r["trajectory_first18"]), where)
     return ref
+
+
+def rollout_excitations(rollout: dict, steps: int, where: str = "rollout") -> np.ndarray:
+    """A rollout's excitations, one row of 18 per step (steps x 18): its `excitations` list, one
+    row per step of its trajectory, or its constant excitation held for `steps`."""
+    if "excitations" not in rollout:
+        return np.full((steps, len(body.MUSCLES)), rollout_excitation(rollout, where))
+    rows = rollout["excitations"]
+    _require(isinstance(rows, list) and all(isinstance(x, list) and len(x) == len(body.MUSCLES) for x in rows),
+             f"{where}.excitations", f"must be a list of {len(body.MUSCLES)}-number rows")
+    _require(len(rows) >= len(rollout.get("trajectory_first18", [])), f"{where}.excitations", "needs a row for every step of the trajectory")
+    return np.array([[_number(v, f"{where}.excitations[{k}]") for v in row] for k, row in enumerate(rows)])
 
 
 def rollout_excitation(rollout: dict, where: str = "rollout") -> float:
@@ -235,17 +248,17 @@ def rollout_checks(rollouts: list[dict], max_steps: int = 1000) -> dict | None:
         return None
     out = {"reset_obs_max_abs_error": None, "fall_step": None, "reference_fall_step": None, "rollout_rms": {}, "rollout_steps": {}}
     for i, r in enumerate(rollouts):
-        excitation = rollout_excitation(r, f"rollouts[{i}]")
         reference = np.array(r["trajectory_first18"], float)
+        constant = "excitations" not in r
+        # a constant zero excitation runs until the fall; every other rollout as long as the reference
+        falls = constant and rollout_excitation(r, f"rollouts[{i}]") == 0.0
+        excitations = rollout_excitations(r, max_steps if falls else len(reference), f"rollouts[{i}]")
         env = RunEnv(difficulty=0, seed=0)
         obs, _ = env.reset(seed=0)
         err = float(np.max(np.abs(np.asarray(obs, float) - np.array(r["reset_observation"], float))))
         out["reset_obs_max_abs_error"] = max(err, out["reset_obs_max_abs_error"] or 0.0)
         ours, heights = [], []
-        action = np.full(18, excitation)
-        # the zero-excitation rollout runs until the fall; the others as long as the reference
-        steps = max_steps if excitation == 0.0 else len(reference)
-        for _ in range(steps):
+        for action in excitations:
             obs, _, terminated, truncated, _ = env.step(action)
             ours.append(np.asarray(obs[:18], float))
             heights.append(float(obs[2]))
@@ -255,7 +268,7 @@ def rollout_checks(rollouts: list[dict], max_steps: int = 1000) -> dict | None:
         label = str(r.get("label", f"rollout {i}"))
         out["rollout_rms"][label] = float(np.sqrt(np.mean((np.array(ours[:n]) - reference[:n]) ** 2)))
         out["rollout_steps"][label] = n
-        if excitation == 0.0 and out["fall_step"] is None:
+        if falls and out["fall_step"] is None:
             out["fall_step"] = _fall_step(heights)
             out["reference_fall_step"] = r.get("first_step_pelvis_y_below_0_65")
     return out

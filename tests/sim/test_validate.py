@@ -102,6 +102,22 @@ def test_missing_reference_through_the_l2r_command(tmp_path, capsys):
     assert "cannot read" in capsys.readouterr().err
 
 
+def test_rollouts_may_give_an_excitation_per_step(tmp_path):
+    """A rollout with an `excitations` list is driven row by row: the reference's 0.5 rollout
+    given as a list gives the same figure as given as a constant; a wrong row is reported."""
+    ref = json.loads(validate.DEFAULT_REFERENCE.read_text())
+    half = dict(ref["rollouts"][1])
+    constant = validate.rollout_checks([half])["rollout_rms"][half["label"]]
+    listed = {**half, "excitations": [[0.5] * 18] * half["steps"], "label": "listed"}
+    assert validate.rollout_checks([listed])["rollout_rms"]["listed"] == constant
+    other = {**listed, "excitations": [[0.0] * 18] * half["steps"], "label": "other"}
+    assert validate.rollout_checks([other])["rollout_rms"]["other"] != constant
+    path = tmp_path / "ref.json"
+    path.write_text(json.dumps({**ref, "rollouts": [{**listed, "excitations": [[0.5] * 17]}]}))
+    with pytest.raises(validate.ReferenceError, match=r"rollouts\[0\].excitations"):
+        validate.load_reference(path)
+
+
 def test_rollout_excitation_comes_from_field_or_label():
     assert validate.rollout_excitation({"excitation": 0.3}) == 0.3
     assert validate.rollout_excitation({"label": "zero excitation from the default pose"}) == 0.0
