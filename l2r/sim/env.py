@@ -111,8 +111,8 @@ class RunEnv(gym.Env):
         self._default_pose = m.keyframe(body.DEFAULT_KEYFRAME).id
 
         self.muscle_names = tuple(body.MUSCLES)
-        muscles = [_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in self.muscle_names]
-        if muscles != list(range(NUM_MUSCLES)):
+        actuators = [_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in self.muscle_names]
+        if actuators != list(range(NUM_MUSCLES)):
             raise ValueError(f"the model's first actuators must be the {NUM_MUSCLES} muscles, in action order")
         self._psoas = (self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT))
         osim = read_osim(body.OSIM_PATH)
@@ -145,8 +145,8 @@ class RunEnv(gym.Env):
         self._point, self._local = np.zeros((n, 3)), np.zeros((n, 3))
         self._ground_force, self._ground_damping = np.zeros((n, 2)), np.zeros((n, 2))
 
-        # Observation values 0..35, and the foot contact forces, are gathers from the sensors
-        # `with_sensors` added.
+        # Observation values 0..35, and the obstacles' forces on the feet, are gathers from the
+        # sensors `with_sensors` added.
         def sensor(name: str, size: int) -> np.ndarray:
             adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
             return np.arange(adr, adr + size)
@@ -407,8 +407,9 @@ def _contact_actuation(force, damping, point, local, sites, x_actuators, y_actua
 
 def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
     """Compile the body with the sensors the env reads: the observed coordinates and speeds,
-    centre of mass position and velocity, tracked body positions, and the net contact force
-    on each foot sphere. MuJoCo computes them inside the step, so the env only gathers."""
+    centre of mass position and velocity, tracked body positions, and the net force of MuJoCo's
+    contacts (the obstacles') on each foot sphere. MuJoCo computes them inside the step, so the
+    env only gathers."""
     sensor, obj = mujoco.mjtSensor, mujoco.mjtObj
 
     def add(name: str, kind: mujoco.mjtSensor, objtype: mujoco.mjtObj, objname: str) -> mujoco.MjsSensor:
