@@ -1,4 +1,4 @@
-"""Thelen 2003 muscles as OpenSim 4 computes them, integrated beside MuJoCo's physics step.
+"""Thelen 2003 muscles as OpenSim 4.6 computes them, integrated beside MuJoCo's physics step.
 
 Each muscle has two states, as in OpenSim: activation `a`, first-order in the excitation with
 time constants that scale with activation, and fibre length `lce`, whose rate follows from the
@@ -142,12 +142,15 @@ def fiber_velocity(a: float, lce: float, length: float, p: np.ndarray) -> float:
 
 @numba.njit(cache=True, error_model="numpy")
 def activation_step(a: float, excitation: float, h: float, p: np.ndarray) -> float:
-    """Activation after `h` seconds of a constant excitation, exactly.
+    """Activation after `h` seconds of a constant excitation u, exactly.
 
-    OpenSim's model: x = (a - a_min) / (1 - a_min), da/dt = (u - x) / tau,
-    tau = tau_act or tau_deact (as u is above or below x) times (0.5 + 1.5 x). With w = u - x
-    it separates: (0.5 + 1.5 u) ln(w0 / w1) - 1.5 (w0 - w1) = h / ((1 - a_min) tau0), solved
-    by Newton in s = ln(w0 / w1), on which the left side is monotone.
+    OpenSim 4.6 (measured against it; a is held at a_min or more): da/dt = (u - a) / tau with
+    tau = tau_act (0.5 + 1.5 a) while rising and tau_deact / (0.5 + 1.5 a) while falling; a
+    approaches u without crossing it, so one branch holds for the whole step. With w = u - a
+    and c = 0.5 + 1.5 u both branches separate:
+    - rising: c ln(w0 / w1) - 1.5 (w0 - w1) = h / tau_act, solved by Newton in s = ln(w0 / w1),
+      on which the left side is monotone;
+    - falling: (c - 1.5 w) / w grows by exp(c h / tau_deact), in closed form.
     """
     u = min(max(excitation, 0.0), 1.0)
     x0 = min(max(a, MIN_ACTIVATION), 1.0)
@@ -156,7 +159,6 @@ def activation_step(a: float, excitation: float, h: float, p: np.ndarray) -> flo
         return x0
     c = 0.5 + 1.5 * u
     if w0 < 0.0:
-        # (c - 1.5 w) / w grows by exp(c T) in closed form
         grown = (c / w0 - 1.5) * math.exp(c * h / (p[TAU_DEACTIVATION]))
         return u - c / (grown + 1.5)
     target = h / p[TAU_ACTIVATION]
