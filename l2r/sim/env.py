@@ -28,7 +28,7 @@ from l2r.sim import thelen
 from l2r.sim.contact import contact_law, ground_forces
 from l2r.sim.ligaments import LIGAMENTS, LigamentKernel, default_limits
 from l2r.sim.opensim import read_osim
-from l2r.sim.paths import MovingPoints, PathSwitches
+from l2r.sim.paths import MovingPoints, PathSwitches, select_tendons
 
 log = logging.getLogger(__name__)
 
@@ -367,11 +367,7 @@ def _muscle_actuation(dt, params, activation, fiber, excitation, force, stiffnes
     and set their actuators: each muscle pulls through the tendon its conditional point selects
     (the other actuator idles), with ctrl + bias·(MuJoCo's tendon velocity) = -(end force +
     stiffness·dt·(change of that velocity over the step))."""
-    tendons[:] = on_tendon
-    for k in range(switch_muscle.shape[0]):
-        q = qpos[switch_qpos[k]]
-        if q < low[k] or q > high[k]:
-            tendons[switch_muscle[k]] = off_tendon[k]
+    select_tendons(on_tendon, switch_muscle, switch_qpos, low, high, off_tendon, qpos, tendons)
     n = params.shape[0]
     length, speed = np.empty(n), np.empty(n)
     for i in range(n):

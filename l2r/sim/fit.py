@@ -35,7 +35,6 @@ class MusclePaths:
 
     on: MusclePath
     off: MusclePath | None = None
-    switch: tuple[str, float, float] | None = None  # (coordinate, low, high) where `on` holds
 
 
 def static_path(muscle: Muscle) -> MusclePath:
@@ -96,6 +95,5 @@ def muscle_paths(muscle: Muscle) -> MusclePaths:
         return MusclePaths(full)
     if len(conditional) > 1:
         raise ValueError(f"{muscle.name}: more than one conditional path point is not supported")
-    point = muscle.points[conditional[0]]
     without = MusclePath([site for i, site in enumerate(full.sites) if i != conditional[0]])
-    return MusclePaths(full, without, (point.coordinate, *point.active_range))
+    return MusclePaths(full, without)

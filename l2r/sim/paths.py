@@ -58,17 +58,21 @@ class PathSwitches:
         self.off_tendon = table[:, 4].astype(int)
         self.off_actuator = table[:, 5].astype(int)
 
-    def off(self, qpos: np.ndarray) -> np.ndarray:
-        """Per switching muscle, whether its point is out of range at these joint positions."""
-        q = qpos[self.qpos]
-        return (q < self.low) | (q > self.high)
-
     def tendons(self, qpos: np.ndarray) -> np.ndarray:
         """The tendon each muscle pulls through at these joint positions."""
-        out = self.on.copy()
-        off = self.off(qpos)
-        out[self.muscle[off]] = self.off_tendon[off]
+        out = np.empty_like(self.on)
+        select_tendons(self.on, self.muscle, self.qpos, self.low, self.high, self.off_tendon, qpos, out)
         return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def select_tendons(on, muscle, coordinate, low, high, off_tendon, qpos, out):
+    """`PathSwitches.tendons` from its arrays, into `out`, for kernels that select in the step."""
+    out[:] = on
+    for k in range(muscle.shape[0]):
+        q = qpos[coordinate[k]]
+        if q < low[k] or q > high[k]:
+            out[muscle[k]] = off_tendon[k]
 
 
 class MovingPoints:

@@ -138,10 +138,11 @@ class _Paths:
     """Muscle-tendon lengths of the MuJoCo body at a pose, as the env computes them."""
 
     def __init__(self, m: mujoco.MjModel):
-        muscles = {mu.name: mu for mu in read_osim(body.OSIM_PATH).muscles}
+        osim = read_osim(body.OSIM_PATH)
+        muscles = {mu.name: mu for mu in osim.muscles}
         ordered = [muscles[name] for name in body.MUSCLES]
         self.m, self.d = m, mujoco.MjData(m)
-        self.switches, self.moving = PathSwitches(m, ordered), MovingPoints(m, read_osim(body.OSIM_PATH), ordered)
+        self.switches, self.moving = PathSwitches(m, ordered), MovingPoints(m, osim, ordered)
         self.params = thelen.muscle_parameters(ordered)
 
     def lengths(self, pose: dict[str, float], tendons: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
