@@ -75,7 +75,10 @@ def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp
                                                              "--checkpoint-interval", "60"), name="learner2")
         watcher.wait(lambda v: len(v) >= len(versions_before) + 3, 60, "versions after resuming", second)
         resumed = watcher.versions[len(versions_before):]
-        assert resumed[0] == saved.version + 1 and resumed == sorted(set(resumed)), resumed
+        # A new publisher's first put can miss a subscriber it has not discovered yet, so the first
+        # version seen may be saved.version + 2; the log says where it continued from.
+        assert f"version {saved.version}, {saved.updates} updates" in second.log()
+        assert resumed[0] > saved.version and resumed == sorted(set(resumed)), resumed
 
         # A joining actor asks for the latest weights and can act with them.
         replies = [r.ok for r in network.session.get(Keys(network.run).weights_query, timeout=5) if r.ok]
