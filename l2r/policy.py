@@ -8,7 +8,12 @@ The architecture travels as a small spec dict in the weights message, so an acto
 rebuild exactly the network the learner trains:
 
     {"obs_dim": 41, "act_dim": 18, "hidden": [512, 512, 512], "activation": "elu",
-     "layer_norm": true}
+     "layer_norm": true, "relative_x": false, "normalize_obs": false}
+
+The network's first layer sees the observation through an `ObservationFilter` (x coordinates
+measured from the pelvis, running standardisation), part of the network's state: the filter's
+statistics travel with the weights and the checkpoint, so an actor and `l2r eval` feed the
+network exactly what the learner does.
 """
 
 from __future__ import annotations
@@ -20,15 +25,19 @@ import numpy as np
 import torch
 from torch import nn
 
+from l2r.sim import layout
+
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
 SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
+# Observation options; a spec from before they existed means "off".
+FILTER_KEYS = ("relative_x", "normalize_obs")
 
 
 def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
-    """The reference architecture: three hidden layers of 512, ELU, LayerNorm."""
+    """The reference architecture: three hidden layers of 512, ELU, LayerNorm, raw observations."""
     return {"obs_dim": obs_dim, "act_dim": act_dim, "hidden": [512, 512, 512],
-            "activation": "elu", "layer_norm": True}
+            "activation": "elu", "layer_norm": True, "relative_x": False, "normalize_obs": False}
 
 
 def check_spec(spec: Mapping) -> dict:
@@ -48,8 +57,12 @@ def check_spec(spec: Mapping) -> dict:
     if spec["activation"] not in ACTIVATIONS:
         raise ValueError(f"policy spec 'activation' must be one of {sorted(ACTIVATIONS)}, "
                          f"got {spec['activation']!r}")
+    options = {key: bool(spec.get(key, False)) for key in FILTER_KEYS}
+    if options["relative_x"] and spec["obs_dim"] != layout.OBS_SIZE:
+        raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
+                         f"got obs_dim {spec['obs_dim']}")
     return {"obs_dim": spec["obs_dim"], "act_dim": spec["act_dim"], "hidden": list(hidden),
-            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"])}
+            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"]), **options}
 
 
 def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: bool) -> nn.Sequential:
@@ -64,18 +77,80 @@ def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: b
     return nn.Sequential(*layers)
 
 
+class ObservationFilter(nn.Module):
+    """What the networks see of an observation.
+
+    relative_x: world x coordinates (pelvis, centre of mass, tracked bodies) become distances
+        from the pelvis, so the input does not drift as the runner gets further.
+    normalize: each value minus its running mean, over its running standard deviation, clipped
+        to +-CLIP. `update` adds a batch to the statistics (the learner's job). The deviation has
+        a floor of MIN_STD: a value that has never varied (the psoas strengths and obstacle at
+        difficulty 0) reads 0 until it does, then hits the clip.
+    """
+
+    CLIP = 5.0
+    MIN_STD = 1e-2
+
+    def __init__(self, obs_dim: int, relative_x: bool, normalize: bool):
+        super().__init__()
+        self.relative_x, self.normalize = relative_x, normalize
+        if relative_x:
+            self.register_buffer("world_x", torch.tensor((layout.PELVIS_X, *layout.WORLD_X)), persistent=False)
+        if normalize:
+            self.register_buffer("mean", torch.zeros(obs_dim, dtype=torch.float64))
+            self.register_buffer("var", torch.ones(obs_dim, dtype=torch.float64))
+            self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        obs = self._relative(obs)
+        if self.normalize:
+            std = self.var.sqrt().clamp(min=self.MIN_STD)
+            obs = ((obs - self.mean) / std).to(obs.dtype).clamp(-self.CLIP, self.CLIP)
+        return obs
+
+    def _relative(self, obs: torch.Tensor) -> torch.Tensor:
+        if not self.relative_x:
+            return obs
+        pelvis_x = obs[..., layout.PELVIS_X:layout.PELVIS_X + 1]
+        return obs.index_add(-1, self.world_x, -pelvis_x.expand(*obs.shape[:-1], len(self.world_x)))
+
+    @torch.no_grad()
+    def update(self, obs: torch.Tensor, reduce=None) -> None:
+        """Merge a batch (n, obs_dim) into the running statistics (Chan et al.'s parallel rule).
+
+        `reduce`, if given, sums a tensor over data-parallel ranks in place, so every rank merges
+        the same global batch and the statistics stay identical.
+        """
+        if not self.normalize:
+            return
+        x = self._relative(obs).double()
+        moments = torch.cat([x.new_tensor([len(x)]), x.sum(0), x.pow(2).sum(0)])
+        if reduce is not None:
+            reduce(moments)
+        n, total, squares = moments[0], moments[1:1 + x.shape[1]], moments[1 + x.shape[1]:]
+        batch_mean = total / n
+        batch_var = (squares / n - batch_mean.pow(2)).clamp(min=0.0)
+        count = self.count + n
+        delta = batch_mean - self.mean
+        self.var.copy_((self.var * self.count + batch_var * n + delta.pow(2) * self.count * n / count) / count)
+        self.mean.add_(delta * n / count)
+        self.count.copy_(count)
+
+
 class Policy(nn.Module):
     """Tanh-Gaussian policy: observation -> mean and log-std of a pre-tanh Gaussian."""
 
     def __init__(self, spec: Mapping):
         super().__init__()
         self.spec = check_spec(spec)
+        self.observation_filter = ObservationFilter(self.spec["obs_dim"], self.spec["relative_x"],
+                                                    self.spec["normalize_obs"])
         self.trunk = mlp_trunk(self.spec["obs_dim"], self.spec["hidden"],
                                self.spec["activation"], self.spec["layer_norm"])
         self.head = nn.Linear(self.spec["hidden"][-1], 2 * self.spec["act_dim"])
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        features = self.trunk(obs)
+        features = self.trunk(self.observation_filter(obs))
         # The head stays in float32 under mixed precision: means and log-stds need the bits.
         with torch.autocast(obs.device.type, enabled=False):
             mean, log_std = self.head(features.float()).chunk(2, dim=-1)

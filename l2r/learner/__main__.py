@@ -77,6 +77,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--target-entropy", type=float, help="entropy target of alpha tuning (default: -act-dim)")
     g.add_argument("--initial-alpha", type=float, default=DEFAULTS.initial_alpha, help="starting temperature (default: %(default)s)")
     g.add_argument("--fixed-alpha", action="store_true", help="keep alpha at --initial-alpha (no tuning)")
+    g.add_argument("--relative-x", action="store_true",
+                   help="networks see world x coordinates as distances from the pelvis")
+    g.add_argument("--normalize-obs", action="store_true",
+                   help="networks see observations standardised by running statistics (shipped with the weights)")
+    g.add_argument("--mirror", action="store_true",
+                   help="swap the legs of a random half of each batch (left-right symmetry as augmentation)")
     g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=DEFAULTS.precision,
                    help="hidden-layer matmul precision; auto = bfloat16 where the hardware has it (default: %(default)s)")
     return p
@@ -92,6 +98,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
                         layer_norm=not args.no_layer_norm, reward_scale=args.reward_scale,
                         update_repeat=args.update_repeat, target_entropy=args.target_entropy,
                         initial_alpha=args.initial_alpha, autotune_alpha=not args.fixed_alpha,
+                        relative_x=args.relative_x, normalize_obs=args.normalize_obs, mirror=args.mirror,
                         precision=args.precision)
     except ValueError as e:
         parser.error(str(e))

@@ -27,8 +27,8 @@ import zenoh
 
 from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
-from l2r.learner.sac import SACConfig, TrainState, batch_from_numpy, broadcast_state, init_state, update
-from l2r.policy import policy_state
+from l2r.learner.sac import SACConfig, TrainState, batch_from_numpy, broadcast_state, init_state, prepare, update
+from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
     STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ReplayClient, SampleBatch, Stats, Weights,
     encode,
@@ -198,7 +198,7 @@ def _initial_state(config: LearnerConfig, sac: SACConfig, device: torch.device) 
         log.info("--resume: no checkpoint at %s yet, starting fresh", config.checkpoint)
         return state
     saved = load_checkpoint(config.checkpoint, map_location=device)
-    if (saved.policy_spec != state.actor.spec or saved.config.hidden != sac.hidden
+    if (check_spec(saved.policy_spec) != state.actor.spec or saved.config.hidden != sac.hidden
             or saved.config.layer_norm != sac.layer_norm or saved.config.activation != sac.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
                               f"{state.actor.spec}: use the same architecture flags, or a new run directory")
@@ -236,6 +236,7 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
         tensors = batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
                                    batch.importance_weights(config.priority_beta) if batch.prioritized else None,
                                    device)
+        tensors = prepare(state, tensors, sac)
         for _ in range(sac.update_repeat):
             metrics = update(state, tensors, sac)
         if batch.prioritized:

@@ -25,6 +25,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from l2r.policy import ACTIVATIONS, Policy, check_spec, to_tanh_space
+from l2r.sim import layout
 
 
 @dataclass
@@ -59,6 +60,13 @@ class SACConfig:
     """Entropy temperature at the start of training."""
     autotune_alpha: bool = True
     """Learn alpha towards the target entropy; off keeps it at initial_alpha."""
+    relative_x: bool = False
+    """The networks see world x coordinates as distances from the pelvis (see ObservationFilter)."""
+    normalize_obs: bool = False
+    """The networks see observations standardised by running statistics of the sampled batches."""
+    mirror: bool = False
+    """Each sampled transition has its legs swapped with probability 1/2: training on the
+    mirrored data set as well, at no extra cost per update (the body is left-right symmetric)."""
     precision: str = "auto"
     """'bfloat16': hidden-layer matmuls in bfloat16 with float32 accumulation (weights, output
     heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 where the device computes
@@ -82,7 +90,8 @@ class SACConfig:
 def policy_spec(config: SACConfig, obs_dim: int, act_dim: int) -> dict:
     """The architecture spec of the policy this config trains (sent with the weights)."""
     return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
-                       "activation": config.activation, "layer_norm": config.layer_norm})
+                       "activation": config.activation, "layer_norm": config.layer_norm,
+                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs})
 
 
 class TwinCritic(nn.Module):
@@ -181,6 +190,9 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
                seed: int | None = None) -> TrainState:
     """Freshly initialised networks and optimizers on `device`."""
     device = torch.device(device)
+    if config.mirror and (obs_dim, act_dim) != (layout.OBS_SIZE, len(layout.ACTION_LABELS)):
+        raise ValueError(f"mirror needs the Learning to Run layout ({layout.OBS_SIZE} observations, "
+                         f"{len(layout.ACTION_LABELS)} actions), got {obs_dim} and {act_dim}")
     if seed is not None:
         torch.manual_seed(seed)
     actor = Policy(policy_spec(config, obs_dim, act_dim)).to(device)
@@ -224,20 +236,39 @@ def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, ne
                  None if weights is None else tensor(weights).reshape(-1))
 
 
+def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
+    """Once per sampled batch, before its gradient steps: mirror a random half of it (config.mirror)
+    and add its observations to the running statistics the networks' inputs are standardised by."""
+    if config.mirror:
+        swap = torch.rand(len(batch.obs), 1, device=batch.obs.device) < 0.5
+        obs_mirror = torch.as_tensor(layout.MIRROR_OBS, device=batch.obs.device)
+        action_mirror = torch.as_tensor(layout.MIRROR_ACTION, device=batch.obs.device)
+        batch = Batch(torch.where(swap, batch.obs[:, obs_mirror], batch.obs),
+                      torch.where(swap, batch.action[:, action_mirror], batch.action), batch.reward,
+                      torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs), batch.terminated,
+                      batch.weights)
+    state.actor.observation_filter.update(batch.obs, _sum_over_ranks)
+    return batch
+
+
 def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torch.Tensor]:
     """One SAC gradient step. Returns detached metrics tensors and `priorities` (|TD error|, per sample)."""
     alpha = state.log_alpha.detach().exp()
+    # The critics see observations through the policy's filter; the policy applies it itself.
+    with torch.no_grad():
+        critic_obs = state.actor.observation_filter(batch.obs)
+        critic_next_obs = state.actor.observation_filter(batch.next_obs)
 
     # 1. Soft Bellman target. Only a real termination cuts the bootstrap; a time limit does not.
     with torch.no_grad(), state.autocast():
         next_action, next_log_prob = state.actor.sample(batch.next_obs)
-        next_q = state.target_critic(batch.next_obs, next_action).min(0).values
+        next_q = state.target_critic(critic_next_obs, next_action).min(0).values
         next_value = next_q - alpha * next_log_prob
         target = config.reward_scale * batch.reward + config.gamma * (1.0 - batch.terminated) * next_value
 
     # 2. Twin critic loss (importance-weighted under prioritized replay) and step.
     with state.autocast():
-        q = state.critic(batch.obs, batch.action)
+        q = state.critic(critic_obs, batch.action)
     td_error = q - target
     squared = td_error.pow(2) if batch.weights is None else td_error.pow(2) * batch.weights
     critic_loss = squared.mean(-1).sum()
@@ -249,7 +280,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     # 3. Actor loss against the updated critics; their weights are detached (only dQ/da is needed).
     with state.autocast():
         action, log_prob = state.actor.sample(batch.obs)
-        q_pi = state.critic(batch.obs, action, detach_weights=True).min(0).values
+        q_pi = state.critic(critic_obs, action, detach_weights=True).min(0).values
     actor_loss = (alpha * log_prob - q_pi).mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()
@@ -277,6 +308,12 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
         "target_mean": target.mean(), "entropy": -log_prob.mean(),
         "priorities": td_error.detach().abs().mean(0),
     }
+
+
+def _sum_over_ranks(tensor: torch.Tensor) -> None:
+    """Sum a tensor over data-parallel ranks, in place (a no-op when training alone)."""
+    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        dist.all_reduce(tensor)
 
 
 def _average_gradients(params) -> None:
