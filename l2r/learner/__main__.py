@@ -49,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="importance-weight exponent under prioritized sampling (default: %(default)s)")
     g.add_argument("--publish-every", type=int, default=50, help="updates between weight publications (default: %(default)s)")
     g.add_argument("--checkpoint-interval", type=float, default=60.0, help="seconds between checkpoints (default: %(default)s)")
+    g.add_argument("--keep-checkpoints", type=int, default=3,
+                   help="checkpoints kept: checkpoint.pt is the newest, checkpoint-<updates>.pt the newest N "
+                        "(default: %(default)s)")
+    g.add_argument("--action-repeat", type=int,
+                   help="the actors' action repeat; stored in checkpoints so `l2r eval` steps the env as training "
+                        "did (the learner itself does not use it)")
     g.add_argument("--metrics-interval", type=float, default=5.0, help="seconds between metrics reports (default: %(default)s)")
     g.add_argument("--max-updates", type=int, default=0, help="stop after this many updates in total; 0 = until stopped")
     g.add_argument("--seed", type=int, help="torch seed (each rank adds its rank)")
@@ -104,14 +110,18 @@ def cli(argv: Sequence[str] | None = None) -> int:
         parser.error(str(e))
     if not 0 <= args.rank < args.world_size:
         parser.error(f"--rank {args.rank} must be in [0, --world-size {args.world_size})")
-    if min(args.in_flight, args.publish_every, args.obs_dim, args.act_dim) < 1 or args.threads < 0:
-        parser.error("--in-flight, --publish-every, --obs-dim and --act-dim must be >= 1, --threads >= 0")
+    if min(args.in_flight, args.publish_every, args.obs_dim, args.act_dim, args.keep_checkpoints) < 1 or args.threads < 0:
+        parser.error("--in-flight, --publish-every, --obs-dim, --act-dim and --keep-checkpoints must be >= 1, "
+                     "--threads >= 0")
+    if args.action_repeat is not None and args.action_repeat < 1:
+        parser.error("--action-repeat must be >= 1")
     configure_logging(args.log_level)
     config = LearnerConfig(
         run=args.run, run_dir=args.run_dir, resume=args.resume, device=args.device, threads=args.threads,
         obs_dim=args.obs_dim, act_dim=args.act_dim, prioritized=args.prioritized,
         priority_beta=args.priority_beta, in_flight=args.in_flight, publish_every=args.publish_every,
-        checkpoint_interval=args.checkpoint_interval, metrics_interval=args.metrics_interval,
+        checkpoint_interval=args.checkpoint_interval, keep_checkpoints=args.keep_checkpoints,
+        action_repeat=args.action_repeat, metrics_interval=args.metrics_interval,
         max_updates=args.max_updates, seed=args.seed, world_size=args.world_size, rank=args.rank,
         dist_url=args.dist_url)
     try:

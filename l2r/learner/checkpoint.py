@@ -1,19 +1,34 @@
-"""Learner checkpoints: one file per run, replaced atomically.
+"""Learner checkpoints: the last few kept, each written atomically, and the best evaluated policy.
 
 A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
 
     format          "l2r-learner-checkpoint"
     format_version  1
-    sac_config      SACConfig as a dict (algorithm settings the state was trained with)
+    sac_config      SACConfig as a dict (algorithm settings the state was trained with);
+                    None in a policy checkpoint
     obs_dim, act_dim
     policy_spec     the architecture spec of the policy (see l2r.policy)
     train_state     TrainState.state_dict(): actor, critic, target_critic and their Adam
-                    states, log_alpha, updates, version, extra counters
+                    states, log_alpha, updates, version, extra counters; a policy checkpoint
+                    holds only actor, updates and version
+    action_repeat   0.01 s steps per action the actors trained with (None: not known, as in
+                    files from before it was stored)
+    evaluation      policy checkpoints: how the policy did ({"mean_distance", "episodes", ...})
     saved_at        wall-clock time of the save (s since the epoch)
 
-It lives at `<run_dir>/learner/checkpoint.pt`. It is written to a temporary file in the same
-directory, flushed to disk, then renamed over the old one, so a crash during a save leaves
-the previous checkpoint intact.
+The files of a run, in `<run_dir>/learner/`:
+
+    checkpoint-<updates>.pt  the newest `keep` checkpoints (the learner's --keep-checkpoints)
+    checkpoint.pt            the newest of them under a second name (a hard link: no extra disk);
+                             what `--resume` and `l2r eval RUN_DIR` read
+    best.pt                  the policy with the best mean evaluation distance, written by
+                             `l2r up` (no critic or optimizer state: `l2r eval` reads it, a
+                             learner cannot resume from it)
+
+Each is written to a temporary file in the same directory, flushed to disk, made readable by
+everyone (mode 0644: results are shared, temporary files are private), renamed over the old
+name, and the directory is fsynced, so a crash at any point leaves the previous file intact
+and a finished save survives a power cut.
 """
 
 from __future__ import annotations
@@ -23,6 +38,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Mapping
 
 import torch
 
@@ -32,6 +48,8 @@ from l2r.policy import Policy, build_policy
 FORMAT = "l2r-learner-checkpoint"
 FORMAT_VERSION = 1
 RELATIVE_PATH = Path("learner") / "checkpoint.pt"
+BEST_RELATIVE_PATH = Path("learner") / "best.pt"
+UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of their updates
 
 
 class CheckpointError(RuntimeError):
@@ -41,6 +59,11 @@ class CheckpointError(RuntimeError):
 def checkpoint_path(run_dir: str | Path) -> Path:
     """Where the learner of a run keeps its checkpoint."""
     return Path(run_dir) / RELATIVE_PATH
+
+
+def best_policy_path(run_dir: str | Path) -> Path:
+    """Where `l2r up` keeps the policy with the best evaluation distance of a run."""
+    return Path(run_dir) / BEST_RELATIVE_PATH
 
 
 def find_checkpoint(path_or_run_dir: str | Path) -> Path:
@@ -56,26 +79,65 @@ def find_checkpoint(path_or_run_dir: str | Path) -> Path:
     return path
 
 
-def save_checkpoint(path: str | Path, state: TrainState, config: SACConfig, obs_dim: int, act_dim: int) -> Path:
-    """Write the training state to `path` atomically (temporary file, fsync, rename)."""
+def save_checkpoint(path: str | Path, state: TrainState, config: SACConfig, obs_dim: int, act_dim: int,
+                    action_repeat: int | None = None, keep: int = 1) -> Path:
+    """Write the training state to `path` atomically. With `keep` > 1 the checkpoint is also
+    kept as `checkpoint-<updates>.pt` beside it, and all but the newest `keep` such files go."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
+    _write(path, {
         "format": FORMAT, "format_version": FORMAT_VERSION, "sac_config": config.to_dict(),
         "obs_dim": obs_dim, "act_dim": act_dim, "policy_spec": dict(state.actor.spec),
-        "train_state": state.state_dict(), "saved_at": time.time(),
-    }
+        "train_state": state.state_dict(), "action_repeat": action_repeat, "saved_at": time.time(),
+    })
+    if keep > 1:
+        numbered = path.with_name(f"{path.stem}-{state.updates:0{UPDATES_DIGITS}d}{path.suffix}")
+        numbered.unlink(missing_ok=True)  # a learner resumed from an earlier save reached this count again
+        os.link(path, numbered)
+        kept = sorted(path.parent.glob(f"{path.stem}-{'[0-9]' * UPDATES_DIGITS}{path.suffix}"))
+        for old in kept[:-keep]:
+            old.unlink()
+        _fsync_directory(path.parent)
+    return path
+
+
+def save_policy_checkpoint(path: str | Path, policy_params: Mapping[str, Any], policy_spec: dict, version: int,
+                           updates: int, action_repeat: int | None, evaluation: dict) -> Path:
+    """Write a policy alone (float32 arrays as `policy_state` gives them, e.g. from a Weights
+    message) as a checkpoint `l2r eval` reads, with how it did in `evaluation`."""
+    return _write(Path(path), {
+        "format": FORMAT, "format_version": FORMAT_VERSION, "sac_config": None,
+        "obs_dim": int(policy_spec["obs_dim"]), "act_dim": int(policy_spec["act_dim"]),
+        "policy_spec": dict(policy_spec), "action_repeat": action_repeat, "evaluation": dict(evaluation),
+        "train_state": {"actor": {name: torch.tensor(value) for name, value in policy_params.items()},
+                        "version": version, "updates": updates},
+        "saved_at": time.time(),
+    })
+
+
+def _write(path: Path, payload: dict) -> Path:
+    """torch.save to a temporary file, fsync, mode 0644, rename over `path`, fsync the directory."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save(payload, f)
             f.flush()
             os.fsync(f.fileno())
+            os.fchmod(f.fileno(), 0o644)  # mkstemp makes it 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync_directory(path.parent)  # the rename itself survives a power cut
     return path
+
+
+def _fsync_directory(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @dataclass
@@ -83,12 +145,17 @@ class Checkpoint:
     """A loaded checkpoint: settings, shapes and the saved training state."""
 
     path: Path
-    config: SACConfig
+    config: SACConfig | None
+    """None in a policy checkpoint."""
     obs_dim: int
     act_dim: int
     policy_spec: dict
     train_state: dict
     saved_at: float
+    action_repeat: int | None = None
+    """0.01 s steps per action in training; None when the file does not say."""
+    evaluation: dict | None = None
+    """How a policy checkpoint's policy did in evaluation."""
 
     @property
     def version(self) -> int:
@@ -106,6 +173,8 @@ class Checkpoint:
 
     def restore(self, device: str | torch.device = "cpu") -> TrainState:
         """The full training state (networks, optimizers, alpha, counters) on `device`."""
+        if self.config is None:
+            raise CheckpointError(f"{self.path} holds a policy alone, not a training state to resume")
         state = init_state(self.config, self.obs_dim, self.act_dim, device)
         state.load_state_dict(self.train_state)
         return state
@@ -124,8 +193,10 @@ def load_checkpoint(path_or_run_dir: str | Path, map_location: str | torch.devic
         raise CheckpointError(f"{path} has checkpoint format version {raw.get('format_version')!r}, "
                               f"this l2r reads {FORMAT_VERSION}")
     try:
-        config = SACConfig(**raw["sac_config"])
+        config = None if raw["sac_config"] is None else SACConfig(**raw["sac_config"])
+        repeat = raw.get("action_repeat")
         return Checkpoint(path, config, int(raw["obs_dim"]), int(raw["act_dim"]), dict(raw["policy_spec"]),
-                          raw["train_state"], float(raw["saved_at"]))
+                          raw["train_state"], float(raw["saved_at"]), None if repeat is None else int(repeat),
+                          raw.get("evaluation"))
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path} is incomplete or inconsistent: {type(e).__name__}: {e}") from None

@@ -55,6 +55,10 @@ class LearnerConfig:
     in_flight: int = 4
     publish_every: int = 50
     checkpoint_interval: float = 60.0
+    keep_checkpoints: int = 3
+    """Checkpoints kept: the newest and the ones before it (see l2r.learner.checkpoint)."""
+    action_repeat: int | None = None
+    """The actors' action repeat, stored in checkpoints for `l2r eval`; None: not known."""
     metrics_interval: float = 5.0
     max_updates: int = 0
     """Stop (and checkpoint) after this many updates in total; 0 = run until stopped."""
@@ -294,6 +298,7 @@ def _checkpoint(config: LearnerConfig, sac: SACConfig, state: TrainState) -> Non
                   config.checkpoint)
         return
     started = time.monotonic()
-    path = save_checkpoint(config.checkpoint, state, sac, config.obs_dim, config.act_dim)
+    path = save_checkpoint(config.checkpoint, state, sac, config.obs_dim, config.act_dim, config.action_repeat,
+                           config.keep_checkpoints)
     log.info("checkpoint %s (version %d, %d updates) in %.2f s", path, state.version, state.updates,
              time.monotonic() - started)

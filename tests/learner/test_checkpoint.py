@@ -1,16 +1,21 @@
-"""Checkpoints restore training exactly; broken files give clear errors; device choice."""
+"""Checkpoints restore training exactly; the newest few are kept, readable by everyone and
+durable; a policy alone can be saved; broken files give clear errors; device choice."""
 
 import copy
+import os
+import stat
 from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 
-from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.checkpoint import (
+    CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint, save_policy_checkpoint,
+)
 from l2r.learner.distributed import DeviceUnavailable, select_device
 from l2r.learner.sac import SACConfig, batch_from_numpy, init_state, update
-from l2r.policy import act
+from l2r.policy import act, policy_state
 
 OBS, ACT = 5, 3
 
@@ -55,6 +60,48 @@ def test_save_replaces_atomically_and_leaves_no_temporary_files(tmp_path):
     save_checkpoint(path, state, config, OBS, ACT)
     assert load_checkpoint(path).version == 2
     assert sorted(p.name for p in path.parent.iterdir()) == ["checkpoint.pt"]
+
+
+def test_the_newest_checkpoints_are_kept_readable_by_everyone_with_the_action_repeat(tmp_path):
+    config = SACConfig(hidden=(8,), precision="float32")
+    state = init_state(config, OBS, ACT)
+    path = checkpoint_path(tmp_path)
+    for updates in (10, 20, 30, 40):
+        state.updates = updates
+        save_checkpoint(path, state, config, OBS, ACT, action_repeat=2, keep=3)
+    files = sorted(path.parent.iterdir())
+    assert [p.name for p in files] == ["checkpoint-0000000020.pt", "checkpoint-0000000030.pt",
+                                       "checkpoint-0000000040.pt", "checkpoint.pt"]
+    assert (load_checkpoint(path).updates, load_checkpoint(path).action_repeat) == (40, 2)
+    assert load_checkpoint(path.parent / "checkpoint-0000000020.pt").updates == 20
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in files)
+
+
+def test_a_save_fsyncs_the_directory_after_the_rename(tmp_path, monkeypatch):
+    events = []
+    real_replace, real_fsync = os.replace, os.fsync
+    monkeypatch.setattr(os, "replace", lambda *a: (real_replace(*a), events.append("rename"))[0])
+    monkeypatch.setattr(os, "fsync", lambda fd: (real_fsync(fd), events.append(
+        "fsync directory" if stat.S_ISDIR(os.fstat(fd).st_mode) else "fsync file"))[0])
+    config = SACConfig(hidden=(8,), precision="float32")
+    save_checkpoint(checkpoint_path(tmp_path), init_state(config, OBS, ACT), config, OBS, ACT)
+    assert events == ["fsync file", "rename", "fsync directory"]
+
+
+def test_a_policy_alone_is_a_checkpoint_eval_reads_but_no_learner_resumes(tmp_path):
+    config = SACConfig(hidden=(16,), precision="float32")
+    state = init_state(config, OBS, ACT, seed=3)
+    path = save_policy_checkpoint(tmp_path / "best.pt", policy_state(state.actor), dict(state.actor.spec),
+                                  version=12, updates=600, action_repeat=4,
+                                  evaluation={"mean_distance": 1.5, "episodes": 2})
+    saved = load_checkpoint(path)
+    assert (saved.version, saved.updates, saved.action_repeat, saved.config) == (12, 600, 4, None)
+    assert saved.evaluation == {"mean_distance": 1.5, "episodes": 2}
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    obs = np.random.default_rng(0).normal(size=(3, OBS))
+    np.testing.assert_array_equal(act(saved.policy(), obs, True), act(state.actor.eval(), obs, True))
+    with pytest.raises(CheckpointError, match="holds a policy alone"):
+        saved.restore()
 
 
 def test_unusable_checkpoints_raise_clear_errors(tmp_path):
