@@ -15,6 +15,8 @@ from l2r.actors.actor import run_deterministic
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
 from l2r.sim.wrappers import ActionRepeat
 
+DEFAULT_ACTION_REPEAT = 3  # what l2r up and l2r-actor default to; for checkpoints that do not say
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -31,7 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed S of the first episode")
     p.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0,
                    help="0 flat, 1 obstacles, 2 obstacles and random psoas strengths")
-    p.add_argument("--action-repeat", type=int, default=3, help="0.01 s steps per action (as in training)")
+    p.add_argument("--action-repeat", type=int,
+                   help="0.01 s steps per action; default: what the checkpoint says training used "
+                        f"({DEFAULT_ACTION_REPEAT} for checkpoints that do not say)")
     p.add_argument("--env-id", default="l2r/Run-v0",
                    help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or l2r/RunOpenSim-v0 "
                         "(OpenSim 4.6 as in 2017: about 100 steps/s, 10 s for 1000 steps; pip install 'l2r[opensim]')")
@@ -89,7 +93,7 @@ def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: i
 
 def cli(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.episodes < 1 or args.action_repeat < 1 or args.progress_every < 0:
+    if args.episodes < 1 or (args.action_repeat is not None and args.action_repeat < 1) or args.progress_every < 0:
         print("l2r eval: --episodes and --action-repeat must be at least 1, --progress-every at least 0",
               file=sys.stderr)
         return 2
@@ -98,9 +102,16 @@ def cli(argv: list[str] | None = None) -> int:
     except CheckpointError as e:
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
+    action_repeat = args.action_repeat or checkpoint.action_repeat or DEFAULT_ACTION_REPEAT
+    if checkpoint.action_repeat is None and args.action_repeat is None:
+        print(f"l2r eval: {checkpoint.path} does not say which action repeat training used; assuming "
+              f"{DEFAULT_ACTION_REPEAT} (--action-repeat sets it)", file=sys.stderr)
+    elif args.action_repeat and checkpoint.action_repeat and args.action_repeat != checkpoint.action_repeat:
+        print(f"l2r eval: --action-repeat {args.action_repeat}, while training used {checkpoint.action_repeat}",
+              file=sys.stderr)
     torch.set_num_threads(1)
     try:
-        results = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, args.action_repeat,
+        results = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
                            args.env_id, args.progress_every)
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
@@ -109,13 +120,13 @@ def cli(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps({
             "checkpoint": str(checkpoint.path), "version": checkpoint.version, "updates": checkpoint.updates,
-            "env_id": args.env_id, "difficulty": args.difficulty, "seeds": [args.seed + i for i in range(args.episodes)],
+            "env_id": args.env_id, "difficulty": args.difficulty, "action_repeat": action_repeat, "seeds": [args.seed + i for i in range(args.episodes)],
             "distances": distances, "returns": [r[0] for r in results], "lengths": [r[2] for r in results],
             "mean_distance": sum(distances) / len(distances),
         }))
         return 0
     print(f"{checkpoint.path}: policy version {checkpoint.version}, {checkpoint.updates} updates, "
-          f"{args.env_id}, difficulty {args.difficulty}")
+          f"{args.env_id}, difficulty {args.difficulty}, action repeat {action_repeat}")
     for i, (ret, distance, length) in enumerate(results):
         print(f"episode {i} (seed {args.seed + i}): distance {distance:7.3f} m  return {ret:8.3f}  steps {length}")
     print(f"mean distance {sum(distances) / len(distances):.3f} m over {len(distances)} episodes")
