@@ -15,20 +15,11 @@ import zenoh
 
 from l2r.policy import build_policy, policy_state
 from l2r.protocol import EpisodeSummary, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
-from l2r.up import free_port
+from tests.conftest import free_port, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 STANDIN = "tests.actors.standin:StandIn-v0"
 SPEC = {"obs_dim": 41, "act_dim": 18, "hidden": [32], "activation": "elu", "layer_norm": False}
-
-
-def wait_for(predicate, timeout=15.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class Peer:
@@ -94,32 +85,31 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
     proc = peer.actor("--random-steps", "1000000", "--seed", "4")
     try:
         # The weights it asked for on join drive its first chunks.
-        wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks), what="chunks acted by version 3")
-        wait_for(lambda: any(e.policy_version == 3 for e in peer.episodes), what="episodes acted by version 3")
+        assert wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks)), "chunks acted by version 3"
+        assert wait_for(lambda: any(e.policy_version == 3 for e in peer.episodes)), "episodes acted by version 3"
         alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
         assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
 
         # Garbage, then weights that do not fit the network: counted, not fatal.
         peer.publish(b"\x00not msgpack")
         peer.publish(encode(Weights(4, {"trunk.0.weight": np.zeros((2, 2), np.float32)}, SPEC)))
-        wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 2, what="two rejections counted")
+        assert wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 2), "two rejections counted"
         assert proc.poll() is None
 
         # A published update is swapped in; its chunks carry the new version.
         peer.publish(encode(Weights(5, policy_state(build_policy(SPEC)), SPEC)))
-        wait_for(lambda: any(c.policy_version == 5 for c in peer.chunks), what="chunks acted by version 5")
-        wait_for(lambda: peer.last_stats().get("policy_version") == 5 and peer.last_stats().get("staleness") == 0,
-                 what="stats at version 5")
+        assert wait_for(lambda: any(c.policy_version == 5 for c in peer.chunks)), "chunks acted by version 5"
+        assert wait_for(lambda: peer.last_stats().get("policy_version") == 5 and peer.last_stats().get("staleness") == 0), "stats at version 5"
 
         # Without a replay server the actor waits instead of sending into the void.
         peer.replay_up(False)
-        wait_for(lambda: peer.last_stats().get("waiting_for_replay") == 1, what="actor waiting")
+        assert wait_for(lambda: peer.last_stats().get("waiting_for_replay") == 1), "actor waiting"
         time.sleep(0.3)
         n = len(peer.chunks)
         time.sleep(0.5)
         assert len(peer.chunks) == n
         peer.replay_up(True)
-        wait_for(lambda: len(peer.chunks) > n, what="chunks after replay came back")
+        assert wait_for(lambda: len(peer.chunks) > n), "chunks after replay came back"
     finally:
         out = stop(proc)
     assert "rejected message" in out
@@ -143,10 +133,9 @@ def test_evaluation_role_runs_fixed_seeds_and_sends_no_experience(peer):
     peer.replay_up(True)
     proc = peer.actor("--evaluate", "--actor-id", "9", "--eval-episodes", "4", "--seed", "100", "--eval-interval", "0")
     try:
-        wait_for(lambda: len(peer.episodes) >= 4, what="one evaluation round")
+        assert wait_for(lambda: len(peer.episodes) >= 4), "one evaluation round"
         peer.publish(encode(Weights(8, policy_state(build_policy(SPEC)), SPEC)))
-        wait_for(lambda: any(e.policy_version == 8 for e in peer.episodes) and len(peer.episodes) >= 8,
-                 what="a round for the new version")
+        assert wait_for(lambda: any(e.policy_version == 8 for e in peer.episodes) and len(peer.episodes) >= 8), "a round for the new version"
     finally:
         stop(proc)
     assert not peer.chunks

@@ -4,7 +4,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import zenoh
 
 from l2r.actors.experience import ResendBuffer
 from l2r.protocol import Keys, decode, session_config
-from l2r.up import free_port
+from tests.conftest import free_port, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 STANDIN = "tests.actors.standin:StandIn-v0"
@@ -67,13 +66,6 @@ def test_acks_for_chunks_no_longer_held_change_nothing():
 
 # -- real processes: a router, an actor and a replay server that starts late ------------------
 
-def wait_for(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
-
-
 def port_open(port: int) -> bool:
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) == 0
@@ -95,7 +87,7 @@ def test_chunks_sent_while_no_replay_server_listened_are_resent_and_stored_witho
         return "\n".join(f"--- {p.name}\n{p.read_text()[-2000:]}" for p in tmp_path.glob("*.log"))
 
     start("router", "l2r.cli", "router", "-l", router)
-    wait_for(lambda: port_open(port), 20, "the router")
+    assert wait_for(lambda: port_open(port), 20), "the router never listened"
     session = zenoh.open(session_config(connect=[router]))
     stats: dict[str, dict] = {}
 
@@ -112,14 +104,14 @@ def test_chunks_sent_while_no_replay_server_listened_are_resent_and_stored_witho
         standby = session.liveliness().declare_token(keys.alive("replay", "standby"))
         start("actor", "l2r.actors", "--run", keys.run, "--connect", router, "--env-id", STANDIN, "--num-envs", "3",
               "--chunk-size", "16", "--stats-interval", "0.2", "--resend-delay", "1")
-        wait_for(lambda: actor().get("chunks_sent", 0) >= 30, 30, "chunks sent into the void\n" + logs())
+        assert wait_for(lambda: actor().get("chunks_sent", 0) >= 30, 30), "no chunks sent into the void\n" + logs()
         lost = actor()["chunks_sent"]
         assert actor()["chunks_acked"] == 0
 
         start("replay", "l2r.replay", "--run", keys.run, "--connect", router, "--capacity", "200000",
               "--min-size", "1", "--stats-interval", "0.3")
-        wait_for(lambda: replay().get("actor.0.gaps") == 0 and actor().get("chunks_acked", 0) >= lost + 20, 40,
-                 f"every chunk stored\n{replay()}\n{actor()}\n{logs()}")
+        assert wait_for(lambda: replay().get("actor.0.gaps") == 0 and actor().get("chunks_acked", 0) >= lost + 20, 40), \
+            f"not every chunk stored\n{replay()}\n{actor()}\n{logs()}"
         standby.undeclare()
         assert actor()["chunks_resent"] >= lost and actor()["resend_dropped"] == 0
         assert replay()["gaps"] == 0 and replay()["rejected"] == 0

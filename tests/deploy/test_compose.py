@@ -22,7 +22,9 @@ import zenoh
 from l2r.protocol.keys import Keys
 
 from . import compose
-from .zenoh_helpers import DEPLOY, free_port, make_secrets, start_router, stop, wait_for
+from tests.conftest import free_port, wait_for
+
+from .zenoh_helpers import DEPLOY, make_secrets, start_router, stop
 
 DAEMONS = {"replay": "l2r.replay", "learner": "l2r.learner", "learner-gpu": "l2r.learner", "actor": "l2r.actors"}
 ROLE = {"replay": "replay", "learner": "learner", "learner-gpu": "learner", "actor": "actor"}

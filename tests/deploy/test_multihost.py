@@ -20,7 +20,9 @@ import pytest
 
 from . import compose
 from .netns import Hosts, namespaces_available
-from .zenoh_helpers import DEPLOY, make_secrets, wait_for
+from tests.conftest import wait_for
+
+from .zenoh_helpers import DEPLOY, make_secrets
 
 PROBE = Path(__file__).with_name("probe.py")
 SECRETS_IN_CONTAINER = "/srv/l2r/secrets"

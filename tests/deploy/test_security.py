@@ -24,7 +24,9 @@ from l2r.policy import build_policy, default_spec, policy_state
 from l2r.protocol import messages
 from l2r.protocol.keys import Keys
 
-from .zenoh_helpers import free_port, make_secrets, role_config, start_router, stop, wait_for
+from tests.conftest import free_port, wait_for
+
+from .zenoh_helpers import make_secrets, role_config, start_router, stop
 
 pytestmark = pytest.mark.skipif(not shutil.which("openssl"), reason="needs the openssl CLI")
 

@@ -2,7 +2,6 @@
 on loopback with an actor-like feeder."""
 
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -18,6 +17,7 @@ import zenoh
 
 from l2r.protocol import EXPERIENCE_QOS, ExperienceChunk, Keys, encode, session_config
 from l2r.protocol.session import wait_alive
+from tests.conftest import free_port
 
 
 @pytest.fixture(autouse=True)
@@ -32,12 +32,6 @@ def one_torch_thread():
 # Small networks and one thread, so a daemon test trains hundreds of updates in seconds.
 SMALL_LEARNER = ["--threads", "1", "--hidden", "32,32", "--batch-size", "64", "--update-repeat", "2",
                  "--metrics-interval", "1", "--log-level", "INFO"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Daemon:

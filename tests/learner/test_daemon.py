@@ -12,7 +12,8 @@ from l2r.policy import act, build_policy, load_policy_state
 from l2r.protocol import Keys, Stats, Weights, decode
 from l2r.protocol.session import wait_alive
 
-from tests.learner.conftest import SMALL_LEARNER, Feeder, free_port
+from tests.conftest import free_port
+from tests.learner.conftest import SMALL_LEARNER, Feeder
 
 
 class WeightsWatcher:

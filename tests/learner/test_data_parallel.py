@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.learner.conftest import free_port
+from tests.conftest import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 STEPS = 5

@@ -21,7 +21,7 @@ from l2r.episodes.read import read_episode
 from l2r.protocol.keys import Keys
 from l2r.protocol.session import session_config, wait_alive
 from l2r.sim.wrappers import ActionRepeat
-from tests.logs.test_live import free_port
+from tests.conftest import free_port
 
 ROOT = Path(__file__).parents[2]
 

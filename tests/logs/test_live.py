@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import time
@@ -17,19 +16,7 @@ from l2r.episodes.live import LiveFrames
 from l2r.protocol.keys import Keys
 from l2r.protocol.session import session_config
 from l2r.sim.env import RunEnv
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(condition, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return condition()
+from tests.conftest import free_port, wait_for
 
 
 @pytest.mark.slow

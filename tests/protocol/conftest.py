@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-import socket
 import uuid
 
 import pytest
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.conftest import free_port
 
 
 @pytest.fixture

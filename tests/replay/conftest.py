@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from l2r.protocol import Keys, Stats, decode, session_config, wait_alive
-from tests.protocol.conftest import free_port
+from tests.conftest import free_port
 
 
 class Replay:

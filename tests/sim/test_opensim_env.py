@@ -28,7 +28,7 @@ from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE
 from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 from l2r.sim.opensim_env import RunOpenSimEnv
 from l2r.sim.wrappers import ActionRepeat
-from tests.logs.test_live import free_port
+from tests.conftest import free_port
 
 opensim = pytest.importorskip("opensim")
 
