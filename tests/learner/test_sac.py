@@ -51,19 +51,28 @@ def test_critic_learns_the_value_of_a_constant_reward(precision):
     assert float(metrics["q_mean"]) == pytest.approx(2.0, abs=0.05)
 
 
-def test_bootstrap_is_cut_by_termination_only():
-    config = small_config(gamma=0.5, reward_scale=1.0)
+def test_soft_bellman_target_bootstraps_with_the_entropy_bonus_unless_terminated():
+    config = small_config(gamma=0.5, reward_scale=1.0, initial_alpha=0.5)
     state = init_state(config, OBS, ACT, seed=2)
     with torch.no_grad():  # a critic whose every output is 10: last layer zero, bias 10
         for target in (state.critic, state.target_critic):
             target.weights[-1].zero_()
             target.biases[-1].fill_(10.0)
     terminal = update(copy.deepcopy(state), random_batch(reward=1.0, terminated=1.0), config)
-    truncated = update(copy.deepcopy(state), random_batch(reward=1.0, terminated=0.0), config)
-    assert float(terminal["target_mean"]) == pytest.approx(1.0)
-    # 1 + 0.5 * (10 - alpha * log_prob): bootstraps from the next state.
-    expected = 1.0 + 0.5 * (10.0 + 0.1 * float(truncated["entropy"]))
-    assert float(truncated["target_mean"]) == pytest.approx(expected, rel=0.05)
+    assert float(terminal["target_mean"]) == pytest.approx(1.0, rel=1e-6)
+
+    # Record what the policy samples inside the update: its first draw is a' ~ pi(.|s') for the target.
+    bootstrapped, batch, draws = copy.deepcopy(state), random_batch(reward=1.0, terminated=0.0), []
+    sample = bootstrapped.actor.sample
+    bootstrapped.actor.sample = lambda obs: draws.append((obs, sample(obs))) or draws[-1][1]
+    truncated = update(bootstrapped, batch, config)
+    next_obs, (_, next_log_prob) = draws[0]
+    assert torch.equal(next_obs, batch.next_obs)
+    # r + gamma * (Q(s', a') - alpha * log pi(a'|s')), averaged over the batch.
+    entropy_term = 0.5 * 0.5 * float(next_log_prob.mean())
+    expected = 1.0 + 0.5 * 10.0 - entropy_term
+    assert abs(entropy_term) > 0.01, "the entropy term must matter at the tolerance below"
+    assert float(truncated["target_mean"]) == pytest.approx(expected, rel=1e-5)
 
 
 def test_target_critics_follow_by_polyak_averaging():
