@@ -129,19 +129,25 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
     assert train and all(e.length == 40 and e.actor_id == 0 for e in train)  # stand-in: 40 steps of 0.01 s
 
 
-def test_evaluation_role_runs_fixed_seeds_and_sends_no_experience(peer):
+def test_evaluation_role_repeats_its_episodes_exactly_under_the_same_weights_and_sends_no_experience(peer):
     peer.replay_up(True)
     proc = peer.actor("--evaluate", "--actor-id", "9", "--eval-episodes", "4", "--seed", "100", "--eval-interval", "0")
+
+    def round_of(version: int) -> dict[int, tuple[float, float, int]]:
+        return {e.seed: (e.episode_return, e.distance, e.length) for e in peer.episodes if e.policy_version == version}
+
     try:
-        assert wait_for(lambda: len(peer.episodes) >= 4), "one evaluation round"
-        peer.publish(encode(Weights(8, policy_state(build_policy(SPEC)), SPEC)))
-        assert wait_for(lambda: any(e.policy_version == 8 for e in peer.episodes) and len(peer.episodes) >= 8), "a round for the new version"
+        assert wait_for(lambda: len(round_of(3)) == 4), "no evaluation round of version 3"
+        # The same weights again, under a new version: a second round that must repeat the first.
+        peer.publish(encode(Weights(8, peer.latest.params, SPEC)))
+        assert wait_for(lambda: len(round_of(8)) == 4), "no evaluation round of version 8"
+        # Other weights: a round that must differ, or the equality above would prove nothing.
+        peer.publish(encode(Weights(9, policy_state(build_policy(SPEC)), SPEC)))
+        assert wait_for(lambda: len(round_of(9)) == 4), "no evaluation round of version 9"
     finally:
         stop(proc)
     assert not peer.chunks
     assert all(e.evaluation and e.actor_id == 9 for e in peer.episodes)
-    assert sorted(e.seed for e in peer.episodes[:4]) == [100, 101, 102, 103]
-    assert [e.policy_version for e in peer.episodes[:4]] == [3] * 4
-    # Deterministic: the same seeds give the same episodes under the same weights.
-    first = {e.seed: e.episode_return for e in peer.episodes[:4]}
-    assert len(first) == 4
+    assert sorted(round_of(3)) == [100, 101, 102, 103]
+    assert round_of(8) == round_of(3)
+    assert all(round_of(9)[seed] != round_of(3)[seed] for seed in round_of(3))
