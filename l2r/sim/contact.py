@@ -61,25 +61,26 @@ def _friction(f: float, slip: float, law: np.ndarray) -> tuple[float, float]:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def ground_forces(law: np.ndarray, radius: np.ndarray, centre: np.ndarray, body: np.ndarray,
-                  root: np.ndarray, xpos: np.ndarray, xmat: np.ndarray, cvel: np.ndarray,
-                  subtree_com: np.ndarray, point: np.ndarray, local: np.ndarray,
+def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body: np.ndarray,
+                  root: np.ndarray, geom_xpos: np.ndarray, xpos: np.ndarray, xmat: np.ndarray,
+                  cvel: np.ndarray, subtree_com: np.ndarray, point: np.ndarray, local: np.ndarray,
                   force: np.ndarray, damping: np.ndarray) -> None:
     """Hunt-Crossley forces of spheres on the ground plane y = 0.
 
-    radius (n,); centre (n, 3) world positions of the sphere centres; body (n,) their bodies,
-    root (n,) those bodies' roots; xpos, xmat, cvel, subtree_com: MuJoCo's arrays. Writes the
+    radius (n,); sphere (n,) the spheres' geoms; body (n,) their bodies, root (n,) those bodies'
+    roots; geom_xpos, xpos, xmat, cvel, subtree_com: MuJoCo's arrays. Writes the
     contact points in world (`point`, n x 3) and in their body's frame (`local`), the force on
     each sphere (`force`, n x 2: x, y) and d force / d speed of the contact point along x and y
     (`damping`, n x 2, never positive: only dampers go to the implicit integrator).
     """
     k, c = law[0], law[1]
     for i in range(radius.shape[0]):
-        depth = radius[i] - centre[i, 1]
+        centre = geom_xpos[sphere[i]]
+        depth = radius[i] - centre[1]
         b = body[i]
-        point[i, 0] = centre[i, 0]
-        point[i, 1] = -0.5 * depth if depth > 0.0 else centre[i, 1] - radius[i]
-        point[i, 2] = centre[i, 2]
+        point[i, 0] = centre[0]
+        point[i, 1] = -0.5 * depth if depth > 0.0 else centre[1] - radius[i]
+        point[i, 2] = centre[2]
         for j in range(3):
             local[i, j] = 0.0
             for r in range(3):  # xmat is row-major body-to-world: local = R^T (p - x)

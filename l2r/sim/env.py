@@ -1,15 +1,10 @@
 """`RunEnv`: the NeurIPS 2017 Learning to Run environment on the MuJoCo body.
 
 One step is 0.01 s of simulated time: the 18 excitations are held while MuJoCo takes the
-physics substeps. Before every substep the env computes what OpenSim computes inside its
-integrator and MuJoCo does not: the Thelen muscles' activation and fibre dynamics
-(`thelen.py`, tendon forces onto the MuJoCo tendons), the feet's Hunt-Crossley ground contact
-(`contact.py`), and the six joint-limit ligaments (`ligaments.py`). Stiff parts go to MuJoCo's
-implicit integrator as damping: tendon stiffness and contact friction through their actuators'
-velocity bias, ligament damping as joint damping. The kernels compute with numpy's error model:
-a diverging state gives NaN forces, which MuJoCo catches and resets (and the episode ends),
-rather than an exception inside the step. The observation, reward, done rules and episode generation follow the 2017
-`RunEnv`; docs/environment.md has the observation table and the choices made.
+physics substeps, with OpenSim's muscle, contact, path and ligament dynamics computed around
+each (`physics.py`, one kernel call per step). The observation, reward, done rules and episode
+generation follow the 2017 `RunEnv`; docs/environment.md has the observation table and the
+choices made.
 """
 
 from __future__ import annotations
@@ -20,15 +15,13 @@ from typing import Any
 
 import gymnasium as gym
 import mujoco
-import numba
 import numpy as np
 
 from l2r.sim import model as body
 from l2r.sim import thelen
-from l2r.sim.contact import contact_law, ground_forces
-from l2r.sim.ligaments import LIGAMENTS, LigamentKernel, default_limits
+from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.opensim import read_osim
-from l2r.sim.paths import MovingPoints, PathSwitches, select_tendons
+from l2r.sim.physics import Physics
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +35,7 @@ NO_OBSTACLE = (100.0, 0.0, 0.0)  # what the 2017 env reports when no obstacle li
 PELVIS = ("pelvis_tilt", "pelvis_tx", "pelvis_ty")
 JOINTS = ("hip_flexion_r", "knee_angle_r", "ankle_angle_r", "hip_flexion_l", "knee_angle_l", "ankle_angle_l")
 TRACKED_BODIES = ("head", "pelvis", "torso", "toes_l", "toes_r", "talus_l", "talus_r")
-FOOT_SPHERES = ("r_heel", "r_toe", "l_heel", "l_toe")
+FOOT_SPHERES = body.CONTACT_SPHERES  # the rows of info["contact_force"]
 PSOAS_RIGHT = "iliopsoas_r"
 # The 2017 code scaled muscle index 11 with the left psoas strength: glut_max_l, not iliopsoas_l.
 LEFT_PSOAS_CHOICES = ("glut_max_l", "iliopsoas_l")
@@ -50,9 +43,6 @@ LEFT_PSOAS_CHOICES = ("glut_max_l", "iliopsoas_l")
 OBS_SIZE = 41
 NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
-# Backward-Euler sub-steps of the fibre lengths per physics step: at 1 ms, held-pose tendon
-# forces stay within 0.3 % of max force (RMS) of OpenSim's (docs/model.md).
-FIBER_SUBSTEPS = 2
 
 # Warnings MuJoCo counts when it resets a diverging simulation.
 DIVERGENCE_WARNINGS = tuple(
@@ -94,7 +84,6 @@ class RunEnv(gym.Env):
         m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
         d = mujoco.MjData(m)
         self._m, self._d = m, d
-        self._views = _Views(m, d)
         self.substeps = round(STEP_SECONDS / m.opt.timestep)
         if self.substeps < 1 or abs(self.substeps * m.opt.timestep - STEP_SECONDS) > 1e-12:
             raise ValueError(f"the model's timestep {m.opt.timestep} s does not divide {STEP_SECONDS} s")
@@ -102,12 +91,8 @@ class RunEnv(gym.Env):
         # Everything the step needs is located once, by name, here.
         x_joint, y_joint = (_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in PELVIS[1:])
         self._x_adr, self._y_adr = int(m.jnt_qposadr[x_joint]), int(m.jnt_qposadr[y_joint])
-
-        lig = default_limits()
-        lig_joints = [_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in lig.coordinates]
+        self._qpos = d.qpos  # the bindings make a new array object on every attribute access
         self.ligament_names = LIGAMENTS
-        self._lig_kernel = LigamentKernel(m.jnt_qposadr[lig_joints], m.jnt_dofadr[lig_joints], lig)
-        self._lig_dofs = m.jnt_dofadr[lig_joints].tolist()
         self._default_pose = m.keyframe(body.DEFAULT_KEYFRAME).id
 
         self.muscle_names = tuple(body.MUSCLES)
@@ -117,33 +102,8 @@ class RunEnv(gym.Env):
         self._psoas = (self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT))
         osim = read_osim(body.OSIM_PATH)
         by_name = {mu.name: mu for mu in osim.muscles}
-        muscles = [by_name[n] for n in self.muscle_names]
-        self._paths = PathSwitches(m, muscles)
-        self._moving = MovingPoints(m, osim, muscles)
-        self._tension = np.zeros(m.ntendon)
-        self._speed = np.zeros(m.ntendon)  # lengthening speeds, moving points' share included
-        self._tendons = self._paths.on.copy()  # the tendon each muscle pulls through now
-        self._muscle_table = thelen.muscle_parameters(muscles)
-        self._params = self._muscle_table.copy()  # this episode's: psoas strengths applied
-        self._excitation = np.zeros(NUM_MUSCLES)
-        self._activation = np.zeros(NUM_MUSCLES)
-        self._fiber = np.zeros(NUM_MUSCLES)
-        self._tendon_force = np.zeros(NUM_MUSCLES)
-        self._tendon_stiffness = np.zeros(NUM_MUSCLES)
-
-        # Foot contact: each sphere's contact site and its x and y force actuators.
-        spheres = [_id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in FOOT_SPHERES]
-        self._spheres = np.array(spheres)
-        self._radius = m.geom_size[spheres, 0].copy()
-        self._sphere_body = m.geom_bodyid[spheres].copy()
-        self._sphere_root = m.body_rootid[self._sphere_body].copy()
-        self._contact_sites = np.array([_id(m, mujoco.mjtObj.mjOBJ_SITE, f"{g}_contact") for g in FOOT_SPHERES])
-        self._contact_x = np.array([_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{g}_x") for g in FOOT_SPHERES])
-        self._contact_y = np.array([_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{g}_y") for g in FOOT_SPHERES])
-        self._law = contact_law(osim).table()
-        n = len(FOOT_SPHERES)
-        self._point, self._local = np.zeros((n, 3)), np.zeros((n, 3))
-        self._ground_force, self._ground_damping = np.zeros((n, 2)), np.zeros((n, 2))
+        self._physics = Physics(m, d, osim, [by_name[n] for n in self.muscle_names])
+        self._muscle_table = self._physics.params.copy()  # before this episode's psoas strengths
 
         # Observation values 0..35, and the obstacles' forces on the feet, are gathers from the
         # sensors `with_sensors` added.
@@ -174,8 +134,6 @@ class RunEnv(gym.Env):
         self._step_time = STEP_SECONDS - 0.5 * m.opt.timestep  # less time than this: MuJoCo reset
         self._steps = 0
         self._x = 0.0  # pelvis x
-        self._lig_force: list[float] = []  # the ligament forces of the current state
-        self._lig_applied: tuple[list[float], list[float]] = ([], [])  # (springs, dampings) in effect
         self._running = False
 
     # Read-only views for the validator and loggers; the env alone changes the simulation.
@@ -190,12 +148,12 @@ class RunEnv(gym.Env):
     @property
     def max_isometric_force(self) -> np.ndarray:
         """This episode's max isometric forces (N), psoas strengths applied, in action order."""
-        return self._params[:, thelen.MAX_FORCE].copy()
+        return self._physics.params[:, thelen.MAX_FORCE].copy()
 
     @property
     def excitation(self) -> np.ndarray:
         """The excitations held over the last step, clipped to [0, 1]."""
-        return self._excitation.copy()
+        return self._physics.excitation.copy()
 
     def reset(
         self, *, seed: int | None = None, options: dict | None = None
@@ -216,22 +174,14 @@ class RunEnv(gym.Env):
             m.geom_size[g, 0] = r
             m.geom_rbound[g] = r
             m.geom_aabb[g, 3:] = r  # the broad phase reads the box, not only rbound
-        self._params[:] = self._muscle_table
-        self._params[list(self._psoas), thelen.MAX_FORCE] *= self.psoas
+        params = self._physics.params
+        params[:] = self._muscle_table
+        params[list(self._psoas), thelen.MAX_FORCE] *= self.psoas
 
-        # The .osim default pose, at rest; its ligaments are set before the one forward pass,
-        # so the passive forces include their damping. Muscles start as OpenSim's do: at their
-        # default activation, fibres in equilibrium with their tendons.
+        # The .osim default pose, at rest, muscles as OpenSim starts them.
         mujoco.mj_resetDataKeyframe(m, d, self._default_pose)
-        self._lig_applied = ([], [])  # the reset cleared qfrc_applied: write both again
-        self._apply_ligaments(self._lig_kernel(d.qpos.tolist()))
-        self._moving.place(m, d.qpos)
-        mujoco.mj_forward(m, d)
-        self._excitation[:] = 0.0
-        self._activation[:] = thelen.DEFAULT_ACTIVATION
-        thelen.equilibrate(self._params, self._activation, d.ten_length[self._paths.tendons(d.qpos)], self._fiber, self._tendon_force)
-        self._lig_force = self._lig_kernel.total(*self._lig_applied, d.qvel.tolist())
-        self._x = float(d.qpos[self._x_adr])
+        self._physics.reset()
+        self._x = float(self._qpos[self._x_adr])
         self._steps = 0
         self._running = True
         return self._observe(), self._info()
@@ -241,29 +191,17 @@ class RunEnv(gym.Env):
         other than (18,) raise ValueError."""
         if not self._running:
             raise RuntimeError("RunEnv.step() needs reset() first, and again after an episode ends")
-        checked_excitations(action, out=self._excitation)
-        m, d = self._m, self._d
-
-        # Substeps as step2 then step1, so that after the loop the kinematics (body positions,
-        # centre of mass, tendon lengths) describe the final state without an extra mj_forward.
-        # The ligaments depend on positions alone, so they are set between the two halves, after
-        # the integration moved the joints and before step1 computes the passive (damping) forces.
-        # Muscles and contacts need step1's velocities too, so they come first in each substep.
+        physics, d = self._physics, self._d
+        checked_excitations(action, out=physics.excitation)
         t_before = d.time
-        kernel = self._lig_kernel
-        for _ in range(self.substeps):
-            self._drive()
-            mujoco.mj_step2(m, d)
-            qpos = d.qpos.tolist()
-            self._apply_ligaments(kernel(qpos))
-            self._moving.place(m, d.qpos)
-            mujoco.mj_step1(m, d)
-        forces = self._lig_force = kernel.total(*self._lig_applied, d.qvel.tolist())
+        physics.step(self.substeps)
         self._steps += 1
 
-        x_before, self._x = self._x, qpos[self._x_adr]
+        qpos = self._qpos
+        x_before, self._x = self._x, float(qpos[self._x_adr])
+        forces = physics.ligament_force.tolist()
         reward = (self._x - x_before) - math.sqrt(sum([f * f for f in forces])) * LIGAMENT_PENALTY
-        terminated = qpos[self._y_adr] < FALL_HEIGHT
+        terminated = bool(qpos[self._y_adr] < FALL_HEIGHT)
         truncated = self._steps >= self.max_steps
         info = self._info()
         # MuJoCo resets the data when the simulation diverges (time restarts, the body jumps to
@@ -273,47 +211,6 @@ class RunEnv(gym.Env):
             terminated, reward, info["diverged"] = True, 0.0, True
         self._running = not (terminated or truncated)
         return self._observe(), reward, terminated, truncated, info
-
-    def _drive(self) -> None:
-        """Muscle and ground forces for the coming physics step, into the actuators.
-
-        Each actuator's force is ctrl + bias·(its speed). The muscles' forces are those at the
-        step's end with the tendon lengths moving at their current speed; the bias carries the
-        tendon stiffness times the step, which MuJoCo's implicit integrator applies to the speed
-        change over the step. The contacts' bias is their damping along x and y; their sites move
-        to the contact points first, so that MuJoCo's speeds and moment arms are the points'.
-        """
-        m, d, v = self._m, self._d, self._views
-        paths, moving = self._paths, self._moving
-        moving.rates(d)
-        self._speed[:] = v.ten_velocity
-        moving.speeds(v.qvel, self._speed)
-        _muscle_actuation(m.opt.timestep, self._params, self._activation, self._fiber, self._excitation,
-                          self._tendon_force, self._tendon_stiffness, self._tension, self._tendons,
-                          v.qpos, v.ten_length, self._speed, v.ten_velocity, v.ctrl, v.biasprm,
-                          paths.on, paths.muscle, paths.qpos, paths.low, paths.high, paths.off_tendon, paths.off_actuator)
-        moving.torques(self._tension, v.ctrl)
-        self._ground()
-        _contact_actuation(self._ground_force, self._ground_damping, self._point, self._local, self._contact_sites,
-                           self._contact_x, self._contact_y, v.site_pos, v.site_xpos, v.actuator_velocity, v.ctrl, v.biasprm)
-        mujoco.mj_transmission(m, d)
-
-    def _ground(self) -> None:
-        v = self._views
-        ground_forces(self._law, self._radius, v.geom_xpos[self._spheres], self._sphere_body, self._sphere_root,
-                      v.xpos, v.xmat, v.cvel, v.subtree_com, self._point, self._local,
-                      self._ground_force, self._ground_damping)
-
-    def _apply_ligaments(self, state: tuple[list[float], list[float]]) -> None:
-        """Put the ligaments' springs in qfrc_applied and their damping in dof_damping (the body
-        has no other joint damping); skipped when nothing changed, as within every limit."""
-        if state == self._lig_applied:
-            return
-        qfrc, damping = self._d.qfrc_applied, self._m.dof_damping
-        for dof, f, c in zip(self._lig_dofs, *state):
-            qfrc[dof] = f
-            damping[dof] = c
-        self._lig_applied = state
 
     def _diverged(self) -> bool:
         """Whether MuJoCo has reset a diverging simulation since the episode began."""
@@ -326,79 +223,21 @@ class RunEnv(gym.Env):
         return obs
 
     def _info(self) -> dict[str, Any]:
-        d = self._d
-        length = d.ten_length[self._paths.tendons(d.qpos)]
-        force = np.empty(NUM_MUSCLES)
-        thelen.tendon_forces(self._params, self._fiber, length, force)
-        self._ground()
+        d, physics = self._d, self._physics
         # The sensors report the force the sphere exerts on obstacles; the force on it is the opposite.
         contact = -d.sensordata[self._obstacle_contact].reshape(len(FOOT_SPHERES), 3)
-        contact[:, :2] += self._ground_force
+        contact[:, :2] += physics.ground_force
         return {
             "distance": self._x,
             "body_pos": d.xpos.copy(),
             "body_quat": d.xquat.copy(),
-            "muscle_activation": self._activation.copy(),
-            "muscle_length": length,
-            "muscle_force": force,
-            "fiber_length": self._fiber.copy(),
-            "ligament_force": np.array(self._lig_force),
+            "muscle_activation": physics.activation.copy(),
+            "muscle_length": physics.muscle_length.copy(),
+            "muscle_force": physics.muscle_force.copy(),
+            "fiber_length": physics.fiber.copy(),
+            "ligament_force": physics.ligament_force.copy(),
             "contact_force": contact,
         }
-
-
-class _Views:
-    """MjData and MjModel arrays the step touches, looked up once: the bindings build a new
-    array object on every attribute access, and the step touches them tens of times."""
-
-    def __init__(self, m: mujoco.MjModel, d: mujoco.MjData):
-        self.qpos, self.qvel, self.ctrl, self.actuator_velocity = d.qpos, d.qvel, d.ctrl, d.actuator_velocity
-        self.ten_length, self.ten_velocity = d.ten_length, d.ten_velocity
-        self.xpos, self.xmat, self.cvel, self.subtree_com = d.xpos, d.xmat, d.cvel, d.subtree_com
-        self.geom_xpos, self.site_xpos = d.geom_xpos, d.site_xpos
-        self.site_pos, self.biasprm = m.site_pos, m.actuator_biasprm
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _muscle_actuation(dt, params, activation, fiber, excitation, force, stiffness, tension, tendons,
-                      qpos, ten_length, ten_speed, ten_velocity, ctrl, biasprm,
-                      on_tendon, switch_muscle, switch_qpos, low, high, off_tendon, off_actuator):
-    """Advance the muscles over the coming physics step, their lengths moving at `ten_speed`,
-    and set their actuators: each muscle pulls through the tendon its conditional point selects
-    (the other actuator idles), with ctrl + bias·(MuJoCo's tendon velocity) = -(end force +
-    stiffness·dt·(change of that velocity over the step))."""
-    select_tendons(on_tendon, switch_muscle, switch_qpos, low, high, off_tendon, qpos, tendons)
-    n = params.shape[0]
-    length, speed = np.empty(n), np.empty(n)
-    for i in range(n):
-        length[i], speed[i] = ten_length[tendons[i]], ten_speed[tendons[i]]
-    thelen.advance(params, activation, fiber, excitation, length, speed, dt, FIBER_SUBSTEPS, force, stiffness)
-    tension[:] = 0.0
-    for i in range(n):
-        tension[tendons[i]] = force[i]
-        ctrl[i] = stiffness[i] * dt * ten_velocity[tendons[i]] - force[i]
-        biasprm[i, 2] = -stiffness[i] * dt
-    for k in range(switch_muscle.shape[0]):
-        i, a = switch_muscle[k], off_actuator[k]
-        if tendons[i] == off_tendon[k]:
-            ctrl[a], biasprm[a, 2] = ctrl[i], biasprm[i, 2]
-            ctrl[i] = biasprm[i, 2] = 0.0
-        else:
-            ctrl[a] = biasprm[a, 2] = 0.0
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _contact_actuation(force, damping, point, local, sites, x_actuators, y_actuators,
-                       site_pos, site_xpos, actuator_velocity, ctrl, biasprm):
-    """Move the contact sites to the contact points and set their x and y actuators. MuJoCo's
-    actuator speeds were taken at the sites' old places; ctrl cancels them, so the force is the
-    kernel's at the current state and only the speed change goes through the damping."""
-    for k in range(sites.shape[0]):
-        site_pos[sites[k]] = local[k]
-        site_xpos[sites[k]] = point[k]
-        for axis, a in ((0, x_actuators[k]), (1, y_actuators[k])):
-            ctrl[a] = force[k, axis] - damping[k, axis] * actuator_velocity[a]
-            biasprm[a, 2] = damping[k, axis]
 
 
 def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:

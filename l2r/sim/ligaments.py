@@ -15,6 +15,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from l2r.sim.model import OSIM_PATH
@@ -74,10 +75,43 @@ def default_limits() -> LimitParams:
     return read_limits()
 
 
-def smooth_step(x: np.ndarray) -> np.ndarray:
-    """Simbody's quintic step on [0, 1]: 0 below, 1 above, C2 in between."""
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
+# Columns of the kernel's parameter table, one row per ligament.
+UPPER, LOWER, K_UPPER, K_LOWER, DAMPING, INVERSE_TRANSITION = range(6)
+
+
+def ligament_table(params: LimitParams | None = None) -> np.ndarray:
+    """The kernel's parameters (n, 6), in the columns above."""
+    p = default_limits() if params is None else params
+    return np.stack([p.upper, p.lower, p.k_upper, p.k_lower, p.damping, 1.0 / p.transition], axis=1)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def engage(table: np.ndarray, qpos: np.ndarray, qpos_adr: np.ndarray, spring: np.ndarray, damping: np.ndarray) -> None:
+    """Each ligament's spring force (N·m) and engaged damping (N·m·s/rad) at `qpos`, whose
+    limited coordinates `qpos_adr` locates in the table's order; the whole force is
+    spring - damping · speed.
+
+    The two parts are kept apart because the simulation applies the spring as a generalised
+    force and gives the damping to MuJoCo as joint damping, which the implicit integrator
+    handles stably: applied explicitly, the 14 N·m·s/rad of a fully engaged ligament on the
+    light foot makes the physics step diverge now and then.
+    """
+    for i in range(table.shape[0]):
+        x = qpos[qpos_adr[i]]
+        if x > table[i, UPPER]:
+            over, k = x - table[i, UPPER], table[i, K_UPPER]
+            s = over * table[i, INVERSE_TRANSITION]
+        elif x < table[i, LOWER]:
+            over, k = x - table[i, LOWER], table[i, K_LOWER]
+            s = -over * table[i, INVERSE_TRANSITION]
+        else:
+            spring[i] = damping[i] = 0.0
+            continue
+        if s > 1.0:
+            s = 1.0
+        step = s * s * s * (10.0 + s * (-15.0 + 6.0 * s))  # Simbody's quintic step
+        spring[i] = -step * k * over
+        damping[i] = step * table[i, DAMPING]
 
 
 def ligament_forces(q: np.ndarray, qdot: np.ndarray, params: LimitParams | None = None) -> np.ndarray:
@@ -86,70 +120,17 @@ def ligament_forces(q: np.ndarray, qdot: np.ndarray, params: LimitParams | None 
     `q` (rad) and `qdot` (rad/s) hold the limited coordinates in `LIGAMENTS` order along the last
     axis; any leading batch shape is kept.
     """
-    p = default_limits() if params is None else params
-    q = np.asarray(q, dtype=np.float64)
-    qdot = np.asarray(qdot, dtype=np.float64)
-    over = q - p.upper
-    under = p.lower - q
-    s_up = smooth_step(over / p.transition)
-    s_low = smooth_step(under / p.transition)
-    return -p.k_upper * s_up * over + p.k_lower * s_low * under - p.damping * (s_up + s_low) * qdot
+    table = ligament_table(params)
+    q, qdot = np.broadcast_arrays(np.asarray(q, dtype=np.float64), np.asarray(qdot, dtype=np.float64))
+    out = np.empty(q.shape)
+    _forces(table, q.reshape(-1, len(table)), qdot.reshape(-1, len(table)), out.reshape(-1, len(table)))
+    return out
 
 
-class LigamentKernel:
-    """`ligament_forces` for a single state, in plain Python floats, split in two parts.
-
-    The simulation calls this every physics substep, where numpy's per-call overhead on six
-    numbers would cost several times the arithmetic. It returns the spring part of each force and
-    the damping coefficient in force (the damping times the quintic step), apart: the simulation
-    applies the spring as a generalised force and gives the damping to MuJoCo as joint damping,
-    which the implicit integrator handles stably. Applied explicitly, the 14 N·m·s/rad of a fully
-    engaged ligament on the light foot makes the 0.005 s step diverge now and then.
-    `qpos_adr` and `qvel_adr` locate the limited coordinates (in `params.coordinates` order) in
-    the sequences passed to `__call__` and `total`. `total` agrees with `ligament_forces` to
-    rounding (a test checks it).
-    """
-
-    def __init__(self, qpos_adr: list[int], qvel_adr: list[int], params: LimitParams | None = None):
-        p = default_limits() if params is None else params
-        if not len(qpos_adr) == len(qvel_adr) == len(p.names):
-            raise ValueError(f"need {len(p.names)} position and velocity addresses")
-        self.params = p
-        self._qvel_adr = [int(i) for i in qvel_adr]
-        self._rows = list(
-            zip(
-                [int(i) for i in qpos_adr],
-                p.upper.tolist(),
-                p.lower.tolist(),
-                p.k_upper.tolist(),
-                p.k_lower.tolist(),
-                p.damping.tolist(),
-                (1.0 / p.transition).tolist(),
-            )
-        )
-
-    def __call__(self, qpos: list[float]) -> tuple[list[float], list[float]]:
-        """Spring force (N·m) and engaged damping (N·m·s/rad) of each ligament at `qpos`."""
-        springs, dampings = [], []
-        for qa, upper, lower, k_up, k_low, damping, inv_tr in self._rows:
-            x = qpos[qa]
-            if x > upper:
-                over, k = x - upper, k_up
-                s = over * inv_tr
-            elif x < lower:
-                over, k = x - lower, k_low
-                s = -over * inv_tr
-            else:
-                springs.append(0.0)
-                dampings.append(0.0)
-                continue
-            if s > 1.0:
-                s = 1.0
-            step = s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
-            springs.append(-step * k * over)
-            dampings.append(step * damping)
-        return springs, dampings
-
-    def total(self, springs: list[float], dampings: list[float], qvel: list[float]) -> list[float]:
-        """The whole force of each ligament (N·m), as OpenSim reports it, at speeds `qvel`."""
-        return [f - c * qvel[va] for f, c, va in zip(springs, dampings, self._qvel_adr)]
+@numba.njit(cache=True, error_model="numpy")
+def _forces(table, q, qdot, out):
+    adr = np.arange(table.shape[0])
+    spring, damping = np.empty(table.shape[0]), np.empty(table.shape[0])
+    for row in range(q.shape[0]):
+        engage(table, q[row], adr, spring, damping)
+        out[row] = spring - damping * qdot[row]

@@ -10,7 +10,7 @@
   evaluates the splines at the coordinate clamped to its .osim range, so the point stops where
   the range ends: 2.5 mm of vasti length at 14 degrees of knee hyperextension), and
   since MuJoCo's tendon Jacobian takes every site as fixed in its body, what the point's own
-  motion adds is supplied here: its share of the lengthening speed (`MovingPoints.speeds`) and
+  motion adds is supplied here: its share of the lengthening speed (`add_point_speeds`) and
   its work as a generalised force on the coordinate (`MovingPoints.torques`), as OpenSim's
   `GeometryPath` adds it. Both need `rates` first, at the state the points were placed in.
 """
@@ -115,22 +115,17 @@ class MovingPoints:
 
     def place(self, model: mujoco.MjModel, qpos: np.ndarray) -> None:
         """Move the sites to where their coordinates put them (before MuJoCo's kinematics)."""
-        _place(self.table, self.qpos, self.site, qpos, model.site_pos)
+        place_points(self.table, self.qpos, self.site, qpos, model.site_pos)
 
     def rates(self, data: mujoco.MjData) -> None:
         """How fast each path lengthens per unit of its coordinate through the point's motion
         alone; needs the kinematics of the state the points were placed in."""
-        _rates(self.table, self.qpos, self.site, self.neighbours, self.body, data.qpos, data.site_xpos, data.xmat, self.rate)
-
-    def speeds(self, qvel: np.ndarray, speed: np.ndarray) -> None:
-        """Add each point's share to its tendon's lengthening speed (`speed`, per tendon)."""
-        np.add.at(speed, self.tendon, self.rate * qvel[self.dof])
+        point_rates(self.table, self.qpos, self.site, self.neighbours, self.body, data.qpos, data.site_xpos, data.xmat, self.rate)
 
     def torques(self, tension: np.ndarray, ctrl: np.ndarray) -> None:
         """Set `ctrl` of the coordinates' actuators to the points' generalised force for the
         tendons' tensions (N, pulling positive, per tendon; zero for an idle tendon)."""
-        ctrl[self.torque_actuators] = 0.0
-        np.add.at(ctrl, self.actuator, -tension[self.tendon] * self.rate)
+        point_torques(self.torque_actuators, self.actuator, self.tendon, self.rate, tension, ctrl)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -142,7 +137,8 @@ def _lookup(table: np.ndarray, q: float) -> tuple[int, float]:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _place(table, coord, site, qpos, site_pos):
+def place_points(table, coord, site, qpos, site_pos):
+    """`MovingPoints.place` from its arrays."""
     for k in range(site.shape[0]):
         i, t = _lookup(table[k], qpos[coord[k]])
         for j in range(3):
@@ -150,7 +146,8 @@ def _place(table, coord, site, qpos, site_pos):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _rates(table, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
+def point_rates(table, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
+    """`MovingPoints.rates` from its arrays."""
     for k in range(site.shape[0]):
         i, _ = _lookup(table[k], qpos[coord[k]])
         # dP/dq in the body, then in the world
@@ -166,3 +163,19 @@ def _rates(table, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
             if n >= 0:
                 v = p - site_xpos[n]
                 rate[k] += np.dot(v, world) / np.sqrt(np.dot(v, v))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def add_point_speeds(tendon, dof, rate, qvel, speed):
+    """Add each point's share to its tendon's lengthening speed (`speed`, per tendon)."""
+    for k in range(tendon.shape[0]):
+        speed[tendon[k]] += rate[k] * qvel[dof[k]]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def point_torques(torque_actuators, actuator, tendon, rate, tension, ctrl):
+    """`MovingPoints.torques` from its arrays."""
+    for a in torque_actuators:
+        ctrl[a] = 0.0
+    for k in range(actuator.shape[0]):
+        ctrl[actuator[k]] += -tension[tendon[k]] * rate[k]

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from l2r.sim.ligaments import LIGAMENTS, LigamentKernel, default_limits, ligament_forces
+from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 
 REFERENCE = Path(__file__).parents[2] / "l2r" / "sim" / "assets" / "opensim_reference.json"
 
@@ -41,13 +41,6 @@ def test_matches_opensim_within_one_percent(samples):
     assert active.sum() > 100, "the reference should exercise the limits"
     np.testing.assert_allclose(got[active], expected[active], rtol=0.01)
     np.testing.assert_array_equal(got[~active], 0.0)
-
-
-def test_kernel_agrees_with_the_vectorised_formula(samples):
-    q, qdot, _ = samples
-    kernel = LigamentKernel(range(6), range(6))
-    got = np.array([kernel.total(*kernel(a.tolist()), b.tolist()) for a, b in zip(q, qdot)])
-    np.testing.assert_allclose(got, ligament_forces(q, qdot), rtol=1e-12, atol=1e-9)
 
 
 def test_transition_is_smooth_and_damping_acts_only_past_the_limit():
