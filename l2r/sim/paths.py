@@ -148,20 +148,22 @@ def place_points(table, coord, site, qpos, site_pos):
 @numba.njit(cache=True, error_model="numpy")
 def point_rates(table, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
     """`MovingPoints.rates` from its arrays."""
+    local, world, v = np.empty(3), np.empty(3), np.empty(3)
     for k in range(site.shape[0]):
         i, _ = _lookup(table[k], qpos[coord[k]])
         # dP/dq in the body, then in the world
-        local = (table[k, i + 1] - table[k, i]) / TABLE_STEP
-        world = np.zeros(3)
+        for c in range(3):
+            local[c] = (table[k, i + 1, c] - table[k, i, c]) / TABLE_STEP
         for r in range(3):
+            world[r] = 0.0
             for c in range(3):
                 world[r] += xmat[body[k], 3 * r + c] * local[c]
         # d(path length)/dq through this point: the unit vectors to it from both neighbours
         rate[k] = 0.0
-        p = site_xpos[site[k]]
         for n in neighbours[k]:
             if n >= 0:
-                v = p - site_xpos[n]
+                for j in range(3):
+                    v[j] = site_xpos[site[k], j] - site_xpos[n, j]
                 rate[k] += np.dot(v, world) / np.sqrt(np.dot(v, v))
 
 
