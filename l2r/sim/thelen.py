@@ -37,8 +37,8 @@ TOE_FORCE, TOE_SHAPE = 0.33, 3.0  # tendon curve: normalised force and shape at 
 
 # Columns of the parameter table, one row per muscle.
 (MAX_FORCE, OPTIMAL_LENGTH, SLACK_LENGTH, WIDTH, MAX_SPEED, TAU_ACTIVATION, TAU_DEACTIVATION,
- TOE_STRAIN, TENDON_SLOPE, MUSCLE_STRAIN, PASSIVE_SHAPE, MIN_FIBER_LENGTH) = range(12)  # fmt: skip
-NUM_PARAMS = 12
+ TOE_STRAIN, TENDON_SLOPE, MUSCLE_STRAIN, PASSIVE_SHAPE, PASSIVE_SCALE, MIN_FIBER_LENGTH) = range(13)  # fmt: skip
+NUM_PARAMS = 13
 
 
 def muscle_parameters(muscles: list[Muscle]) -> np.ndarray:
@@ -59,6 +59,7 @@ def muscle_parameters(muscles: list[Muscle]) -> np.ndarray:
         row[TENDON_SLOPE] = (1.0 - TOE_FORCE) / (m.tendon_strain - toe_strain)
         row[MUSCLE_STRAIN] = m.muscle_strain
         row[PASSIVE_SHAPE] = m.passive_shape
+        row[PASSIVE_SCALE] = math.exp(m.passive_shape) - 1.0  # an exp the passive curve saves on every call
         # OpenSim's fixed-width pennation model: no shorter than 1 % of optimal, nor than the
         # length at which the fibre would reach the maximum pennation angle
         row[MIN_FIBER_LENGTH] = max(0.01 * m.optimal_length, width / math.sin(MAX_PENNATION))
@@ -98,8 +99,7 @@ def _active_length(ln: float) -> float:
 def _passive_length(ln: float, p: np.ndarray) -> float:
     if ln <= 1.0:
         return 0.0
-    k = p[PASSIVE_SHAPE]
-    return (math.exp(k * (ln - 1.0) / p[MUSCLE_STRAIN]) - 1.0) / (math.exp(k) - 1.0)
+    return (math.exp(p[PASSIVE_SHAPE] * (ln - 1.0) / p[MUSCLE_STRAIN]) - 1.0) / p[PASSIVE_SCALE]
 
 
 @numba.njit(cache=True, error_model="numpy")
