@@ -44,6 +44,7 @@ OBS_SIZE = 41
 NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
 
+NO_CONTACTS = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
 # Warnings MuJoCo counts when it resets a diverging simulation.
 DIVERGENCE_WARNINGS = tuple(
     int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{what}")) for what in ("QACC", "QPOS", "QVEL")
@@ -174,6 +175,12 @@ class RunEnv(gym.Env):
             m.geom_size[g, 0] = r
             m.geom_rbound[g] = r
             m.geom_aabb[g, 3:] = r  # the broad phase reads the box, not only rbound
+        # Without obstacles every MuJoCo contact the body can make is with the parked ones, 10 m
+        # underground: collision detection, a tenth of MuJoCo's step, could only find nothing.
+        if self.obstacles:
+            m.opt.disableflags &= ~NO_CONTACTS
+        else:
+            m.opt.disableflags |= NO_CONTACTS
         params = self._physics.params
         params[:] = self._muscle_table
         params[list(self._psoas), thelen.MAX_FORCE] *= self.psoas
