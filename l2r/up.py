@@ -3,18 +3,22 @@
 Starts one replay server, one learner and N actors (plus an evaluator) as separate processes
 that talk over loopback Zenoh: the replay server and the learner listen on free 127.0.0.1
 ports, everyone else connects to both, multicast scouting is off, and no router is needed.
-It watches them (a crashed process is restarted; the learner resumes from its checkpoint),
-prints a live status line from the stats and episode summaries the daemons publish, and stops
-everything when the budget is spent or on Ctrl-C / SIGTERM: actors first, then the learner
-(which checkpoints), then the replay server (which snapshots).
+`l2r.supervise` restarts what exits and gives up on what keeps failing, `l2r.run_metrics`
+writes what the daemons publish to metrics files, `l2r.best_policy` keeps the best evaluated
+policy, `l2r.live_status` shows it all. The job stops when its budget is spent, on Ctrl-C /
+SIGTERM, or when it gives up on a process: actors first, then the learner (which checkpoints),
+then the replay server (which snapshots).
 
 The run directory `runs/<name>-<timestamp>/` keeps:
+    launch.json           the run's flags (reused by --resume), Zenoh run name, each session's ports
     logs/<process>.log    one log per process (a restarted one appends)
-    learner/              the learner's checkpoints (`l2r eval` takes this run directory)
+    learner/              the learner's checkpoints and best.pt (`l2r eval` takes this run directory)
     replay/               replay snapshots
     episodes/             MCAP logs of every Nth training episode and of evaluation episodes
-    metrics.jsonl         status snapshots ("status") and episode summaries ("episode")
-    summary.json          the final status, restarts and the best evaluation episode
+    metrics/              TensorBoard event files and CSV files (see l2r.run_metrics)
+    summary.json          how the job ended, the final figures, restarts, the best evaluation
+                          episode (by distance) and the best evaluated policy
+    best_eval.rrd         a Rerun recording of that same best evaluation episode
 """
 
 from __future__ import annotations
@@ -22,31 +26,33 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
+import os
 import signal
+import socket
 import sys
 import threading
 import time
+import zipfile
 from datetime import datetime, timezone
 from pathlib import Path
 
-import os
-import socket
-import subprocess
-from collections import deque
-from dataclasses import dataclass, field
-
+import numpy as np
 import zenoh
 
-from l2r.protocol import (
-    EpisodeSummary, Keys, LearnerVersion, ProtocolError, Stats, decode, session_config,
-)
-from l2r.view import best_episode, write_recording
+from l2r.best_policy import BestPolicy
+from l2r.config import CommandParser
+from l2r.learner.checkpoint import checkpoint_path
+from l2r.live_status import StatusDisplay
+from l2r.protocol import Keys, session_config
+from l2r.run_metrics import RunCounters, RunMetrics
+from l2r.supervise import Child, ProcessGroup, last_lines
+from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
 
+# Flags a --resume does not take from launch.json: they name the run directory, not the job.
+NOT_REUSED = {"resume", "name", "runs_dir"}
 
-# -- processes ---------------------------------------------------------------------------------
 
 def loopback(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
@@ -59,242 +65,40 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-@dataclass
-class Child:
-    """One daemon of the job. Higher tiers stop first (actors, then learner, then replay)."""
-
-    name: str
-    argv: list[str]
-    tier: int
-    resume_args: list[str] = field(default_factory=list)
-    nice: int = 0
-    process: subprocess.Popen | None = None
-    restarts: int = 0
-    crash_times: deque = field(default_factory=deque)
-
-
-class ProcessGroup:
-    """Starts the children with one log file each, restarts the ones that exit, stops them in tiers."""
-
-    def __init__(self, children: list[Child], log_dir: Path, resume: bool = False,
-                 max_crashes: int = 5, crash_window: float = 60.0):
-        self.children = children
-        self.log_dir = log_dir
-        self.resume = resume
-        self.max_crashes, self.crash_window = max_crashes, crash_window
-
-    def _spawn(self, child: Child, resume: bool) -> None:
-        argv = child.argv + (child.resume_args if resume else [])
-        with open(self.log_dir / f"{child.name}.log", "ab") as out:
-            # A session of its own: a Ctrl-C at the terminal reaches `l2r up` only, which then
-            # stops the children in order.
-            child.process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                             start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                                             preexec_fn=(lambda: os.nice(child.nice)) if child.nice else None)
-        log.info("started %s (pid %d)%s", child.name, child.process.pid, " with --resume" if resume and child.resume_args else "")
-
-    def start(self) -> None:
-        for child in self.children:
-            self._spawn(child, self.resume)
-
-    def supervise(self, on_restart) -> bool:
-        """Restart every child that exited; False when one crashed too often to go on."""
-        now = time.monotonic()
-        for child in self.children:
-            code = child.process.poll()
-            if code is None:
-                continue
-            child.crash_times.append(now)
-            while child.crash_times and now - child.crash_times[0] > self.crash_window:
-                child.crash_times.popleft()
-            if len(child.crash_times) > self.max_crashes:
-                log.error("%s exited %d times within %.0f s (last code %s); giving up, see logs/%s.log",
-                          child.name, len(child.crash_times), self.crash_window, code, child.name)
-                return False
-            log.warning("%s exited with code %s; restarting it (see logs/%s.log)", child.name, code, child.name)
-            child.restarts += 1
-            on_restart(child.name, code)
-            self._spawn(child, resume=True)
-        return True
-
-    def stop(self, timeout: float = 30.0) -> None:
-        """SIGTERM tier by tier (highest first), wait, then SIGKILL what is left."""
-        for tier in sorted({c.tier for c in self.children}, reverse=True):
-            group = [c for c in self.children if c.tier == tier and c.process and c.process.poll() is None]
-            for child in group:
-                child.process.terminate()
-            deadline = time.monotonic() + timeout
-            for child in group:
-                try:
-                    child.process.wait(max(deadline - time.monotonic(), 0.1))
-                    log.info("%s stopped (code %s)", child.name, child.process.returncode)
-                except subprocess.TimeoutExpired:
-                    log.warning("%s did not stop within %.0f s; killing it", child.name, timeout)
-                    child.process.kill()
-                    child.process.wait()
-
-
-# -- status --------------------------------------------------------------------------------------
-
-class StatusBoard:
-    """Collects what the daemons publish, writes metrics.jsonl, and renders the status line."""
-
-    def __init__(self, session: zenoh.Session, keys: Keys, metrics_path: Path, recent: int = 20):
-        self._lock = threading.Lock()
-        self._out = open(metrics_path, "a")
-        self._t0 = time.time()
-        self.stats: dict[tuple[str, str], dict] = {}
-        self._steps_base: dict[str, int] = {}  # steps of earlier incarnations of each actor
-        self._steps_last: dict[str, int] = {}
-        self.train: deque[EpisodeSummary] = deque(maxlen=recent)
-        self.evals: deque[EpisodeSummary] = deque(maxlen=recent)
-        self.best_eval: EpisodeSummary | None = None
-        self.episodes = 0
-        self.version = -1
-        self.restarts: dict[str, int] = {}
-        self._subs = [session.declare_subscriber(k, self._on_stats) for k in (keys.all_stats, keys.all_metrics)]
-        self._subs.append(session.declare_subscriber(keys.all_episodes, self._on_episode))
-        self._subs.append(session.declare_subscriber(keys.learner_version, self._on_version))
-
-    def _write(self, record: dict) -> None:
-        self._out.write(json.dumps(record) + "\n")
-
-    def _on_stats(self, sample: zenoh.Sample) -> None:
-        try:
-            stats = decode(sample.payload, Stats)
-        except ProtocolError as e:
-            log.debug("ignored stats on %s: %s", sample.key_expr, e)
-            return
-        with self._lock:
-            self.stats[(stats.role, stats.instance)] = stats.values
-            if stats.role == "actor" and "env_steps" in stats.values:
-                steps = int(stats.values["env_steps"])
-                if steps < self._steps_last.get(stats.instance, 0):  # a restarted actor counts from 0
-                    self._steps_base[stats.instance] = self._steps_base.get(stats.instance, 0) + self._steps_last[stats.instance]
-                self._steps_last[stats.instance] = steps
-
-    def _on_episode(self, sample: zenoh.Sample) -> None:
-        try:
-            ep = decode(sample.payload, EpisodeSummary)
-        except ProtocolError as e:
-            log.debug("ignored episode summary on %s: %s", sample.key_expr, e)
-            return
-        with self._lock:
-            self.episodes += 1
-            (self.evals if ep.evaluation else self.train).append(ep)
-            if ep.evaluation and (self.best_eval is None or ep.distance > self.best_eval.distance):
-                self.best_eval = ep
-            self._write({"type": "episode", "t": time.time() - self._t0, "actor": ep.actor_id, "env": ep.env_id,
-                         "evaluation": ep.evaluation, "return": ep.episode_return, "distance": ep.distance,
-                         "length": ep.length, "version": ep.policy_version, "seed": ep.seed,
-                         "difficulty": ep.difficulty})
-
-    def _on_version(self, sample: zenoh.Sample) -> None:
-        try:
-            self.version = max(self.version, decode(sample.payload, LearnerVersion).version)
-        except ProtocolError:
-            pass
-
-    def note_restart(self, name: str, code: int | None) -> None:
-        with self._lock:
-            self.restarts[name] = self.restarts.get(name, 0) + 1
-            self._write({"type": "restart", "t": time.time() - self._t0, "process": name, "exit_code": code})
-
-    @property
-    def env_steps(self) -> int:
-        with self._lock:
-            return sum(self._steps_base.values()) + sum(self._steps_last.values())
-
-    def snapshot(self) -> dict:
-        """The figures of the status line, as numbers."""
-        env_steps = self.env_steps
-        with self._lock:
-            by_role: dict[str, list[dict]] = {}
-            for (role, _), values in self.stats.items():
-                by_role.setdefault(role, []).append(values)
-            actors, learners, replays = by_role.get("actor", []), by_role.get("learner", []), by_role.get("replay", [])
-
-            def total(rows, key):
-                return sum(float(v.get(key, 0.0)) for v in rows)
-
-            def mean(eps, attr):
-                return sum(getattr(e, attr) for e in eps) / len(eps) if eps else None
-
-            return {
-                "env_steps": env_steps,
-                "env_steps_per_s": total(actors, "env_steps_per_s"),
-                "updates": int(total(learners, "updates")),
-                "updates_per_s": total(learners, "updates_per_s"),
-                "version": max([self.version] + [int(v.get("version", -1)) for v in learners]),
-                "policy_lag": max([lag for v in replays + learners if math.isfinite(lag := float(v.get("policy_lag", 0.0)))] or [0.0]),
-                "actor_staleness": max([float(v.get("staleness", 0.0)) for v in actors] or [0.0]),
-                "replay_size": int(total(replays, "size")),
-                "episodes": self.episodes,
-                "recent_return": mean(self.train, "episode_return"),
-                "recent_distance": mean(self.train, "distance"),
-                "eval_distance": mean(self.evals, "distance"),
-                "best_eval_distance": self.best_eval.distance if self.best_eval else None,
-                "restarts": sum(self.restarts.values()),
-            }
-
-    def show(self, elapsed: float, final: bool = False) -> None:
-        s = self.snapshot()
-        with self._lock:
-            self._write({"type": "status", "t": time.time() - self._t0, "elapsed": elapsed, **s})
-            self._out.flush()
-
-        def num(x, fmt):
-            return "-" if x is None else format(x, fmt)
-
-        line = (f"[{elapsed:6.0f}s] env {s['env_steps_per_s']:7.0f} steps/s ({s['env_steps']:,})"
-                f" | learner {s['updates_per_s']:5.1f} upd/s ({s['updates']:,}, v{s['version']})"
-                f" | return {num(s['recent_return'], '.2f')} distance {num(s['recent_distance'], '.2f')} m"
-                f" | eval {num(s['eval_distance'], '.2f')} m | lag {s['policy_lag']:.0f}"
-                f" | replay {s['replay_size']:,}" + (f" | restarts {s['restarts']}" if s["restarts"] else ""))
-        if sys.stdout.isatty() and not final:
-            print("\r" + line + "\x1b[K", end="", flush=True)
-        else:
-            print(line, flush=True)
-
-    def summary(self) -> dict:
-        s = self.snapshot()
-        best = self.best_eval
-        s["best_eval_episode"] = None if best is None else {
-            "actor": best.actor_id, "seed": best.seed, "version": best.policy_version,
-            "distance": best.distance, "return": best.episode_return, "length": best.length}
-        s["restarts_by_process"] = dict(self.restarts)
-        return s
-
-    def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
-        with self._lock:
-            self._out.close()
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="l2r up",
         description="Train on this host: start a replay server, a learner and actors as separate "
-                    "processes over loopback Zenoh, show their progress, restart what crashes, and "
-                    "stop everything when the budget is spent or on Ctrl-C. The defaults are a short "
-                    "CPU demo (what `make run` starts); raise --seconds for real training.",
+                    "processes over loopback Zenoh, show their progress, restart what exits, give up on "
+                    "what keeps failing, and stop everything when the budget is spent or on Ctrl-C. "
+                    "Metrics go to RUN_DIR/metrics (TensorBoard and CSV: tensorboard --logdir runs/). "
+                    "The defaults are a short CPU demo (what `make run` starts); raise --seconds for real "
+                    "training.",
+        epilog="Exit codes: 0 the budget was spent (or Ctrl-C); 1 the job gave up on a process, or the "
+               "learner made no update; 2 bad usage.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    b = p.add_argument_group("budget (whichever is spent first)")
-    b.add_argument("--seconds", type=float, default=100.0, help="wall-clock budget of the training (0: none)")
-    b.add_argument("--env-steps", type=int, default=0, help="budget in actor steps, summed over actors (0: none)")
+    b = p.add_argument_group("budget of the whole run, whichever is spent first; time and env steps "
+                             "continue across --resume")
+    b.add_argument("--seconds", type=float, default=100.0, help="seconds of training (0: no limit)")
+    b.add_argument("--env-steps", type=int, default=0, help="actor steps, summed over actors (0: no limit)")
     r = p.add_argument_group("run")
     r.add_argument("--name", default="l2r", help="run name; the directory is <runs-dir>/<name>-<UTC timestamp>")
     r.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run directories go")
     r.add_argument("--resume", type=Path, metavar="RUN_DIR",
-                   help="continue a run directory: the learner resumes its checkpoint, replay restores its snapshot")
+                   help="continue a run directory with the flags in its launch.json (a flag given again "
+                        "replaces the stored one): the learner resumes its checkpoint, replay restores its "
+                        "snapshot, time and env-step counters go on")
     r.add_argument("--seed", type=int, default=0, help="base seed of the actors' episodes")
+    r.add_argument("--max-restarts", type=int, default=3,
+                   help="restarts of one process in a row without progress (learner updates, env steps, "
+                        "replay inserts) before the job gives up on it and exits with code 1")
     a = p.add_argument_group("actors")
     a.add_argument("--actors", type=int, default=2, help="actor processes")
     a.add_argument("--envs-per-actor", type=int, default=2, help="environments per actor, batched in one policy call")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
-    a.add_argument("--action-repeat", type=int, default=3, help="0.01 s environment steps per action")
+    a.add_argument("--action-repeat", type=int, default=3,
+                   help="0.01 s environment steps per action (stored in checkpoints for `l2r eval`)")
     a.add_argument("--random-steps", type=int, default=1000,
                    help="uniform random steps of each actor before it uses the policy (warm-up)")
     a.add_argument("--evaluators", type=int, default=1,
@@ -322,6 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--samples-per-insert", type=float, default=0.0,
                     help="replay rate limit: sampled transitions per inserted one (0: no limit)")
     le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions")
+    le.add_argument("--keep-checkpoints", type=int, default=3,
+                    help="learner checkpoints kept (learner/checkpoint-<updates>.pt; checkpoint.pt is the newest)")
     le.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                     help="extra argument for l2r-learner, e.g. --learner-arg=--lr=3e-4 (repeatable)")
     le.add_argument("--replay-arg", action="append", default=[], metavar="ARG",
@@ -336,16 +142,85 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# -- run directory and resume ------------------------------------------------------------------
+
+def _stored(value):
+    """A flag's value as launch.json keeps it."""
+    return str(value) if isinstance(value, Path) else value
+
+
+def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
+    """The job's flags and, for --resume, the run's launch.json. On --resume the stored flags
+    are the defaults, so a flag given again wins; each change of a stored flag is warned of."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.resume is None:
+        return _checked(parser, args), None
+    launch_path = args.resume / "launch.json"
+    if not args.resume.is_dir():
+        parser.error(f"--resume {args.resume}: no such run directory")
+    try:
+        launch = json.loads(launch_path.read_text())
+    except FileNotFoundError:
+        parser.error(f"--resume {args.resume}: no launch.json there, so not a run directory of l2r up")
+    except json.JSONDecodeError as e:
+        parser.error(f"--resume: {launch_path} is not JSON ({e})")
+    stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(args) and k not in NOT_REUSED}
+    parser.set_defaults(**stored)
+    args = parser.parse_args(argv)
+    for dest, old in stored.items():
+        if _stored(getattr(args, dest)) != old:
+            print(f"l2r up: warning: --{dest.replace('_', '-')} {getattr(args, dest)} replaces {old} from "
+                  f"{launch_path}", file=sys.stderr)
+    snapshot_capacity = replay_snapshot_capacity(args.resume / "replay")
+    if snapshot_capacity not in (None, args.capacity):
+        print(f"l2r up: warning: the replay snapshot in {args.resume / 'replay'} holds {snapshot_capacity:,} "
+              f"transitions' capacity; the replay server cannot restore it with --capacity {args.capacity:,} and the "
+              f"job will give up (move replay/ away to start with an empty replay)", file=sys.stderr)
+    return _checked(parser, args), launch
+
+
+def replay_snapshot_capacity(directory: Path) -> int | None:
+    """The capacity the replay snapshot in `directory` was taken with (the fourth of the storage's
+    counters, see l2r.replay.storage), or None without a readable one."""
+    try:
+        with np.load(directory / "replay-shard0.npz", allow_pickle=False) as snapshot:
+            return int(snapshot["counters"][3])
+    except (OSError, KeyError, IndexError, ValueError, zipfile.BadZipFile):
+        return None
+
+
+def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.Namespace:
+    if args.actors < 1 or args.envs_per_actor < 1:
+        parser.error("--actors and --envs-per-actor must be at least 1")
+    if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
+        parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
+    return args
+
+
 def make_run_dir(args: argparse.Namespace) -> Path:
     if args.resume:
-        if not args.resume.is_dir():
-            raise SystemExit(f"l2r up: --resume {args.resume}: no such run directory")
         return args.resume
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
     run_dir = args.runs_dir / f"{args.name}-{stamp}"
     run_dir.mkdir(parents=True, exist_ok=False)
     return run_dir
 
+
+def write_launch(run_dir: Path, args: argparse.Namespace, argv: list[str], launch: dict | None,
+                 ports: dict[str, int]) -> None:
+    """launch.json: the first session's command line, the run's flags as this session uses them,
+    and every session's command line and ports."""
+    record = launch or {"argv": argv, "zenoh_run": run_dir.name}
+    record["args"] = {k: _stored(v) for k, v in vars(args).items() if k not in NOT_REUSED}
+    record.setdefault("sessions", []).append(
+        {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "argv": argv, **ports})
+    tmp = run_dir / ".launch.json.tmp"
+    tmp.write_text(json.dumps(record, indent=2) + "\n")
+    os.replace(tmp, run_dir / "launch.json")
+
+
+# -- the processes -------------------------------------------------------------------------------
 
 def learner_threads(args: argparse.Namespace) -> int:
     return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - args.evaluators - 1)
@@ -357,31 +232,35 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     # Everyone also listens on an ephemeral loopback port, so Zenoh's gossip meshes the peers.
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
-    children = [Child("replay", tier=0,
+    children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
                       argv=py + ["l2r.replay", *common, "--listen", replay_ep,
                                  "--capacity", str(args.capacity), "--min-size", str(args.min_replay),
                                  "--samples-per-insert", str(args.samples_per_insert),
                                  "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
-    children.append(Child("learner", tier=1, resume_args=["--resume"],
+    children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
                                      "--device", args.device, "--batch-size", str(args.batch_size),
                                      "--threads", str(learner_threads(args)),
+                                     "--action-repeat", str(args.action_repeat),
+                                     "--keep-checkpoints", str(args.keep_checkpoints),
                                      "--run-dir", str(run_dir), *args.learner_arg]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
               "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
     logs = [] if args.no_episode_logs else ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
-        children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice,
+        children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
                                          "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
     # Last on the evaluators' command line, so it overrides an --env-id among the actor arguments.
     eval_env = [] if args.eval_env_id is None else ["--env-id", args.eval_env_id]
     for i in range(args.evaluators):
         # Evaluators take ids after the actors' so their keys never collide.
+        actor_id = args.actors + i
         children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice,
+                              progress=("evaluator", str(actor_id), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
-                                         "--actor-id", str(args.actors + i),
+                                         "--actor-id", str(actor_id),
                                          "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
                                          "--eval-episodes", str(args.eval_episodes),
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
@@ -389,85 +268,150 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     return children
 
 
-def after_run(run_dir: Path, board: StatusBoard) -> dict:
-    """What the run leaves besides logs and checkpoints: summary.json, and best_eval.rrd, a Rerun
-    recording of the logged evaluation episode with the highest return."""
-    summary = board.summary()
-    best = best_episode(run_dir / "episodes")
-    if best is not None:
-        try:
-            summary["best_eval_recording"] = str(write_recording([best], run_dir / "best_eval.rrd"))
-        except Exception as e:  # a convenience: the run's results are saved whatever happens here
-            log.warning("no recording of the best evaluation episode (%s): %s", best.name, e)
+# -- what the run leaves -------------------------------------------------------------------------
+
+def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: ProcessGroup, outcome: str,
+              code: int) -> dict:
+    """summary.json, and best_eval.rrd: a Rerun recording of the evaluation episode that
+    summary.json names as the best (the longest distance)."""
+    summary = {"outcome": outcome, "exit_code": code, **metrics.snapshot()}
+    summary["restarts_by_process"] = {c.name: c.restarts for c in group.children if c.restarts}
+    summary["last_exit_by_process"] = {c.name: c.last_exit for c in group.children if c.last_exit}
+    episode = metrics.best_eval
+    summary["best_eval_episode"] = None if episode is None else {
+        "actor": int(episode["actor"]), "seed": int(episode["seed"]), "version": int(episode["version"]),
+        "distance": float(episode["distance"]), "return": float(episode["return"]), "length": int(episode["length"])}
+    summary["best_policy"] = None if best.best is None else {"path": str(best.path), **best.best}
+    if episode is not None:
+        found = find_episode(run_dir / "episodes", kind="eval", actor=int(episode["actor"]), seed=int(episode["seed"]),
+                             policy_version=int(episode["version"]))
+        if found is None:
+            log.info("the best evaluation episode was not logged (episode logs off or skipped): no best_eval.rrd")
+        else:
+            summary["best_eval_episode"]["log"] = str(found)
+            try:
+                summary["best_eval_recording"] = str(write_recording([found], run_dir / "best_eval.rrd"))
+            except Exception as e:  # a convenience: the run's results are saved whatever happens here
+                log.warning("no recording of the best evaluation episode (%s): %s", found.name, e)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 
+def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates_before: int) -> list[str]:
+    """What the last lines say: what happened, and only the commands that have something to show."""
+    best = summary["best_eval_distance"]
+    lines = [f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates "
+             f"({summary['updates'] - updates_before:,} in this session), best evaluation distance "
+             f"{'-' if best is None else f'{best:.2f} m'}", f"run directory: {run_dir}",
+             f"metrics: tensorboard --logdir {run_dir / 'metrics'}  (CSV files beside)"]
+    if summary["updates"] == 0:
+        waiting = summary["replay_size"] < args.min_replay and not summary["exit_code"]
+        lines.append("the learner made no update, so there is nothing to evaluate" + (
+            f" (replay holds {summary['replay_size']:,} of the --min-replay {args.min_replay:,} transitions it "
+            f"waits for)" if waiting else ""))
+    elif not checkpoint_path(run_dir).exists():
+        lines.append("no learner checkpoint was written")
+    else:
+        lines.append(f"evaluate the newest checkpoint: l2r eval {run_dir}")
+    if summary["best_policy"]:
+        bp = summary["best_policy"]
+        lines.append(f"evaluate the best evaluated policy (v{bp['version']}, mean distance {bp['mean_distance']:.2f} m): "
+                     f"l2r eval {bp['path']}")
+    if "best_eval_recording" in summary:
+        lines.append(f"watch the best evaluation episode: rerun {summary['best_eval_recording']}")
+    return lines
+
+
+# -- the job -------------------------------------------------------------------------------------
+
 def cli(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.actors < 1 or args.envs_per_actor < 1:
-        raise SystemExit("l2r up: --actors and --envs-per-actor must be at least 1")
+    argv = sys.argv[1:] if argv is None else argv
+    args, launch = parse_args(argv)
+    if args.resume and (spent := budget_spent(args, RunCounters.read(args.resume / "metrics"))):
+        print(f"l2r up: nothing to do: the run's {spent} (give a larger budget to train on)", file=sys.stderr)
+        return 0
     run_dir = make_run_dir(args)
     (run_dir / "logs").mkdir(exist_ok=True)
-    logging.basicConfig(level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        handlers=[logging.FileHandler(run_dir / "logs" / "up.log"), logging.StreamHandler(sys.stderr)])
+    display = StatusDisplay()
+    file_handler = logging.FileHandler(run_dir / "logs" / "up.log")
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, display.log_handler()],
+                        force=True)
     run = run_dir.name
     replay_port, learner_port = free_port(), free_port()
-    (run_dir / "launch.json").write_text(json.dumps(
-        {"argv": sys.argv[1:] if argv is None else argv, "zenoh_run": run, "replay_port": replay_port,
-         "learner_port": learner_port, **{k: str(v) for k, v in vars(args).items()}}, indent=2) + "\n")
+    write_launch(run_dir, args, argv, launch, {"replay_port": replay_port, "learner_port": learner_port})
 
     stop = threading.Event()
     reason = ["interrupted"]
 
     def on_signal(signum, _frame):
-        reason[0] = signal.Signals(signum).name
+        reason[0] = f"stopped by {signal.Signals(signum).name}"
         stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
 
     children = plan_children(args, run, run_dir, replay_port, learner_port)
-    group = ProcessGroup(children, run_dir / "logs", resume=args.resume is not None)
     conf = session_config(connect=[loopback(replay_port), loopback(learner_port)], listen=["tcp/127.0.0.1:0"])
     print(f"l2r up: run directory {run_dir}  (Zenoh run {run!r}; Ctrl-C stops cleanly)", file=sys.stderr)
-    log.info("starting %s", ", ".join(c.name for c in children))
-    code = 0
+    code, failed, spent = 0, None, None
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
-        board = StatusBoard(session, Keys(run), run_dir / "metrics.jsonl")
-        group.start()
-        started = time.monotonic()
-        next_status = started + args.status_interval
+        metrics = RunMetrics(session, Keys(run), run_dir / "metrics")
+        best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, args.action_repeat)
+        group = ProcessGroup(children, run_dir / "logs", progress=metrics.rises, max_restarts=args.max_restarts,
+                             resume=args.resume is not None,
+                             on_exit=lambda child, exit_code: metrics.note_exit(child.name, exit_code, child.last_exit))
+        log.info("starting %s", ", ".join(c.name for c in children))
         try:
-            while not stop.wait(0.25):
-                if not group.supervise(board.note_restart):
-                    reason[0], code = "a process keeps crashing (see logs/)", 1
-                    break
-                elapsed = time.monotonic() - started
-                if args.seconds and elapsed >= args.seconds:
-                    reason[0] = f"time budget of {args.seconds:g} s spent"
-                    break
-                if args.env_steps and board.env_steps >= args.env_steps:
-                    reason[0] = f"budget of {args.env_steps} env steps spent"
-                    break
-                if time.monotonic() >= next_status:
-                    board.show(elapsed)
-                    next_status += args.status_interval
+            with display:
+                group.start()
+                next_status = time.monotonic() + args.status_interval
+                while not stop.wait(0.25):
+                    failed = group.poll()
+                    if failed:
+                        reason[0], code = f"gave up: {group.give_up_reason(failed)}", 1
+                        break
+                    if group.finished("learner"):
+                        reason[0] = "the learner finished"
+                        break
+                    if group.finished("actor-"):
+                        reason[0] = "every actor finished"
+                        break
+                    spent = budget_spent(args, metrics.counters())
+                    if spent:
+                        reason[0] = spent
+                        break
+                    if time.monotonic() >= next_status:
+                        display.update(metrics.record_status(), children)
+                        next_status += args.status_interval
+                display.update(metrics.record_status(), children)
         finally:
-            board.show(time.monotonic() - started, final=True)
-            print(f"\nl2r up: stopping ({reason[0]})", file=sys.stderr)
+            print(f"l2r up: stopping ({reason[0]})", file=sys.stderr)
             log.info("stopping: %s", reason[0])
+            metrics.stop_clock()
             group.stop()
-            board.close()
+            best.close()
+            metrics.record_status()
+            metrics.close()
             token.undeclare()
-    summary = after_run(run_dir, board)
-    best = summary["best_eval_distance"]
-    checkpoint = run_dir / "learner" / "checkpoint.pt"
-    print(f"l2r up: done. {summary['env_steps']:,} env steps, {summary['updates']:,} updates, best evaluation "
-          f"distance {'-' if best is None else f'{best:.2f} m'}\n        run directory: {run_dir}\n        "
-          + (f"evaluate with: l2r eval {run_dir}" if checkpoint.exists() else "no learner checkpoint was written")
-          + (f"\n        watch the best evaluation episode: rerun {summary['best_eval_recording']}"
-             if "best_eval_recording" in summary else ""),
-          file=sys.stderr)
+    trained_nothing = spent is not None and metrics.updates == metrics.before.updates
+    if trained_nothing:
+        reason[0] += ", but the learner made no update"
+        code = 1  # a training job that trained nothing has failed, whatever else ran
+    summary = after_run(run_dir, metrics, best, group, reason[0], code)
+    print(f"l2r up: {'failed' if code else 'done'}: {reason[0]}\n" + "\n".join(
+        f"        {line}" for line in final_report(run_dir, summary, args, metrics.before.updates)), file=sys.stderr)
+    if failed is not None:  # its own words last, where they are seen
+        print(f"l2r up: the last lines of {group.log_path(failed)}:\n"
+              + "\n".join(f"    {line}" for line in last_lines(group.log_path(failed))), file=sys.stderr)
     return code
+
+
+def budget_spent(args: argparse.Namespace, counters: RunCounters) -> str | None:
+    """Which budget of the run is spent, in words, or None."""
+    if args.seconds and counters.time >= args.seconds:
+        return f"time budget of {args.seconds:g} s spent"
+    if args.env_steps and counters.env_steps >= args.env_steps:
+        return f"budget of {args.env_steps:,} env steps spent"
+    return None

@@ -14,7 +14,7 @@ of the episodes they are running, and draws those frames as they come.
 
 For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode files into a
 ``.rrd`` file (``l2r up`` uses it for the best evaluation episode), and
-``best_episode(directory)`` finds the episode file with the highest return.
+``find_episode(directory, kind=..., seed=...)`` finds the episode file with that metadata.
 """
 
 from __future__ import annotations
@@ -186,18 +186,15 @@ def write_recording(mcap_paths: Sequence[str | Path], rrd_path: str | Path) -> P
     return Path(rrd_path)
 
 
-def best_episode(directory: str | Path, kind: str | None = "eval") -> Path | None:
-    """The complete episode file in ``directory`` with the highest return (of ``kind``:
-    "eval", "train", "best", or None for any), or None when there is none."""
-    best, best_return = None, -np.inf
+def find_episode(directory: str | Path, **episode: str | int) -> Path | None:
+    """The first episode file in ``directory`` whose "episode" metadata holds every item of
+    ``episode`` (``kind="eval", actor=1, seed=0, policy_version=12``), or None."""
+    wanted = {name: str(value) for name, value in episode.items()}
     for path in sorted(Path(directory).glob("*.mcap")):
-        meta = episode_metadata(path)
-        if kind and meta.get("episode", {}).get("kind") != kind:
-            continue
-        ret = float(meta.get("result", {}).get("return", "-inf"))
-        if ret > best_return:
-            best, best_return = path, ret
-    return best
+        meta = episode_metadata(path).get("episode", {})
+        if all(meta.get(name) == value for name, value in wanted.items()):
+            return path
+    return None
 
 
 def episode_metadata(path: str | Path) -> dict[str, dict[str, str]]:

@@ -15,7 +15,7 @@ from l2r.actors.episode_log import EpisodeLogger, LogPolicy
 from l2r.episodes import schema
 from l2r.sim.env import RunEnv
 from l2r.sim.model import BODIES, MUSCLES
-from l2r.view import best_episode, write_recording
+from l2r.view import find_episode, write_recording
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 STEPS = 12
@@ -90,15 +90,13 @@ def test_rerun_opens_an_episode_file_directly_with_the_body_moving(episodes):
                for c in chunks)  # fmt: skip
 
 
-def test_best_episode_and_write_recording(episodes, tmp_path):
+def test_find_episode_and_write_recording(episodes, tmp_path):
     files, produced = episodes
-    assert best_episode(files[0].parent, kind="eval") == files[1]
-    assert best_episode(files[0].parent, kind=None) == files[int(np.sum(produced[1]["reward"]) > np.sum(produced[0]["reward"]))]
-    assert best_episode(tmp_path) is None
-    damaged = tmp_path / "damaged-eval.mcap"  # a cut-off file among good ones is passed over
-    damaged.write_bytes(files[1].read_bytes()[:5000])
-    (tmp_path / files[0].name).write_bytes(files[0].read_bytes())
-    assert best_episode(tmp_path, kind=None) == tmp_path / files[0].name
+    directory = files[0].parent
+    assert find_episode(directory, kind="eval") == files[1]
+    assert find_episode(directory, kind="train", seed=3, actor=0) == files[0]
+    assert find_episode(directory, kind="eval", seed=3) is None
+    assert find_episode(tmp_path, kind="eval") is None
     out = write_recording([files[1]], tmp_path / "best.rrd")
     rewards = [v[0] for v in temporal(rr.chunk.RrdReader(out).stream().to_chunks(), "/plots/reward", "Scalars:scalars")]
     assert rewards == list(produced[1]["reward"])

@@ -1,0 +1,105 @@
+"""The best evaluated policy of a run, kept by `l2r up` as `learner/best.pt`.
+
+An evaluator runs rounds of `--eval-episodes` deterministic episodes, each round with one
+policy version, on the same seeds. When a round ends with a higher mean distance than any
+before in the run, the policy of that version is saved as a policy checkpoint (see
+l2r.learner.checkpoint) that `l2r eval` reads. The weights come from the learner's weights
+messages, the very ones the evaluator loaded: the newest `CACHED_VERSIONS` are kept in memory
+until a round of theirs ends.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import zenoh
+
+from l2r.learner.checkpoint import CheckpointError, best_policy_path, load_checkpoint, save_policy_checkpoint
+from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, ProtocolError, Weights, decode
+
+log = logging.getLogger("l2r.up")
+
+CACHED_VERSIONS = 64  # how far the learner may run ahead of an evaluation round
+
+
+class BestPolicy:
+    """Saves the policy of each evaluation round that beats the best mean distance so far."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, run_dir: Path, episodes_per_round: int,
+                 action_repeat: int):
+        self.path = best_policy_path(run_dir)
+        self.episodes_per_round, self.action_repeat = episodes_per_round, action_repeat
+        self.best: dict | None = None  # the evaluation of the policy in best.pt
+        if self.path.exists():  # a resumed run: beat the best of the sessions before
+            try:
+                self.best = load_checkpoint(self.path).evaluation
+            except CheckpointError as e:
+                log.warning("%s; it will be replaced by the next evaluated policy", e)
+        self._lock = threading.Lock()
+        self._weights: OrderedDict[int, Weights] = OrderedDict()
+        self._updates: dict[int, int] = {}  # updates at each version, from the learner's beacon
+        self._rounds: dict[tuple[int, int], dict[int, float]] = {}  # (evaluator, version) -> seed -> distance
+        self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
+                      session.declare_subscriber(keys.learner_version, self._on_version),
+                      session.declare_subscriber(keys.all_episodes, self._on_episode)]
+
+    @property
+    def best_distance(self) -> float:
+        return -math.inf if self.best is None else float(self.best["mean_distance"])
+
+    def _on_weights(self, sample: zenoh.Sample) -> None:
+        try:
+            weights = decode(sample.payload, Weights)
+        except ProtocolError:
+            return  # the actors report malformed weights; nothing to keep here
+        with self._lock:
+            self._weights[weights.version] = weights
+            while len(self._weights) > CACHED_VERSIONS:
+                oldest, _ = self._weights.popitem(last=False)
+                self._updates.pop(oldest, None)
+
+    def _on_version(self, sample: zenoh.Sample) -> None:
+        try:
+            beacon = decode(sample.payload, LearnerVersion)
+        except ProtocolError:
+            return
+        with self._lock:
+            self._updates[beacon.version] = beacon.updates
+
+    def _on_episode(self, sample: zenoh.Sample) -> None:
+        try:
+            ep = decode(sample.payload, EpisodeSummary)
+        except ProtocolError:
+            return
+        if not ep.evaluation:
+            return
+        with self._lock:
+            round_ = self._rounds.setdefault((ep.actor_id, ep.policy_version), {})
+            round_[ep.seed] = ep.distance  # a restarted evaluator repeats a seed with the same result
+            if len(round_) < self.episodes_per_round:
+                return
+            del self._rounds[(ep.actor_id, ep.policy_version)]
+            mean = sum(round_.values()) / len(round_)
+            if mean <= self.best_distance:
+                return
+            weights = self._weights.get(ep.policy_version)
+            if weights is None:
+                log.warning("evaluation of v%d: best mean distance so far (%.2f m), but its weights are no longer "
+                            "at hand; %s keeps v%s", ep.policy_version, mean, self.path,
+                            self.best["version"] if self.best else "nothing")
+                return
+            evaluation = {"version": ep.policy_version, "mean_distance": mean, "episodes": len(round_),
+                          "seeds": sorted(round_), "evaluator": ep.actor_id}
+            save_policy_checkpoint(self.path, weights.params, weights.spec, ep.policy_version,
+                                   self._updates.get(ep.policy_version, -1), self.action_repeat, evaluation)
+            self.best = evaluation
+            log.info("best evaluated policy so far: v%d, mean distance %.2f m, saved as %s", ep.policy_version, mean,
+                     self.path)
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()

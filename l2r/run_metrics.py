@@ -1,0 +1,338 @@
+"""What `l2r up` hears from its daemons: the figures of its status, and metrics files people read.
+
+It subscribes to what the daemons already publish: the learner's metrics (losses, alpha, Q,
+entropy, rates), every daemon's stats, episode summaries and the learner's version beacon. It
+writes them to `<run_dir>/metrics/`:
+
+    events.out.tfevents.*   TensorBoard (`tensorboard --logdir runs/`): learner/* by updates;
+                            actor/<id>/*, evaluator/<id>/*, replay/<shard>/*, train/* (episodes)
+                            and eval/* (evaluation episodes) by env steps
+    learner.csv, actors.csv, replay.csv     one row per stats message
+    episodes.csv, evaluation.csv            one row per training / evaluation episode
+    status.csv                              the status line's figures, every status interval
+    exits.csv                               one row per process exit while the job ran
+
+Every CSV row starts with `time` (seconds of training in the run), `wall_time` (s since the
+epoch), `env_steps` and `updates` (of the run), then the message's own values (a process's own
+counter of the same name as `process_env_steps`). The run's
+counters continue across `l2r up --resume`: time and env steps start from the last row of
+status.csv, and the learner counts its updates on from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from tensorboard.compat.proto.event_pb2 import Event
+from tensorboard.compat.proto.summary_pb2 import Summary
+from tensorboard.summary.writer.event_file_writer import EventFileWriter
+
+from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, ProtocolError, Stats, decode
+
+log = logging.getLogger("l2r.up")
+
+LEADING = ["time", "wall_time", "env_steps", "updates"]
+EPISODE_COLUMNS = ["actor", "env", "return", "distance", "length", "version", "seed", "difficulty"]
+
+
+class CsvLog:
+    """A CSV file that gains columns as new values appear. A new column rewrites the file
+    (values first appear in the first minutes of a run, so this is rare and the file small)."""
+
+    def __init__(self, path: Path, columns: list[str]):
+        self.path = path
+        self.columns = list(columns)
+        if path.exists() and path.stat().st_size:
+            with open(path, newline="") as f:
+                header = next(csv.reader(f), [])
+            self.columns = header + [c for c in self.columns if c not in header]
+        else:
+            path.write_text(",".join(self.columns) + "\n")
+        self._open()
+
+    def _open(self) -> None:
+        self._file = open(self.path, "a", newline="")
+        self._writer = csv.DictWriter(self._file, self.columns, restval="")
+
+    def write(self, row: dict) -> None:
+        new = [k for k in row if k not in self.columns]
+        if new:
+            self._rewrite(self.columns + new)
+        self._writer.writerow(row)
+
+    def _rewrite(self, columns: list[str]) -> None:
+        self._file.close()
+        with open(self.path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, columns, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, self.path)
+        self.columns = columns
+        self._open()
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@dataclass(frozen=True)
+class RunCounters:
+    """Counters of a whole run: seconds of training, env steps, updates, episodes."""
+
+    time: float = 0.0
+    env_steps: int = 0
+    updates: int = 0
+    episodes: int = 0
+
+    @classmethod
+    def read(cls, directory: Path) -> RunCounters:
+        """Where the sessions before ended (the last row of status.csv); zeros for a new run."""
+        rows = read_rows(directory / "status.csv")
+        if not rows:
+            return cls()
+        last = rows[-1]
+        return cls(float(last["time"] or 0), int(float(last["env_steps"] or 0)), int(float(last["updates"] or 0)),
+                   int(float(last.get("episodes") or 0)))
+
+
+class ScalarEvents:
+    """TensorBoard event files of scalars, as plain `simple_value`s: what every reader of event
+    files understands (TensorBoard, its EventAccumulator, pandas readers)."""
+
+    def __init__(self, directory: Path):
+        self._writer = EventFileWriter(str(directory))
+
+    def add(self, tag: str, value: float, step: int, wall_time: float) -> None:
+        summary = Summary(value=[Summary.Value(tag=tag, simple_value=value)])
+        self._writer.add_event(Event(wall_time=wall_time, step=int(step), summary=summary))
+
+    def flush(self) -> None:
+        self._writer.flush()
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+class Counter:
+    """One number a process reports again and again (env steps, updates, inserts): how often it
+    rose, and its total over restarts of the process, which count from 0 again."""
+
+    def __init__(self) -> None:
+        self.last = self.base = 0.0
+        self.rises = 0
+
+    def report(self, value: float) -> None:
+        if value > self.last:
+            self.rises += 1
+        elif value < self.last:  # a restarted process counting from the start again
+            self.base += self.last
+        self.last = value
+
+    @property
+    def total(self) -> float:
+        return self.base + self.last
+
+
+class RunMetrics:
+    """Collects what the daemons publish, writes the metrics files, and gives the status figures."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, directory: Path, recent: int = 20):
+        directory.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self.before = RunCounters.read(directory)  # the sessions before a --resume
+        self._start = time.monotonic()
+        self._stopped: float | None = None
+        self.best_eval = max(read_rows(directory / "evaluation.csv"), key=lambda r: float(r["distance"]), default=None)
+
+        self._tensorboard = ScalarEvents(directory)
+        self._csv = {name: CsvLog(directory / f"{name}.csv", columns) for name, columns in {
+            "learner": LEADING, "actors": LEADING + ["role", "instance"], "replay": LEADING + ["shard"],
+            "episodes": LEADING + EPISODE_COLUMNS, "evaluation": LEADING + EPISODE_COLUMNS,
+            "status": LEADING, "exits": LEADING + ["process", "exit_code", "reason"]}.items()}
+
+        self.stats: dict[tuple[str, str], dict] = {}
+        self._counters: dict[tuple[str, str, str], Counter] = {}
+        self.train: deque[EpisodeSummary] = deque(maxlen=recent)
+        self.evals: deque[EpisodeSummary] = deque(maxlen=recent)
+        self.episodes = 0
+        self.version = -1
+        self.updates = self.before.updates  # until the learner reports its own count
+        self._subs = [session.declare_subscriber(k, self._on_stats) for k in (keys.all_stats, keys.all_metrics)]
+        self._subs.append(session.declare_subscriber(keys.all_episodes, self._on_episode))
+        self._subs.append(session.declare_subscriber(keys.learner_version, self._on_version))
+
+    # -- counters -----------------------------------------------------------------------------
+
+    @property
+    def time(self) -> float:
+        """Seconds of training in the run, this session and the ones before a --resume."""
+        return self.before.time + (self._stopped or time.monotonic()) - self._start
+
+    def _env_steps(self) -> int:
+        return self.before.env_steps + int(sum(c.total for (role, _, name), c in self._counters.items()
+                                            if role == "actor" and name == "env_steps"))
+
+    @property
+    def env_steps(self) -> int:
+        """Training env steps of the run (evaluators' steps are not training)."""
+        with self._lock:
+            return self._env_steps()
+
+    def stop_clock(self) -> None:
+        """Training time ends here, when the job starts stopping its processes."""
+        self._stopped = self._stopped or time.monotonic()
+
+    def counters(self) -> RunCounters:
+        """The run's counters now."""
+        with self._lock:
+            return RunCounters(self.time, self._env_steps(), self.updates, self.before.episodes + self.episodes)
+
+    def rises(self, role: str, instance: str, name: str) -> int:
+        """How often value `name` of that process's stats has risen: its progress."""
+        with self._lock:
+            counter = self._counters.get((role, instance, name))
+            return counter.rises if counter else 0
+
+    def _count(self, role: str, instance: str, name: str, value: float) -> None:
+        self._counters.setdefault((role, instance, name), Counter()).report(value)
+
+    def _leading(self) -> dict:
+        return {"time": round(self.time, 3), "wall_time": round(time.time(), 3), "env_steps": self._env_steps(),
+                "updates": self.updates}
+
+    # -- what the daemons publish -------------------------------------------------------------
+
+    def _on_stats(self, sample: zenoh.Sample) -> None:
+        try:
+            stats = decode(sample.payload, Stats)
+        except ProtocolError as e:
+            log.debug("ignored stats on %s: %s", sample.key_expr, e)
+            return
+        with self._lock:
+            values = stats.values
+            self.stats[(stats.role, stats.instance)] = values
+            for name in ("env_steps", "updates", "inserted"):
+                if name in values:
+                    self._count(stats.role, stats.instance, name, float(values[name]))
+            if stats.role == "learner":
+                self.updates = max(self.updates, int(values.get("updates", 0)))
+                self.version = max(self.version, int(values.get("version", -1)))
+            row = self._leading()
+            if stats.role == "learner":
+                step, table, prefix = int(values.get("updates", 0)), "learner", "learner"
+            elif stats.role == "replay":
+                step, table, prefix = row["env_steps"], "replay", f"replay/{stats.instance}"
+                row["shard"] = stats.instance
+            else:
+                step, table, prefix = row["env_steps"], "actors", f"{stats.role}/{stats.instance}"
+                row |= {"role": stats.role, "instance": stats.instance}
+            # A process's own counters keep their names apart from the run's (an actor's env_steps).
+            self._csv[table].write(row | {f"process_{k}" if k in LEADING else k: v for k, v in values.items()})
+            for name, value in values.items():
+                self._tensorboard.add(f"{prefix}/{name}", float(value), step, stats.time)
+
+    def _on_episode(self, sample: zenoh.Sample) -> None:
+        try:
+            ep = decode(sample.payload, EpisodeSummary)
+        except ProtocolError as e:
+            log.debug("ignored episode summary on %s: %s", sample.key_expr, e)
+            return
+        with self._lock:
+            self.episodes += 1
+            (self.evals if ep.evaluation else self.train).append(ep)
+            row = self._leading() | {
+                "actor": ep.actor_id, "env": ep.env_id, "return": ep.episode_return, "distance": ep.distance,
+                "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty}
+            if ep.evaluation and (self.best_eval is None or ep.distance > float(self.best_eval["distance"])):
+                self.best_eval = row
+            self._csv["evaluation" if ep.evaluation else "episodes"].write(row)
+            prefix = "eval" if ep.evaluation else "train"
+            for name in ("return", "distance", "length"):
+                self._tensorboard.add(f"{prefix}/{name}", float(row[name]), row["env_steps"], ep.time)
+
+    def _on_version(self, sample: zenoh.Sample) -> None:
+        try:
+            beacon = decode(sample.payload, LearnerVersion)
+        except ProtocolError:
+            return
+        with self._lock:
+            self.version = max(self.version, beacon.version)
+            self.updates = max(self.updates, beacon.updates)
+            self._count("learner", "0", "updates", float(beacon.updates))
+
+    def note_exit(self, process: str, code: int, reason: str) -> None:
+        with self._lock:
+            self._csv["exits"].write(self._leading() | {"process": process, "exit_code": code, "reason": reason})
+
+    # -- figures ------------------------------------------------------------------------------
+
+    def snapshot(self) -> dict:
+        """The figures of the status line, as numbers."""
+        with self._lock:
+            by_role: dict[str, list[dict]] = {}
+            for (role, _), values in self.stats.items():
+                by_role.setdefault(role, []).append(values)
+            actors, learners, replays = by_role.get("actor", []), by_role.get("learner", []), by_role.get("replay", [])
+
+            def total(rows, key):
+                return sum(float(v.get(key, 0.0)) for v in rows)
+
+            def mean(eps, attr):
+                return sum(getattr(e, attr) for e in eps) / len(eps) if eps else None
+
+            return {
+                "time": self.time,
+                "env_steps": self._env_steps(),
+                "env_steps_per_s": total(actors, "env_steps_per_s"),
+                "updates": self.updates,
+                "updates_per_s": total(learners, "updates_per_s"),
+                "version": self.version,
+                "policy_lag": max([lag for v in replays + learners if math.isfinite(lag := float(v.get("policy_lag", 0.0)))] or [0.0]),
+                "actor_staleness": max([float(v.get("staleness", 0.0)) for v in actors] or [0.0]),
+                "replay_size": int(total(replays, "size")),
+                "episodes": self.before.episodes + self.episodes,
+                "recent_return": mean(self.train, "episode_return"),
+                "recent_distance": mean(self.train, "distance"),
+                "eval_distance": mean(self.evals, "distance"),
+                "best_eval_distance": None if self.best_eval is None else float(self.best_eval["distance"]),
+            }
+
+    def record_status(self) -> dict:
+        """Write the status figures to status.csv, flush every file, and return the figures."""
+        figures = self.snapshot()
+        with self._lock:
+            self._csv["status"].write(self._leading() | {k: ("" if v is None else v) for k, v in figures.items()
+                                                         if k not in LEADING})
+            for table in self._csv.values():
+                table.flush()
+            self._tensorboard.flush()
+        return figures
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        with self._lock:
+            for table in self._csv.values():
+                table.close()
+            self._tensorboard.close()
