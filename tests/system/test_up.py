@@ -1,34 +1,45 @@
 """`l2r up` end to end: real replay, learner and actor processes on the real runner over
-loopback Zenoh; a killed actor is restarted, a killed learner resumes from its checkpoint,
-and `l2r eval` loads what the run left."""
+loopback Zenoh. A killed actor is restarted, a killed learner resumes from its checkpoint,
+metrics reach TensorBoard and CSV files, `l2r eval` loads what the run left with the action
+repeat it trained with; `--resume` reuses the run's flags and continues its counters; the
+env-step budget ends a job; a learner that cannot start ends the job with its error on screen."""
 
+import csv
 import json
 import os
 import re
 import signal
+import stat
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
 import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from l2r.view import episode_metadata
+from tests.conftest import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 # Small networks and batches so a few hundred updates fit in seconds on two shared cores.
 SMALL = ["--learner-arg=--hidden=64,64", "--learner-arg=--publish-every=20", "--learner-arg=--update-repeat=1",
-         "--learner-arg=--checkpoint-interval=3", "--batch-size", "64"]
+         "--learner-arg=--checkpoint-interval=3", "--batch-size", "64", "--random-steps", "300", "--min-replay", "300",
+         "--status-interval", "1"]
 
 
-def wait_for(predicate, proc, timeout, what):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        assert proc.poll() is None, f"l2r up exited early while waiting for {what}"
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
+def l2r_up(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "l2r.cli", "up", *argv], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def finish(proc: subprocess.Popen, timeout: float) -> str:
+    try:
+        return proc.communicate(timeout=timeout)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def pid_of(run_dir: Path, name: str) -> int | None:
@@ -37,59 +48,127 @@ def pid_of(run_dir: Path, name: str) -> int | None:
     return int(pids[-1]) if pids else None
 
 
-def last_status(run_dir: Path) -> dict:
-    path = run_dir / "metrics.jsonl"
-    rows = [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
-    statuses = [r for r in rows if r["type"] == "status"]
-    return statuses[-1] if statuses else {}
+def rows(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def up_log(run_dir: Path) -> str:
+    return (run_dir / "logs" / "up.log").read_text()
 
 
 @pytest.mark.slow
-def test_up_trains_restarts_resumes_and_leaves_a_checkpoint_eval_loads(tmp_path):
+def test_up_trains_restarts_writes_metrics_and_leaves_a_checkpoint_eval_loads(tmp_path):
     name = f"test-{uuid.uuid4().hex[:6]}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "l2r.cli", "up", "--seconds", "45", "--name", name, "--runs-dir", str(tmp_path),
-         "--actors", "1", "--envs-per-actor", "2", "--evaluators", "1", "--eval-episodes", "1",
-         "--eval-interval", "3", "--random-steps", "300", "--min-replay", "300", "--status-interval", "1", *SMALL],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = l2r_up("--seconds", "45", "--name", name, "--runs-dir", str(tmp_path), "--actors", "1",
+                  "--envs-per-actor", "2", "--evaluators", "1", "--eval-episodes", "1", "--eval-interval", "3",
+                  "--action-repeat", "2", "--keep-checkpoints", "2", *SMALL)
     try:
-        run_dir = wait_for(lambda: next(tmp_path.glob(f"{name}-*"), None), proc, 30, "the run directory")
-        wait_for(lambda: last_status(run_dir).get("updates", 0) > 0, proc, 40, "learner updates")
-
+        run_dir = wait_for(lambda: next(tmp_path.glob(f"{name}-*"), None), timeout=30)
+        assert run_dir, "no run directory"
+        assert wait_for(lambda: int(([{}] + rows(run_dir / "metrics" / "status.csv"))[-1].get("updates", 0)) > 0,
+                        timeout=40), "no learner updates"
         os.kill(pid_of(run_dir, "actor-0"), signal.SIGKILL)
-        wait_for(lambda: "actor-0 exited" in (run_dir / "logs" / "up.log").read_text(), proc, 10, "actor restart")
-
-        checkpoint = run_dir / "learner" / "checkpoint.pt"
-        wait_for(checkpoint.exists, proc, 20, "a learner checkpoint")
+        assert wait_for(lambda: "actor-0 killed by SIGKILL" in up_log(run_dir), timeout=10)
+        assert wait_for((run_dir / "learner" / "checkpoint.pt").exists, timeout=20)
         os.kill(pid_of(run_dir, "learner"), signal.SIGKILL)
-        wait_for(lambda: "learner exited" in (run_dir / "logs" / "up.log").read_text(), proc, 10, "learner restart")
-        out, _ = proc.communicate(timeout=90)
+        assert wait_for(lambda: "learner killed by SIGKILL" in up_log(run_dir), timeout=10)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        out = finish(proc, 90)
     assert proc.returncode == 0, out
+    assert re.search(r"restarts: .*actor-0 1 \(last: killed by SIGKILL\)", out)  # the status says who restarted and why
 
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["restarts_by_process"] == {"actor-0": 1, "learner": 1}
-    assert summary["updates"] >= 200, summary
-    assert summary["env_steps"] > 1000
-    learner_log = (run_dir / "logs" / "learner.log").read_text()
-    resumed = re.findall(r"version (\d+), (\d+) updates so far", learner_log)
+    assert summary["last_exit_by_process"] == {"actor-0": "killed by SIGKILL", "learner": "killed by SIGKILL"}
+    assert summary["updates"] >= 200 and summary["env_steps"] > 1000, summary
+    resumed = re.findall(r"version (\d+), (\d+) updates so far", (run_dir / "logs" / "learner.log").read_text())
     assert len(resumed) == 2 and int(resumed[1][1]) > 0, resumed  # the restarted learner continued
 
-    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    trained = [r["version"] for r in rows if r["type"] == "episode" and not r["evaluation"] and r["version"] >= 0]
-    assert trained and max(trained) >= 2  # new weights reached the actors
-    assert any(r["type"] == "episode" and r["evaluation"] for r in rows)
-    for name in ("up", "replay", "learner", "actor-0", "evaluator-0"):
-        assert (run_dir / "logs" / f"{name}.log").stat().st_size > 0
-    assert summary["best_eval_recording"] == str(run_dir / "best_eval.rrd")
-    assert (run_dir / "best_eval.rrd").stat().st_size > 0
-
-    ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "2", "--json"],
+    # The newest checkpoints, readable by everyone; eval steps with the action repeat of training.
+    learner_files = sorted((run_dir / "learner").iterdir())
+    assert [p.name for p in learner_files if p.name.startswith("checkpoint-")].__len__() == 2
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in learner_files)
+    ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "1", "--json"],
                         cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert ev.returncode == 0, ev.stderr
     result = json.loads(ev.stdout.strip().splitlines()[-1])
-    assert len(result["distances"]) == 2 and result["version"] >= 1
+    assert result["version"] >= 1 and result["action_repeat"] == 2
 
+    # Metrics where people read them: TensorBoard and CSV.
+    events = EventAccumulator(str(run_dir / "metrics"))
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    for tag in ("learner/critic_loss", "learner/actor_loss", "learner/alpha", "learner/q_mean", "learner/entropy",
+                "actor/0/env_steps_per_s", "replay/0/size", "train/distance", "eval/distance"):
+        assert tag in scalars, (tag, sorted(scalars))
+    assert max(e.step for e in events.Scalars("learner/critic_loss")) >= 200  # by updates
+    learner_rows = rows(run_dir / "metrics" / "learner.csv")
+    assert any(r["critic_loss"] and r["entropy"] for r in learner_rows)
+    for table in ("actors", "replay", "episodes", "evaluation", "status"):
+        assert rows(run_dir / "metrics" / f"{table}.csv"), table
+    assert [r["process"] for r in rows(run_dir / "metrics" / "exits.csv")] == ["actor-0", "learner"]
+
+    # summary.json's best evaluation episode is the one best_eval.rrd records.
+    best = summary["best_eval_episode"]
+    evaluations = rows(run_dir / "metrics" / "evaluation.csv")
+    assert best["distance"] == max(float(r["distance"]) for r in evaluations)
+    assert summary["best_eval_recording"] == str(run_dir / "best_eval.rrd")
+    assert (run_dir / "best_eval.rrd").stat().st_size > 0
+    recorded = episode_metadata(best["log"])
+    assert (recorded["episode"]["kind"], int(recorded["episode"]["actor"]), int(recorded["episode"]["seed"]),
+            int(recorded["episode"]["policy_version"])) == ("eval", best["actor"], best["seed"], best["version"])
+    assert float(recorded["result"]["distance"]) == best["distance"]
+    assert summary["best_policy"]["path"] == str(run_dir / "learner" / "best.pt")
+
+
+@pytest.mark.slow
+def test_the_env_step_budget_ends_a_job_and_resume_reuses_its_flags_and_counters(tmp_path):
+    name = f"test-{uuid.uuid4().hex[:6]}"
+    first = l2r_up("--env-steps", "1500", "--seconds", "150", "--name", name, "--runs-dir", str(tmp_path),
+                   "--actors", "1", "--evaluators", "0", "--keep-checkpoints", "2", *SMALL)
+    out = finish(first, 150)
+    assert first.returncode == 0, out
+    assert "done: budget of 1,500 env steps spent" in out
+    run_dir = next(tmp_path.glob(f"{name}-*"))
+    before = json.loads((run_dir / "summary.json").read_text())
+    assert 1500 <= before["env_steps"] < 1500 + 3000 and before["time"] < 150 and before["updates"] > 0, before
+
+    # No flag but the budget: the small networks, one actor and no evaluator come from launch.json
+    # (a learner started with the default networks would refuse the checkpoint and the job give up).
+    second = l2r_up("--resume", str(run_dir), "--env-steps", "3000")
+    out = finish(second, 150)
+    assert second.returncode == 0, out
+    assert f"--env-steps 3000 replaces 1500 from {run_dir / 'launch.json'}" in out
+    launch = json.loads((run_dir / "launch.json").read_text())
+    assert launch["args"]["actors"] == 1 and "--learner-arg=--hidden=64,64" in launch["argv"]
+    assert [s["argv"] for s in launch["sessions"]] == [launch["argv"], ["--resume", str(run_dir), "--env-steps", "3000"]]
+    assert "started evaluator" not in up_log(run_dir) and "started actor-1" not in up_log(run_dir)
+
+    resumed = re.findall(r"resumed from .*checkpoint.pt: version (\d+), (\d+) updates",
+                         (run_dir / "logs" / "learner.log").read_text())
+    assert len(resumed) == 1 and int(resumed[0][1]) > 0  # the checkpoint was kept and continued
+    after = json.loads((run_dir / "summary.json").read_text())
+    assert after["env_steps"] >= 3000 and after["updates"] > int(resumed[0][1]) and after["time"] > before["time"]
+    status = rows(run_dir / "metrics" / "status.csv")
+    times, steps = [float(r["time"]) for r in status], [int(r["env_steps"]) for r in status]
+    assert times == sorted(times) and steps == sorted(steps)  # the counters went on, not back to 0
+
+
+@pytest.mark.slow
+def test_a_learner_that_cannot_start_ends_the_job_with_its_error_on_screen(tmp_path):
+    run_dir = tmp_path / "broken"
+    (run_dir / "learner").mkdir(parents=True)
+    (run_dir / "learner" / "checkpoint.pt").write_bytes(b"PK\x03\x04 truncated")
+    (run_dir / "launch.json").write_text(json.dumps({"args": {"actors": 1, "evaluators": 0, "seconds": 300}}))
+    proc = l2r_up("--resume", str(run_dir), "--max-restarts", "1")
+    out = finish(proc, 120)  # well within the 300 s budget: the rule counts restarts, not time
+    assert proc.returncode == 1, out
+    assert "failed: gave up: learner exited 2 times in a row without progress (last: exit code 1)" in out
+    tail = out[out.index("the last lines of"):]
+    assert "cannot read checkpoint" in tail  # the learner's own error, last on screen
+    assert "l2r eval" not in out and "best_eval.rrd" not in out  # nothing to evaluate or watch
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exit_code"] == 1 and summary["restarts_by_process"] == {"learner": 1}

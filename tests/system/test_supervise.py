@@ -1,0 +1,77 @@
+"""Supervision of `l2r up`'s processes: restarts back off, a process that keeps exiting without
+progress is given up on after a set number of restarts however fast it fails, one that makes
+progress is not, a usage error is given up on at once and a clean exit is final."""
+
+import sys
+
+import pytest
+
+from l2r import supervise
+from l2r.supervise import (
+    FAILED, FINISHED, RUNNING, WAITING, Child, ProcessGroup, exit_reason, last_lines, restart_delay,
+)
+from tests.conftest import wait_for
+
+
+@pytest.fixture
+def short_delays(monkeypatch):
+    monkeypatch.setattr(supervise, "RESTART_DELAY", 0.05)
+    monkeypatch.setattr(supervise, "MAX_RESTART_DELAY", 0.2)
+
+
+def exiting(code: int) -> Child:
+    return Child("proc", [sys.executable, "-c", f"print('attempt'); raise SystemExit({code})"], tier=0,
+                 progress=("actor", "0", "env_steps"))
+
+
+def supervise_until_settled(group: ProcessGroup, timeout: float = 20.0) -> Child | None:
+    """Poll like `l2r up` does until a child is given up on or every child settled."""
+    failed = []
+    wait_for(lambda: failed.append(group.poll()) or failed[-1] or all(
+        c.state not in (RUNNING, WAITING) for c in group.children), timeout=timeout, interval=0.01)
+    return failed[-1]
+
+
+def test_restarts_back_off_while_there_is_no_progress():
+    assert [restart_delay(n) for n in range(7)] == [1, 1, 2, 4, 8, 16, 30]
+
+
+def test_a_process_failing_without_progress_is_given_up_on_after_max_restarts(tmp_path, short_delays):
+    exits = []
+    group = ProcessGroup([exiting(1)], tmp_path, progress=lambda *key: 0, max_restarts=3,
+                         on_exit=lambda child, code: exits.append(code))
+    group.start()
+    child = group.children[0]
+    assert supervise_until_settled(group) is child
+    assert child.state == FAILED and child.restarts == 3 and exits == [1, 1, 1, 1]
+    assert group.give_up_reason(child) == "proc exited 4 times in a row without progress (last: exit code 1)"
+    assert last_lines(tmp_path / "proc.log") == ["attempt"] * 4
+
+
+def test_a_process_that_makes_progress_between_exits_is_restarted_on(tmp_path, short_delays):
+    progress = iter(range(1000))
+    group = ProcessGroup([exiting(1)], tmp_path, progress=lambda *key: next(progress), max_restarts=1,
+                         on_exit=lambda child, code: None)
+    group.start()
+    child = group.children[0]
+    assert not wait_for(lambda: group.poll() or child.restarts >= 5, timeout=20, interval=0.01) is child
+    assert child.restarts >= 5 and child.state != FAILED and child.exits_without_progress == 0
+    group.stop()
+
+
+def test_a_usage_error_is_given_up_on_at_once_and_a_clean_exit_is_final(tmp_path, short_delays):
+    group = ProcessGroup([exiting(2)], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
+    group.start()
+    failed = supervise_until_settled(group)
+    assert failed is group.children[0] and failed.restarts == 0
+    assert "rejected its command line (exit code 2)" in group.give_up_reason(failed)
+
+    group = ProcessGroup([exiting(0)], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
+    group.start()
+    assert supervise_until_settled(group) is None
+    assert group.children[0].state == FINISHED and group.finished("proc")
+
+
+def test_exit_reasons_name_the_signal():
+    assert exit_reason(1) == "exit code 1"
+    assert exit_reason(-9) == "killed by SIGKILL"
