@@ -369,7 +369,7 @@ class Resender:
         try:
             ack = decode(sample.payload, ReplayAck)
         except ProtocolError as e:
-            self.rejections.add(str(e), str(sample.key_expr))
+            self.rejections.add(e, str(sample.key_expr))
             return
         mine = ack.of(self.actor.config.actor_id, self.actor.epoch)
         if mine is not None:

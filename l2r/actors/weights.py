@@ -56,8 +56,11 @@ class WeightFollower:
         try:
             weights = decode(payload, Weights)
             check_spec(weights.spec)
-        except (ProtocolError, ValueError) as e:
-            self.rejections.add(str(e), source)
+        except ProtocolError as e:
+            self.rejections.add(e, source)
+            return
+        except ValueError as e:
+            self.rejections.add(ProtocolError(f"weights: {e}", "bad_spec"), source)
             return
         with self._lock:
             self.newest_seen = max(self.newest_seen, weights.version)
@@ -68,7 +71,7 @@ class WeightFollower:
         try:
             beacon = decode(sample.payload, LearnerVersion)
         except ProtocolError as e:
-            self.rejections.add(str(e), str(sample.key_expr))
+            self.rejections.add(e, str(sample.key_expr))
             return
         with self._lock:
             self.newest_seen = max(self.newest_seen, beacon.version)
@@ -98,7 +101,8 @@ class WeightFollower:
             # Decoded arrays are read-only views of the message; torch wants writable ones.
             load_policy_state(policy, {k: np.array(v) for k, v in weights.params.items()})
         except ValueError as e:
-            self.rejections.add(f"weights v{weights.version} do not fit: {e}", self._keys.weights)
+            self.rejections.add(ProtocolError(f"weights v{weights.version} do not fit: {e}", "bad_spec"),
+                                self._keys.weights)
             return False
         first = self.policy is None
         self.policy, self.version = policy, weights.version

@@ -30,8 +30,8 @@ from l2r.learner.distributed import any_rank, close_distributed, init_distribute
 from l2r.learner.sac import SACConfig, TrainState, batch_from_numpy, broadcast_state, init_state, prepare, update
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
-    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ReplayClient, SampleBatch, Stats, Weights,
-    encode,
+    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, ReplayClient, SampleBatch, Stats,
+    Weights, encode,
 )
 
 log = logging.getLogger("l2r.learner")
@@ -275,8 +275,9 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
     except queue.Empty:
         return None
     if batch.obs.shape[1] != config.obs_dim or batch.actions.shape[1] != config.act_dim:
-        replay.rejections.add(f"batch of obs {batch.obs.shape} / actions {batch.actions.shape}, this learner "
-                              f"trains on {config.obs_dim} / {config.act_dim}", f"shard {batch.shard}")
+        replay.rejections.add(ProtocolError(f"batch of obs {batch.obs.shape} / actions {batch.actions.shape}, this "
+                                            f"learner trains on {config.obs_dim} / {config.act_dim}", "wrong_width"),
+                              f"shard {batch.shard}")
         return None
     return batch
 

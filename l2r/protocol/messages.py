@@ -3,8 +3,8 @@
 Every message is one msgpack map ``{"v": PROTOCOL_VERSION, "kind": KIND, <fields>}``.
 An array field is a map ``{"dtype": "<f4", "shape": [T, 41], "data": <bin>}`` in C order,
 decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data).
-``decode`` checks everything a peer could get wrong and raises ``ProtocolError``
-with the reason; it never raises anything else.
+``decode`` checks everything a peer could get wrong, integer ranges included (``limits.py``),
+and raises ``ProtocolError`` with the reason; it never raises anything else.
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ from typing import Any, ClassVar
 
 import msgpack
 import numpy as np
+
+from l2r.protocol.limits import ANY, INTEGER_LIMITS
 
 PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
@@ -30,7 +32,12 @@ _WEIGHT_DTYPES = (_BY_NAME["float16"], _BY_NAME["float32"], _BY_NAME["float64"])
 
 
 class ProtocolError(ValueError):
-    """A message that cannot be accepted; ``str(error)`` is the reason."""
+    """A message that cannot be accepted: ``str(error)`` says why in words, ``reason`` in one
+    stable identifier (such as ``out_of_range``) that receivers count rejections by."""
+
+    def __init__(self, text: str, reason: str):
+        super().__init__(text)
+        self.reason = reason
 
 
 class Message:
@@ -87,15 +94,17 @@ class ExperienceChunk(Message):
         _ndim(self, obs=2, actions=2, rewards=1, terminated=1, truncated=1, final_obs=2)
         t = len(self.actions)
         if t == 0:
-            raise ProtocolError("experience: empty chunk")
+            raise ProtocolError("experience: empty chunk", "empty_chunk")
         if len(self.obs) != t + 1:
-            raise ProtocolError(f"experience: obs has {len(self.obs)} rows, expected T+1 = {t + 1}")
+            raise ProtocolError(f"experience: obs has {len(self.obs)} rows, expected T+1 = {t + 1}", "shape_mismatch")
         _rows(self, t, "rewards", "terminated", "truncated")
         if self.final_obs.shape[1] != self.obs.shape[1]:
-            raise ProtocolError(f"experience: final_obs width {self.final_obs.shape[1]} != obs width {self.obs.shape[1]}")
+            raise ProtocolError(f"experience: final_obs width {self.final_obs.shape[1]} != obs width "
+                                f"{self.obs.shape[1]}", "shape_mismatch")
         inner_ends = int(np.count_nonzero((self.terminated | self.truncated)[:-1]))
         if len(self.final_obs) != inner_ends:
-            raise ProtocolError(f"experience: final_obs has {len(self.final_obs)} rows, but {inner_ends} episodes end before the last step")
+            raise ProtocolError(f"experience: final_obs has {len(self.final_obs)} rows, but {inner_ends} episodes "
+                                "end before the last step", "shape_mismatch")
         _finite(self, "obs", "actions", "rewards", "final_obs")
 
     def next_obs(self) -> np.ndarray:
@@ -127,12 +136,6 @@ class SampleRequest(Message):
     count: int = 1  # batches in one reply, each a separate reply sample
     prioritized: bool = False
     learner_version: int = -1  # newest version the learner has published; for policy lag
-
-    def validate(self) -> None:
-        if not 1 <= self.batch_size <= 1 << 20:
-            raise ProtocolError(f"sample_request: batch_size {self.batch_size} not in [1, 2**20]")
-        if not 1 <= self.count <= 64:
-            raise ProtocolError(f"sample_request: count {self.count} not in [1, 64]")
 
 
 @dataclass
@@ -168,7 +171,8 @@ class SampleBatch(Message):
         _rows(self, b, "actions", "rewards", "next_obs", "terminated", "truncated",
               "indices", "generations", "probabilities", "policy_versions")
         if self.next_obs.shape != self.obs.shape:
-            raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}")
+            raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}",
+                                "shape_mismatch")
 
     def importance_weights(self, beta: float) -> np.ndarray:
         """Prioritized-replay correction ``(size * p)^-beta``, normalised to a maximum of 1."""
@@ -215,7 +219,7 @@ class ReplayAck(Message):
         _rows(self, len(self.actor_ids), "epochs", "highest", "missing_counts")
         if np.any(self.missing_counts < 0) or int(self.missing_counts.sum()) != len(self.missing):
             raise ProtocolError(f"replay_ack: missing_counts sum to {int(self.missing_counts.sum())}, "
-                                f"but missing has {len(self.missing)} entries")
+                                f"but missing has {len(self.missing)} entries", "shape_mismatch")
 
     def of(self, actor_id: int, epoch: int) -> tuple[int, np.ndarray] | None:
         """``(highest, missing)`` for this actor and epoch, or None when the ack says nothing of it."""
@@ -242,7 +246,7 @@ class PriorityUpdate(Message):
         _ndim(self, indices=1, generations=1, priorities=1)
         _rows(self, len(self.indices), "generations", "priorities")
         if not np.all(np.isfinite(self.priorities)) or np.any(self.priorities < 0):
-            raise ProtocolError("priority_update: priorities must be finite and >= 0")
+            raise ProtocolError("priority_update: priorities must be finite and >= 0", "out_of_range")
 
 
 @dataclass
@@ -312,6 +316,7 @@ class Frame(Message):
 def encode(message: Message) -> bytes:
     """msgpack bytes of ``message`` (validated first, so a sender cannot emit garbage)."""
     message.validate()
+    _check_ranges(message)
     out: dict[str, Any] = {"v": PROTOCOL_VERSION, "kind": message.KIND}
     for name, kind in message.SCHEMA.items():
         value = getattr(message, name)
@@ -319,8 +324,9 @@ def encode(message: Message) -> bytes:
             out[name] = {k: _pack_array(np.asarray(a)) for k, a in value.items()}
         elif kind.endswith("[]"):
             out[name] = _pack_array(np.asarray(value, dtype=_BY_NAME[kind[:-2]]))
-        elif kind == "numbers":
-            out[name] = {str(k): (v if isinstance(v, int) else float(v)) for k, v in value.items()}
+        elif kind == "numbers":  # an integer beyond int64 (a huge sum) goes as a float, not as an error
+            out[name] = {str(k): (v if isinstance(v, int) and ANY[0] <= v <= ANY[1] else float(v))
+                         for k, v in value.items()}
         else:
             out[name] = value
     return msgpack.packb(out, use_bin_type=True)
@@ -343,22 +349,22 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         payload = payload.to_bytes()
     if len(payload) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"oversized message: {len(payload)} bytes > {MAX_MESSAGE_BYTES}")
+        raise ProtocolError(f"oversized message: {len(payload)} bytes > {MAX_MESSAGE_BYTES}", "oversized")
     try:
         raw = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
     except Exception as e:  # msgpack raises several types for truncated or malformed input
-        raise ProtocolError(f"malformed msgpack ({type(e).__name__}: {e})") from None
+        raise ProtocolError(f"malformed msgpack ({type(e).__name__}: {e})", "malformed") from None
     if not isinstance(raw, dict):
-        raise ProtocolError(f"message is a msgpack {type(raw).__name__}, expected a map")
+        raise ProtocolError(f"message is a msgpack {type(raw).__name__}, expected a map", "not_a_map")
     version = raw.get("v")
-    if version != PROTOCOL_VERSION:
-        raise ProtocolError(f"protocol version {version!r}, this side speaks {PROTOCOL_VERSION}")
+    if type(version) is not int or version != PROTOCOL_VERSION:  # not 1.0, not true
+        raise ProtocolError(f"protocol version {version!r}, this side speaks {PROTOCOL_VERSION}", "version")
     kind = raw.get("kind")
     cls = _KINDS.get(kind) if isinstance(kind, str) else None
     if cls is None:
-        raise ProtocolError(f"unknown message kind {kind!r}")
+        raise ProtocolError(f"unknown message kind {kind!r}", "unknown_kind")
     if not issubclass(cls, expected):
-        raise ProtocolError(f"unexpected message kind {kind!r} here")
+        raise ProtocolError(f"unexpected message kind {kind!r} here", "unexpected_kind")
     values = {name: _field(kind, name, spec, raw.get(name, _MISSING)) for name, spec in cls.SCHEMA.items()}
     message = cls(**values)
     try:
@@ -366,7 +372,7 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
     except ProtocolError:
         raise
     except Exception as e:  # a validation on absurd input must still end as a rejection
-        raise ProtocolError(f"{kind}: invalid ({type(e).__name__}: {e})") from None
+        raise ProtocolError(f"{kind}: invalid ({type(e).__name__}: {e})", "invalid") from None
     return message
 
 
@@ -376,70 +382,94 @@ _MISSING = object()
 def _field(kind: str, name: str, spec: str, value: Any) -> Any:
     where = f"{kind}.{name}"
     if value is _MISSING:
-        raise ProtocolError(f"{where}: missing")
+        raise ProtocolError(f"{where}: missing", "missing_field")
     if spec in _SCALARS:
         ok = isinstance(value, _SCALARS[spec]) and not (spec != "bool" and isinstance(value, bool))
         if not ok:
-            raise ProtocolError(f"{where}: expected {spec}, got {type(value).__name__}")
+            raise ProtocolError(f"{where}: expected {spec}, got {type(value).__name__}", "wrong_type")
         if spec == "float":
             value = float(value)
             if not math.isfinite(value):
-                raise ProtocolError(f"{where}: not finite")
+                raise ProtocolError(f"{where}: not finite", "not_finite")
+        if spec == "int":
+            _in_range(where, value, INTEGER_LIMITS[kind][name])
         return value
     if spec == "dict":
         if not isinstance(value, dict):
-            raise ProtocolError(f"{where}: expected a map, got {type(value).__name__}")
+            raise ProtocolError(f"{where}: expected a map, got {type(value).__name__}", "wrong_type")
         return value
     if spec == "numbers":
         if not isinstance(value, dict) or not all(
             isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool) for k, v in value.items()
         ):
-            raise ProtocolError(f"{where}: expected a map of names to numbers")
+            raise ProtocolError(f"{where}: expected a map of names to numbers", "wrong_type")
+        for k, v in value.items():
+            if isinstance(v, int):
+                _in_range(f"{where}.{k}", v, ANY)
         return value
     if spec == "arrays":
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-            raise ProtocolError(f"{where}: expected a map of names to arrays")
+            raise ProtocolError(f"{where}: expected a map of names to arrays", "wrong_type")
         return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
     return _unpack_array(where, value, spec[:-2])
 
 
+def _in_range(where: str, value: int, limits: tuple[int, int]) -> None:
+    low, high = limits
+    if not low <= value <= high:
+        raise ProtocolError(f"{where}: {value} not in [{low}, {high}]", "out_of_range")
+
+
+def _check_ranges(message: Message) -> None:
+    """A sender's check that its integer fields are within the table (decode checks the same)."""
+    for name, limits in INTEGER_LIMITS[message.KIND].items():
+        _in_range(f"{message.KIND}.{name}", getattr(message, name), limits)
+
+
 def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:
     if not isinstance(value, dict) or len(value) != 3:
-        raise ProtocolError(f"{where}: expected an array map with dtype, shape and data")
+        raise ProtocolError(f"{where}: expected an array map with dtype, shape and data", "bad_array")
     dtype_str, shape, data = value.get("dtype"), value.get("shape"), value.get("data")
     if not isinstance(dtype_str, str) or not isinstance(data, bytes):
-        raise ProtocolError(f"{where}: expected an array map with dtype (a string), shape and data (bytes)")
+        raise ProtocolError(f"{where}: expected an array map with dtype (a string), shape and data (bytes)",
+                            "bad_array")
     dtype = _DTYPES.get(dtype_str)
     allowed = (_BY_NAME[dtype_name],) if dtype_name else _WEIGHT_DTYPES
     if dtype is None or dtype not in allowed:  # (None == float64 in numpy: test it first)
         names = " or ".join(d.name for d in allowed)
-        raise ProtocolError(f"{where}: dtype {dtype_str}, expected {names} (little-endian)")
+        raise ProtocolError(f"{where}: dtype {dtype_str}, expected {names} (little-endian)", "wrong_dtype")
     if (not isinstance(shape, list) or len(shape) > MAX_ARRAY_DIMS
             or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
-        raise ProtocolError(f"{where}: bad shape {shape!r}")
+        raise ProtocolError(f"{where}: bad shape {shape!r}", "bad_array")
     expected_bytes = math.prod(shape) * dtype.itemsize
     if expected_bytes != len(data):
-        raise ProtocolError(f"{where}: shape {shape} of {dtype_str} needs {expected_bytes} bytes, got {len(data)}")
-    return np.frombuffer(data, dtype=dtype).reshape(shape)
+        raise ProtocolError(f"{where}: shape {shape} of {dtype_str} needs {expected_bytes} bytes, got {len(data)}",
+                            "bad_array")
+    array = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if dtype.kind == "b" and array.size and array.view(np.uint8).max() > 1:
+        raise ProtocolError(f"{where}: booleans must be the bytes 0 or 1", "bad_bool")
+    return array
 
 
 def _ndim(message: Message, **dims: int) -> None:
     for name, nd in dims.items():
         a = getattr(message, name)
         if not isinstance(a, np.ndarray) or a.ndim != nd:
-            raise ProtocolError(f"{message.KIND}: {name} must be {nd}-d, got shape {getattr(a, 'shape', None)}")
+            raise ProtocolError(f"{message.KIND}: {name} must be {nd}-d, got shape {getattr(a, 'shape', None)}",
+                                "shape_mismatch")
 
 
 def _rows(message: Message, n: int, *names: str) -> None:
     for name in names:
         if len(getattr(message, name)) != n:
-            raise ProtocolError(f"{message.KIND}: {name} has {len(getattr(message, name))} rows, expected {n}")
+            raise ProtocolError(f"{message.KIND}: {name} has {len(getattr(message, name))} rows, expected {n}",
+                                "shape_mismatch")
 
 
 def _finite(message: Message, *names: str) -> None:
     for name in names:
         if not np.all(np.isfinite(getattr(message, name))):
-            raise ProtocolError(f"{message.KIND}: {name} contains NaN or infinity")
+            raise ProtocolError(f"{message.KIND}: {name} contains NaN or infinity", "not_finite")
 
 
 _KINDS = _kinds()

@@ -140,12 +140,13 @@ class ReplayClient:
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is None:
-                self.rejections.add(f"error reply: {reply.err.payload.to_string()}", f"shard {shard}")
+                self.rejections.add(ProtocolError(f"error reply: {reply.err.payload.to_string()}", "error_reply"),
+                                    f"shard {shard}")
                 return
             try:
                 message = decode(reply.ok.payload, (SampleBatch, NotReady))
             except ProtocolError as e:
-                self.rejections.add(str(e), f"shard {shard}")
+                self.rejections.add(e, f"shard {shard}")
                 return
             if isinstance(message, NotReady):
                 self.waits += 1

@@ -15,6 +15,7 @@ from typing import Sequence
 import zenoh
 
 from l2r.protocol.keys import check_name
+from l2r.protocol.messages import ProtocolError
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -111,23 +112,35 @@ def configure_logging(level: str = "INFO") -> None:
 
 
 class Rejections:
-    """Counts rejected messages by reason and logs them without flooding the log."""
+    """Counts rejected messages by reason (``ProtocolError.reason``) and logs them without
+    flooding the log: the first of each reason at once, then at most one line per reason every
+    ``interval`` seconds, so one noisy reason never hides another."""
 
-    def __init__(self, logger: logging.Logger, every: int = 1000):
+    def __init__(self, logger: logging.Logger, interval: float = 10.0):
         self._log = logger
-        self._every = every
+        self._interval = interval
         self._lock = threading.Lock()
         self.by_reason: Counter[str] = Counter()
+        self._last_line: dict[str, tuple[float, int]] = {}  # reason -> (time, count) of its last log line
         self.total = 0
 
-    def add(self, reason: str, source: str = "") -> None:
-        head = reason.split(":")[0]
+    def add(self, error: ProtocolError, source: str = "") -> None:
+        reason, now = error.reason, time.monotonic()
         with self._lock:
             self.total += 1
-            self.by_reason[head] += 1
-            n = self.by_reason[head]
-        if n == 1 or n % self._every == 0:
-            self._log.warning("rejected message%s (%d so far like this): %s", f" from {source}" if source else "", n, reason)
+            self.by_reason[reason] += 1
+            n = self.by_reason[reason]
+            last = self._last_line.get(reason)
+            if last is not None and now - last[0] < self._interval:
+                return
+            self._last_line[reason] = (now, n)
+        self._log.warning("rejected message%s (%s: %d so far, %d since the last line): %s",
+                          f" from {source}" if source else "", reason, n, n - last[1] if last else 1, error)
+
+    def counters(self) -> dict[str, int]:
+        """``rejected`` and ``rejected.<reason>`` for a daemon's stats."""
+        with self._lock:
+            return {"rejected": self.total, **{f"rejected.{r}": n for r, n in self.by_reason.items()}}
 
 
 def wait_alive(session: zenoh.Session, key_expr: str, timeout: float = 10.0) -> list[str]:

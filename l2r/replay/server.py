@@ -2,8 +2,9 @@
 
 One shard of a run: it subscribes to ``experience/<shard>/*``, answers
 ``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, tells its actors
-what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats,
-holds the liveliness token ``alive/replay/<shard>`` and logs who joins and leaves.
+what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats and
+answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
+joins and leaves.
 Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
 """
 
@@ -21,15 +22,23 @@ import numpy as np
 import zenoh
 
 from l2r.protocol import (
-    ACK_QOS, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
+    ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
     PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
 )
 from l2r.replay import snapshot
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import SequenceTracker
-from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
+from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig
 
 log = logging.getLogger("l2r.replay")
+
+REPLY_OVERHEAD = 4096  # bytes of a sample_batch reply beyond its arrays' data (msgpack framing, names)
+
+
+def reply_bytes_per_transition(config: StorageConfig) -> int:
+    """What one transition adds to a sample_batch: obs and next_obs, action and reward (float32),
+    two flags, index, generation, probability and policy version (8 bytes each)."""
+    return 4 * (2 * config.obs_dim + config.act_dim + 1) + 2 + 4 * 8
 
 
 @dataclass
@@ -73,11 +82,15 @@ class ReplayServer:
 
     # -- handlers -----------------------------------------------------------------------
     def on_experience(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
         try:
             chunk = decode(sample.payload, ExperienceChunk)
             self.storage.check(chunk)
-        except (ProtocolError, ChunkRejected) as e:
-            self.rejections.add(str(e), str(sample.key_expr))
+            if key.rsplit("/", 1)[-1] != str(chunk.actor_id):
+                raise ProtocolError(f"experience: actor_id {chunk.actor_id} in the payload, but the key says "
+                                    f"{key.rsplit('/', 1)[-1]!r}", "actor_id_mismatch")
+        except ProtocolError as e:
+            self.rejections.add(e, key)
             return
         with self.lock:
             if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
@@ -89,9 +102,13 @@ class ReplayServer:
     def on_sample_query(self, query: zenoh.Query) -> None:
         try:
             request = decode(query.payload if query.payload is not None else b"", SampleRequest)
+            if request.batch_size * reply_bytes_per_transition(self.storage.config) + REPLY_OVERHEAD > MAX_MESSAGE_BYTES:
+                raise ProtocolError(f"sample_request: a batch of {request.batch_size} would exceed the "
+                                    f"{MAX_MESSAGE_BYTES}-byte message limit; at most {self.max_batch_size}",
+                                    "too_large")
         except ProtocolError as e:
-            self.rejections.add(str(e), "sample query")
-            query.reply_err(str(e))
+            self.rejections.add(e, "sample query")
+            query.reply_err(f"{e.reason}: {e}")
             return
         with self.lock:
             self.learner_version = max(self.learner_version, request.learner_version)
@@ -115,11 +132,19 @@ class ReplayServer:
         for batch in batches:
             query.reply(query.key_expr, encode(batch))
 
+    @property
+    def max_batch_size(self) -> int:
+        """The largest batch whose reply fits in one message."""
+        return (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(self.storage.config)
+
+    def on_stats_query(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, encode(self.report(reset=False)))
+
     def on_priorities(self, sample: zenoh.Sample) -> None:
         try:
             update = decode(sample.payload, PriorityUpdate)
         except ProtocolError as e:
-            self.rejections.add(str(e), str(sample.key_expr))
+            self.rejections.add(e, str(sample.key_expr))
             return
         with self.lock:
             applied = self.storage.update_priorities(update.indices, update.generations, update.priorities)
@@ -130,7 +155,7 @@ class ReplayServer:
         try:
             beacon = decode(sample.payload, LearnerVersion)
         except ProtocolError as e:
-            self.rejections.add(str(e), str(sample.key_expr))
+            self.rejections.add(e, str(sample.key_expr))
             return
         self.learner_version = max(self.learner_version, beacon.version)
 
@@ -157,8 +182,13 @@ class ReplayServer:
         t, inserted, _ = self._last
         return (self.limiter.inserted - inserted) / max(1e-3, time.monotonic() - t)
 
-    def stats(self) -> dict[str, float]:
-        """Current figures; rates are over the time since the previous call."""
+    def report(self, reset: bool = True) -> Stats:
+        """The shard's stats message: ``stats`` now."""
+        return Stats("replay", str(self.config.shard), time.time(), self.stats(reset))
+
+    def stats(self, reset: bool = True) -> dict[str, float]:
+        """Current figures; rates are over the time since the previous call with ``reset``
+        (the periodic report), which starts a new interval."""
         with self.lock:
             now = time.monotonic()
             t, inserted, sampled = self._last
@@ -171,7 +201,7 @@ class ReplayServer:
                 "sampled_batches": self.sampled_batches,
                 "samples_per_s": (self.sampled_batches - sampled) / dt,
                 "not_ready_replies": self.not_ready_replies,
-                "rejected": self.rejections.total,
+                **self.rejections.counters(),
                 "duplicates": self.sequences.duplicates,
                 "gaps": self.sequences.gaps,
                 "actor_restarts": self.sequences.restarts,
@@ -184,8 +214,9 @@ class ReplayServer:
             for actor, record in self.sequences.actors.items():
                 values[f"actor.{actor}.transitions"] = record.transitions
                 values[f"actor.{actor}.gaps"] = record.gaps
-            self._last = (now, self.limiter.inserted, self.sampled_batches)
-            self.lag_sum, self.lag_batches = 0.0, 0
+            if reset:
+                self._last = (now, self.limiter.inserted, self.sampled_batches)
+                self.lag_sum, self.lag_batches = 0.0, 0
         return values
 
     # -- persistence ----------------------------------------------------------------------
@@ -266,7 +297,7 @@ def _save(server: ReplayServer, path: Path) -> None:
         log.error("snapshot to %s failed (%s); the previous one is kept", path, e)
         return
     log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",
-             server.storage.live, size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
+             int(arrays["counters"][2]), size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
 
 
 def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimiter,
@@ -303,6 +334,7 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
             acks,
             session.declare_subscriber(keys.experience_of_shard(config.shard), _direct(server.on_experience)),
             session.declare_queryable(keys.sample(config.shard), _direct(server.on_sample_query)),
+            session.declare_queryable(keys.stats("replay", config.shard), _guarded(server.on_stats_query)),
             session.declare_subscriber(keys.priorities(config.shard), _guarded(server.on_priorities)),
             session.declare_subscriber(keys.learner_version, _guarded(server.on_learner_version)),
         ]
@@ -326,8 +358,9 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
                     acks.put(encode(ack))
             if now >= next_stats:
                 next_stats = now + config.stats_interval
-                values = server.stats()
-                session.put(stats_key, encode(Stats("replay", str(config.shard), time.time(), values)), **STATS_QOS.put())
+                report = server.report()
+                values = report.values
+                session.put(stats_key, encode(report), **STATS_QOS.put())
                 log.info("size %d | %.0f inserts/s | %.1f batches/s | lag %.1f | rejected %d | dup %d | gaps %d",
                          values["size"], values["inserts_per_s"], values["samples_per_s"], values["policy_lag"],
                          values["rejected"], values["duplicates"], values["gaps"])

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from l2r.protocol import ExperienceChunk, SampleBatch
+from l2r.protocol import ExperienceChunk, ProtocolError, SampleBatch
 from l2r.replay.sumtree import SumTree
 
 
@@ -37,7 +37,7 @@ class StorageConfig:
     seed: int = 0
 
 
-class ChunkRejected(ValueError):
+class ChunkRejected(ProtocolError):
     """A well-formed chunk this storage cannot hold (wrong widths, longer than capacity)."""
 
 
@@ -80,10 +80,11 @@ class Storage:
         """Raise ChunkRejected if ``chunk`` does not fit this storage."""
         if chunk.obs.shape[1] != self.config.obs_dim or chunk.actions.shape[1] != self.config.act_dim:
             raise ChunkRejected(f"experience widths obs {chunk.obs.shape[1]}, actions {chunk.actions.shape[1]}; "
-                                f"this replay stores obs {self.config.obs_dim}, actions {self.config.act_dim}")
+                                f"this replay stores obs {self.config.obs_dim}, actions {self.config.act_dim}",
+                                "wrong_width")
         if chunk.size > self.capacity or len(chunk.final_obs) + 1 > self.side_capacity:
             raise ChunkRejected(f"chunk of {chunk.size} transitions exceeds capacity {self.capacity} "
-                                f"or side rows {self.side_capacity}")
+                                f"or side rows {self.side_capacity}", "too_large")
 
     def insert(self, chunk: ExperienceChunk) -> int:
         """Store all transitions of ``chunk``; return how many."""

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from l2r.protocol import Keys, Stats, decode, session_config, wait_alive
+from l2r.protocol import Keys, ReplayAck, Stats, decode, session_config, wait_alive
 from tests.conftest import free_port
 
 
@@ -109,3 +109,45 @@ def stats_of(run_name):
     return lambda session: StatsWatch(session, run_name)
 
 
+
+
+@pytest.fixture
+def ask_stats(run_name):
+    """``ask_stats(session, shard=0)``: the shard's stats now, from a query on its stats key
+    (None if it does not answer)."""
+    def ask(session: zenoh.Session, shard: int = 0) -> dict | None:
+        for reply in session.get(Keys(run_name).stats("replay", shard), timeout=5.0):
+            if reply.ok is not None:
+                return decode(reply.ok.payload, Stats).values
+        return None
+    return ask
+
+
+class AckWatch:
+    """Every ack one shard publishes, decoded."""
+
+    def __init__(self, session: zenoh.Session, run: str, shard: int = 0):
+        self.acks: list[ReplayAck] = []
+        self._changed = threading.Condition()
+        self._sub = session.declare_subscriber(Keys(run).replay_ack(shard), self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        ack = decode(sample.payload, ReplayAck)
+        with self._changed:
+            self.acks.append(ack)
+            self._changed.notify_all()
+
+    def wait(self, predicate, timeout: float = 15.0) -> ReplayAck:
+        """The first ack from now on (or the latest) for which ``predicate(ack)`` holds."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while not (self.acks and predicate(self.acks[-1])):
+                left = deadline - time.monotonic()
+                assert left > 0, f"no ack matched; last: {self.acks[-1] if self.acks else None}"
+                self._changed.wait(left)
+            return self.acks[-1]
+
+
+@pytest.fixture
+def acks_of(run_name):
+    return lambda session, shard=0: AckWatch(session, run_name, shard)

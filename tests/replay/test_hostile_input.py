@@ -1,0 +1,118 @@
+"""What another team's client might send a real l2r-replay over loopback Zenoh: every integer
+field at its limits and beyond, and each kind of message the issue found quietly accepted.
+After each message the server must still answer; afterwards its snapshot must restore what it
+stored, and it must go on storing."""
+
+from __future__ import annotations
+
+import signal
+
+import msgpack
+import pytest
+import zenoh
+
+from l2r.protocol import EXPERIENCE_QOS, Keys, SampleRequest, encode
+from l2r.protocol.limits import INTEGER_LIMITS
+from tests.conftest import wait_for
+from tests.protocol.factories import make_chunk
+
+pytestmark = pytest.mark.slow
+
+EXTREMES = (-2**63, 2**63, 2**64 - 1)  # msgpack's ends; 2**63 as a uint64 once killed the server
+
+
+def edge_values(low: int, high: int) -> list[int]:
+    return sorted({low - 1, low, high, high + 1, *EXTREMES})
+
+
+def put_raw(session: zenoh.Session, key: str, raw: dict) -> None:
+    session.put(key, msgpack.packb(raw, use_bin_type=True), **EXPERIENCE_QOS.put())
+
+
+def test_experience_integers_at_their_limits_and_beyond(start_replay, connect, ask_stats, acks_of, run_name, tmp_path):
+    args = ("--snapshot-dir", str(tmp_path / "snap"), "--snapshot-interval", "3600")
+    replay = start_replay(*args)
+    session = connect(replay)
+    acks = acks_of(session)
+    keys = Keys(run_name)
+    stored, rejected, actor = {}, 0, 100
+    for name, (low, high) in INTEGER_LIMITS["experience"].items():
+        for value in edge_values(low, high):
+            actor += 1  # a fresh actor each time, so one extreme seq or epoch does not shadow the next
+            raw = msgpack.unpackb(encode(make_chunk(actor_id=actor, seq=3, steps=5)), raw=False)
+            raw[name] = value
+            key_actor = value if name == "actor_id" and low <= value <= high else actor
+            raw["actor_id"] = raw["actor_id"] if name == "actor_id" else actor
+            put_raw(session, f"{keys.root}/experience/0/{key_actor}", raw)
+            if low <= value <= high:
+                stored[raw["actor_id"]] = raw["epoch"]
+            else:
+                rejected += 1
+            stats = ask_stats(session)
+            assert stats is not None, f"{name}={value} silenced the server\n{replay.log()[-3000:]}"
+    # every accepted extreme is acknowledged: building acks from them no longer overflows
+    ack = acks.wait(lambda a: all(a.of(k, e) is not None for k, e in stored.items()))
+    stats = ask_stats(session)
+    assert (stats["size"], stats["rejected.out_of_range"]) == (5 * len(stored), rejected), stats
+    assert ack.shard == 0
+
+    assert replay.stop(signal.SIGTERM) == 0  # the final snapshot holds them
+    again = start_replay(*args, endpoint=replay.endpoint)
+    session = connect(again)
+    assert ask_stats(session)["size"] == 5 * len(stored), again.log()[-3000:]
+    session.put(keys.experience(1), encode(make_chunk(actor_id=1, seq=0, steps=5)), **EXPERIENCE_QOS.put())
+    acks_of(session).wait(lambda a: a.of(1, 1) is not None)
+    assert ask_stats(session)["size"] == 5 * len(stored) + 5
+
+
+def test_what_was_quietly_accepted_is_rejected_with_its_reason(start_replay, connect, ask_stats, run_name):
+    replay = start_replay()
+    session = connect(replay)
+    keys = Keys(run_name)
+    chunk = msgpack.unpackb(encode(make_chunk(actor_id=4, steps=4)), raw=False)
+    cases = {
+        "version": [dict(chunk, v=1.0), dict(chunk, v=True)],
+        "out_of_range": [dict(chunk, seq=-1)],
+        "bad_bool": [dict(chunk, terminated=dict(chunk["terminated"], data=bytes([0, 2, 0, 0])))],
+        "not_finite": [dict(chunk, rewards=dict(chunk["rewards"], data=b"\x00\x00\xc0\x7f" * 4))],
+        "empty_chunk": [dict(chunk, **{k: dict(chunk[k], shape=[0, *chunk[k]["shape"][1:]], data=b"")
+                                       for k in ("actions", "rewards", "terminated", "truncated")},
+                             obs=dict(chunk["obs"], shape=[1, 41], data=bytes(164)))],
+    }
+    for raws in cases.values():
+        for raw in raws:
+            put_raw(session, keys.experience(4), raw)
+    put_raw(session, keys.experience(5), chunk)  # actor 4's chunk under actor 5's key
+    stats = wait_for(lambda: (values := ask_stats(session)) and values["rejected"] >= 7 and values)
+    assert stats["size"] == 0 and stats["rejected"] == 7, stats
+    assert {reason: stats.get(f"rejected.{reason}") for reason in (*cases, "actor_id_mismatch")} == {
+        "version": 2, "out_of_range": 1, "bad_bool": 1, "not_finite": 1, "empty_chunk": 1, "actor_id_mismatch": 1}
+    log = replay.log()
+    for reason in (*cases, "actor_id_mismatch"):  # the first of each reason is logged, whatever came before
+        assert f"({reason}: 1 so far" in log, reason
+
+
+def sample(session: zenoh.Session, keys: Keys, **fields) -> list:
+    raw = msgpack.unpackb(encode(SampleRequest(batch_size=4)), raw=False) | fields
+    return list(session.get(keys.sample(0), payload=msgpack.packb(raw), timeout=10,
+                            consolidation=zenoh.ConsolidationMode.NONE))
+
+
+def test_sample_requests_at_their_limits_and_beyond(start_replay, connect, ask_stats, run_name):
+    replay = start_replay()
+    session = connect(replay)
+    keys = Keys(run_name)
+    session.put(keys.experience(0), encode(make_chunk(steps=50)), **EXPERIENCE_QOS.put())
+    assert len(sample(session, keys)) == 1
+    for name, (low, high) in INTEGER_LIMITS["sample_request"].items():
+        for value in edge_values(low, high):
+            replies = sample(session, keys, **{name: value})
+            assert replies, f"{name}={value}: no answer\n{replay.log()[-3000:]}"
+            if not low <= value <= high:
+                assert replies[0].err.payload.to_string().startswith("out_of_range: "), (name, value)
+            elif name == "batch_size" and value == high:  # 2**20 runner transitions exceed a message
+                assert replies[0].err.payload.to_string().startswith("too_large: "), replies[0].err.payload.to_string()
+            else:
+                assert all(r.ok is not None for r in replies), (name, value)
+                assert len(replies) == (value if name == "count" else 1)  # one reply per batch, unconsolidated
+    assert ask_stats(session)["learner_version"] == 2**63 - 1
