@@ -92,7 +92,8 @@ class RunEnv(gym.Env):
         # Everything the step needs is located once, by name, here.
         x_joint, y_joint = (_id(m, mujoco.mjtObj.mjOBJ_JOINT, c) for c in PELVIS[1:])
         self._x_adr, self._y_adr = int(m.jnt_qposadr[x_joint]), int(m.jnt_qposadr[y_joint])
-        self._qpos = d.qpos  # the bindings make a new array object on every attribute access
+        # MjData's arrays the step reads: the bindings make a new array object on every access
+        self._qpos, self._sensordata, self._xpos, self._xquat = d.qpos, d.sensordata, d.xpos, d.xquat
         self.ligament_names = LIGAMENTS
         self._default_pose = m.keyframe(body.DEFAULT_KEYFRAME).id
 
@@ -225,19 +226,19 @@ class RunEnv(gym.Env):
 
     def _observe(self) -> np.ndarray:
         obs = np.empty(OBS_SIZE, dtype=np.float32)
-        obs[:36] = self._d.sensordata[self._obs_gather]
+        obs[:36] = self._sensordata[self._obs_gather]
         obs[36:] = (*self.psoas, *next_obstacle(self.obstacles, self._x))
         return obs
 
     def _info(self) -> dict[str, Any]:
-        d, physics = self._d, self._physics
+        physics = self._physics
         # The sensors report the force the sphere exerts on obstacles; the force on it is the opposite.
-        contact = -d.sensordata[self._obstacle_contact].reshape(len(FOOT_SPHERES), 3)
+        contact = -self._sensordata[self._obstacle_contact].reshape(len(FOOT_SPHERES), 3)
         contact[:, :2] += physics.ground_force
         return {
             "distance": self._x,
-            "body_pos": d.xpos.copy(),
-            "body_quat": d.xquat.copy(),
+            "body_pos": self._xpos.copy(),
+            "body_quat": self._xquat.copy(),
             "muscle_activation": physics.activation.copy(),
             "muscle_length": physics.muscle_length.copy(),
             "muscle_force": physics.muscle_force.copy(),
@@ -291,7 +292,7 @@ def checked_excitations(action: Any, out: np.ndarray | None = None) -> np.ndarra
     # The sum is finite for every sane action; only otherwise is the element-wise test needed.
     if not math.isfinite(a.sum()) and not np.isfinite(a).all():
         raise ValueError(f"action contains NaN or inf: {a.tolist()}")
-    return np.clip(a, 0.0, 1.0, out=out)
+    return a.clip(0.0, 1.0, out=out)  # the method: half the cost of np.clip's dispatch
 
 
 def start_episode(env: gym.Env, seed: int | None, options: dict | None) -> None:
