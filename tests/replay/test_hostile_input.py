@@ -6,6 +6,7 @@ stored, and it must go on storing."""
 from __future__ import annotations
 
 import signal
+import time
 
 import msgpack
 import pytest
@@ -13,6 +14,7 @@ import zenoh
 
 from l2r.protocol import EXPERIENCE_QOS, Keys, SampleRequest, encode
 from l2r.protocol.limits import INTEGER_LIMITS
+from l2r.replay import snapshot
 from tests.conftest import wait_for
 from tests.protocol.factories import make_chunk
 
@@ -116,3 +118,20 @@ def test_sample_requests_at_their_limits_and_beyond(start_replay, connect, ask_s
                 assert all(r.ok is not None for r in replies), (name, value)
                 assert len(replies) == (value if name == "count" else 1)  # one reply per batch, unconsolidated
     assert ask_stats(session)["learner_version"] == 2**63 - 1
+
+
+def test_sequence_jumps_neither_stall_the_shard_nor_fill_its_snapshot(start_replay, connect, ask_stats, run_name,
+                                                                      tmp_path):
+    snap = tmp_path / "snap"
+    replay = start_replay("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
+    session = connect(replay)
+    seqs = [10_000 * k for k in range(1, 31)] + [10**15]  # 10,000 missing, then a jump of 10^4 or more each
+    for seq in seqs:
+        session.put(Keys(run_name).experience(3), encode(make_chunk(actor_id=3, seq=seq, steps=2)), **EXPERIENCE_QOS.put())
+    start = time.monotonic()
+    stats = wait_for(lambda: (values := ask_stats(session)) and values["actor.3.transitions"] == 2 * len(seqs) and values)
+    assert stats and time.monotonic() - start < 5, f"stalled: {stats}"  # each jump cost 6-8 s before
+    assert 2**20 <= stats["gaps"] < 31 * 2**20 and stats["sequence_jumps"] == 1, stats
+    assert replay.stop() == 0
+    saved = snapshot.read(snapshot.snapshot_path(snap, 0))[1]["sequences"]["actors"]["3"]
+    assert saved["gaps"] == stats["gaps"] and len(saved["missing_runs"]) == 1

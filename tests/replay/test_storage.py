@@ -1,4 +1,4 @@
-"""Storage, sum-tree, sequence tracking and the rate limiter, as plain functions."""
+"""Storage, sum-tree, the server's acks and the rate limiter, as plain functions."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import pytest
 from l2r.protocol import decode, encode
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.server import ReplayServer, ServerConfig
-from l2r.replay.sequences import SequenceTracker
 from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
 from l2r.replay.sumtree import SumTree
 from tests.protocol.factories import make_chunk
@@ -113,28 +112,6 @@ def test_sumtree_matches_a_cumulative_sum():
     assert tree.total == pytest.approx(values.sum())
     targets = rng.random(1000) * values.sum()
     np.testing.assert_array_equal(tree.find(targets), np.searchsorted(np.cumsum(values), targets, side="right"))
-
-
-def test_sequences_drop_duplicates_and_count_gaps():
-    seqs = SequenceTracker()
-    assert [seqs.accept(1, 10, s) for s in (0, 1, 1, 4, 2)] == [True, True, False, True, True]
-    assert (seqs.duplicates, seqs.gaps) == (1, 1)  # 3 is still missing
-    assert seqs.accept(1, 10, 3) and seqs.gaps == 0
-    assert not seqs.accept(1, 9, 50)  # an older incarnation of the actor
-    assert seqs.accept(1, 11, 0) and seqs.restarts == 1  # restarted actor counts again from 0
-    copy = SequenceTracker()
-    copy.restore(seqs.state())
-    assert copy.state() == seqs.state()
-
-
-def test_acks_say_what_is_stored_within_a_bounded_missing_list():
-    seqs = SequenceTracker()
-    for s in (0, 1, 4, 2, 9):
-        seqs.accept(1, 10, s)
-    seqs.accept(2, 20, 0)
-    assert seqs.acks() == [(1, 10, 9, [3, 5, 6, 7, 8]), (2, 20, 0, [])]
-    # Too many missing to list: highest drops below the first one left out, so the ack stays true.
-    assert seqs.acks(limit=2) == [(1, 10, 5, [3, 5]), (2, 20, 0, [])]
 
 
 def test_the_server_builds_an_ack_only_when_chunks_came():
