@@ -1,3 +1,5 @@
 """l2r: distributed actor/learner reinforcement learning over Eclipse Zenoh."""
 
-__version__ = "0.1.0"
+import importlib.metadata
+
+__version__ = importlib.metadata.version("l2r")

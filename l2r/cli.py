@@ -3,6 +3,9 @@
 import importlib
 import sys
 
+from l2r import __version__
+from l2r.config import EXIT_USAGE
+
 # subcommand -> (module exposing `cli(argv) -> int`, one-line help)
 SUBCOMMANDS = {
     "up": ("l2r.up", "run a whole training job on this host (replay, learner, actors)"),
@@ -16,7 +19,7 @@ SUBCOMMANDS = {
 def usage() -> str:
     lines = ["usage: l2r COMMAND [ARGS...]", "", "commands:"]
     lines += [f"  {name:<10} {help_}" for name, (_, help_) in SUBCOMMANDS.items()]
-    lines += ["", "`l2r COMMAND --help` explains each one."]
+    lines += ["", "`l2r COMMAND --help` explains each one; `l2r --version` prints the version."]
     return "\n".join(lines)
 
 
@@ -25,10 +28,13 @@ def cli(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
         return 0
+    if argv[0] == "--version":
+        print(f"l2r {__version__}")
+        return 0
     name, rest = argv[0], argv[1:]
     if name not in SUBCOMMANDS:
-        print(f"l2r: unknown command {name!r}\n\n{usage()}", file=sys.stderr)
-        return 2
+        print(f"l2r: unknown command {name!r} (see l2r --help)", file=sys.stderr)
+        return EXIT_USAGE
     module = importlib.import_module(SUBCOMMANDS[name][0])
     return module.cli(rest) or 0
 

@@ -12,6 +12,7 @@ import torch
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0 and l2r/RunOpenSim-v0)
 from l2r.actors.actor import run_deterministic
+from l2r.config import CommandParser
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
 from l2r.sim.wrappers import ActionRepeat
 
@@ -19,7 +20,7 @@ DEFAULT_ACTION_REPEAT = 3  # what l2r up and l2r-actor default to; for checkpoin
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="l2r eval",
         description="Run deterministic episodes (the policy's mean action) of a learner checkpoint "
                     "and print the distance the runner's pelvis travelled in each. Distances to compare "

@@ -18,6 +18,7 @@ from typing import Sequence
 
 import zenoh
 
+from l2r.config import CommandParser
 from l2r.protocol.session import configure_logging, session_config
 
 log = logging.getLogger("l2r.router")
@@ -85,7 +86,7 @@ def main(conf: zenoh.Config, stop: threading.Event) -> None:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="l2r router",
         description=(
             "Run a Zenoh router (a stand-in for zenohd). Daemons on other hosts connect to it as "

@@ -2,107 +2,102 @@
 
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 import threading
-from pathlib import Path
+from typing import Sequence
 
 from l2r.actors.actor import ActorConfig, main
-from l2r.protocol import add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args
+from l2r.config import CommandParser, FilePath, load, run_command, setting, settings_parser
+from l2r.protocol import DaemonSettings, configure_logging
 
 DEFAULTS = ActorConfig()
+ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role", "episode logs (MCAP)"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="l2r-actor",
-        description="Step several Learning to Run environments with the learner's newest policy and "
-                    "send the experience to the replay server(s) of a run. Stops cleanly on SIGINT/SIGTERM.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    a = p.add_argument_group("acting")
-    a.add_argument("--actor-id", type=int, default=DEFAULTS.actor_id,
-                   help="this actor's number; unique within the run (it names its keys and picks its replay shard)")
-    a.add_argument("--num-envs", type=int, default=DEFAULTS.num_envs,
-                   help="environments stepped together, their observations batched into one policy call")
-    a.add_argument("--env-id", default=DEFAULTS.env_id,
-                   help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or l2r/RunOpenSim-v0 "
-                        "(OpenSim 4.6, the 2017 simulator: about 100 steps/s; pip install 'l2r[opensim]')")
-    a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=DEFAULTS.difficulty,
-                   help="0 flat ground, 1 obstacles, 2 obstacles and random psoas strengths")
-    a.add_argument("--action-repeat", type=int, default=DEFAULTS.action_repeat,
-                   help="environment steps (0.01 s each) per policy action")
-    a.add_argument("--random-steps", type=int, default=DEFAULTS.random_steps,
-                   help="uniform random excitations for this many of the actor's first steps "
-                        "(skipped when the run's policy is already past version 0)")
-    a.add_argument("--seed", type=int, default=DEFAULTS.seed, help="base seed of episodes and random actions")
-    a.add_argument("--torch-threads", type=int, default=DEFAULTS.torch_threads, help="torch CPU threads for inference")
-    a.add_argument("--max-speed", type=float, default=DEFAULTS.max_speed,
-                   help="pelvis speed (m/s) above which a step is a simulation blow-up: the episode ends before "
-                        "it, as a terminal step without reward, and it is counted (0: off)")
-    a.add_argument("--stats-interval", type=float, default=DEFAULTS.stats_interval, help="seconds between stats reports")
-    a.add_argument("--max-steps", type=int, default=DEFAULTS.max_steps, help="stop after this many steps (0: never)")
-    e = p.add_argument_group("experience")
-    e.add_argument("--chunk-size", type=int, default=DEFAULTS.chunk_size, help="transitions per experience chunk")
-    e.add_argument("--chunk-delay", type=float, default=DEFAULTS.chunk_delay,
-                   help="seconds after which a partial chunk is sent anyway")
-    e.add_argument("--num-shards", type=int, default=DEFAULTS.num_shards,
-                   help="replay shards of the run; this actor feeds shard actor-id %% num-shards")
-    e.add_argument("--resend-buffer-mb", type=float, default=DEFAULTS.resend_buffer_mb,
-                   help="sent chunks kept until the replay shard acknowledges them, and sent again when lost in "
-                        "flight (a cut link, a restarted shard); beyond this the oldest are given up (0: no resends)")
-    e.add_argument("--resend-delay", type=float, default=DEFAULTS.resend_delay,
-                   help="seconds after its last send before an unacknowledged chunk is sent again; the wait "
-                        "doubles with each resend, up to 30 s")
-    v = p.add_argument_group("evaluation role")
-    v.add_argument("--evaluate", action="store_true",
-                   help="run deterministic episodes on fixed seeds for each new policy, report them as "
-                        "evaluation episodes, and send no experience")
-    v.add_argument("--eval-episodes", type=int, default=DEFAULTS.eval_episodes,
-                   help="episodes per evaluation round, on seeds seed, seed+1, ...")
-    v.add_argument("--eval-interval", type=float, default=DEFAULTS.eval_interval,
-                   help="least seconds between the starts of two evaluation rounds")
-    m = p.add_argument_group("episode logs (MCAP)")
-    m.add_argument("--episode-log-dir", type=Path, default=None,
-                   help="write logged episodes as MCAP files here (default: no logs)")
-    m.add_argument("--log-every", type=int, default=10,
-                   help="log every Nth training episode (0: none); evaluation episodes are always logged")
-    m.add_argument("--log-budget-mb", type=float, default=1024, help="disk budget of this actor's logs, oldest removed first")
-    add_daemon_arguments(p)
-    return p
+class ActorSettings(DaemonSettings):
+    actor_id: int = setting(DEFAULTS.actor_id, "this actor's number; unique within the run (it names its keys "
+                            "and picks its replay shard)", group=ACTING, ge=0)
+    num_envs: int = setting(DEFAULTS.num_envs, "environments stepped together, their observations batched into "
+                            "one policy call", group=ACTING, ge=1)
+    env_id: str = setting(DEFAULTS.env_id, "gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or "
+                          "l2r/RunOpenSim-v0 (OpenSim 4.6, the 2017 simulator: about 100 steps/s; "
+                          "pip install 'l2r[opensim]')", group=ACTING)
+    difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
+                              "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
+    action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps (0.01 s each) per policy action",
+                                 group=ACTING, ge=1)
+    random_steps: int = setting(DEFAULTS.random_steps, "uniform random excitations for this many of the actor's "
+                                "first steps (skipped when the run's policy is already past version 0)",
+                                group=ACTING, ge=0)
+    seed: int = setting(DEFAULTS.seed, "base seed of episodes and random actions", group=ACTING)
+    torch_threads: int = setting(DEFAULTS.torch_threads, "torch CPU threads for inference", group=ACTING, ge=1)
+    max_speed: float = setting(DEFAULTS.max_speed, "pelvis speed (m/s) above which a step is a simulation blow-up: "
+                               "the episode ends before it, as a terminal step without reward, and it is counted "
+                               "(0: off)", group=ACTING, ge=0)
+    stats_interval: float = setting(DEFAULTS.stats_interval, "seconds between stats reports", group=ACTING, gt=0)
+    max_steps: int = setting(DEFAULTS.max_steps, "stop after this many steps (0: never)", group=ACTING, ge=0)
+    chunk_size: int = setting(DEFAULTS.chunk_size, "transitions per experience chunk", group=EXPERIENCE, ge=1)
+    chunk_delay: float = setting(DEFAULTS.chunk_delay, "seconds after which a partial chunk is sent anyway",
+                                 group=EXPERIENCE, gt=0)
+    num_shards: int = setting(DEFAULTS.num_shards, "replay shards of the run; this actor feeds shard "
+                              "actor-id % num-shards", group=EXPERIENCE, ge=1)
+    resend_buffer_mb: float = setting(DEFAULTS.resend_buffer_mb, "sent chunks kept until the replay shard "
+                                      "acknowledges them, and sent again when lost in flight (a cut link, a "
+                                      "restarted shard); beyond this the oldest are given up (0: no resends)",
+                                      group=EXPERIENCE, ge=0)
+    resend_delay: float = setting(DEFAULTS.resend_delay, "seconds after its last send before an unacknowledged "
+                                  "chunk is sent again; the wait doubles with each resend, up to 30 s",
+                                  group=EXPERIENCE, gt=0)
+    evaluate: bool = setting(False, "run deterministic episodes on fixed seeds for each new policy, report them as "
+                             "evaluation episodes, and send no experience", group=EVALUATION)
+    eval_episodes: int = setting(DEFAULTS.eval_episodes, "episodes per evaluation round, on seeds seed, seed+1, ...",
+                                 group=EVALUATION, ge=1)
+    eval_interval: float = setting(DEFAULTS.eval_interval, "least seconds between the starts of two evaluation "
+                                   "rounds", group=EVALUATION, ge=0)
+    episode_log_dir: FilePath | None = setting(None, "write logged episodes as MCAP files here (default: no logs)",
+                                               group=LOGS)
+    log_every: int = setting(10, "log every Nth training episode (0: none); evaluation episodes are always logged",
+                             group=LOGS, ge=0)
+    log_budget_mb: float = setting(1024.0, "disk budget of this actor's logs, oldest removed first", group=LOGS, gt=0)
+
+    def actor(self) -> ActorConfig:
+        episode_log = {}
+        if self.episode_log_dir is not None:
+            episode_log = {"directory": self.episode_log_dir, "every": self.log_every,
+                           "disk_budget_bytes": int(self.log_budget_mb * 2**20)}
+        return ActorConfig(
+            run=self.run, actor_id=self.actor_id, num_envs=self.num_envs, env_id=self.env_id,
+            difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
+            chunk_size=self.chunk_size, chunk_delay=self.chunk_delay, seed=self.seed, num_shards=self.num_shards,
+            evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
+            torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,
+            max_speed=self.max_speed, resend_buffer_mb=self.resend_buffer_mb, resend_delay=self.resend_delay,
+            episode_log=episode_log,
+        )
 
 
-def config_from(args: argparse.Namespace) -> ActorConfig:
-    if args.resend_buffer_mb < 0 or args.resend_delay <= 0:
-        raise SystemExit("l2r-actor: --resend-buffer-mb must be at least 0 and --resend-delay above 0")
-    for name in ("num_envs", "action_repeat", "chunk_size", "num_shards", "eval_episodes", "torch_threads"):
-        if getattr(args, name) < 1:
-            raise SystemExit(f"l2r-actor: --{name.replace('_', '-')} must be at least 1")
-    episode_log = {}
-    if args.episode_log_dir is not None:
-        episode_log = {"directory": args.episode_log_dir, "every": args.log_every,
-                       "disk_budget_bytes": int(args.log_budget_mb * 2**20)}
-    return ActorConfig(
-        run=args.run, actor_id=args.actor_id, num_envs=args.num_envs, env_id=args.env_id,
-        difficulty=args.difficulty, action_repeat=args.action_repeat, random_steps=args.random_steps,
-        chunk_size=args.chunk_size, chunk_delay=args.chunk_delay, seed=args.seed,
-        num_shards=args.num_shards, evaluate=args.evaluate, eval_episodes=args.eval_episodes,
-        eval_interval=args.eval_interval, torch_threads=args.torch_threads, max_steps=args.max_steps,
-        stats_interval=args.stats_interval, max_speed=args.max_speed,
-        resend_buffer_mb=args.resend_buffer_mb, resend_delay=args.resend_delay,
-        episode_log=episode_log,
-    )
+def build_parser() -> CommandParser:
+    return settings_parser(
+        ActorSettings, "l2r-actor",
+        "Step several Learning to Run environments with the learner's newest policy and send the experience to "
+        "the replay server(s) of a run. Stops cleanly on SIGINT/SIGTERM.")
 
 
-def cli(argv: list[str] | None = None) -> int:
-    args = parse_daemon_args(build_parser(), argv)
-    configure_logging(args.log_level)
-    config = config_from(args)
+def parse_settings(argv: Sequence[str] | None = None) -> ActorSettings:
+    return load(ActorSettings, build_parser(), argv)
+
+
+def cli(argv: Sequence[str] | None = None) -> int:
+    return run_command("l2r-actor", lambda: act(parse_settings(argv)))
+
+
+def act(s: ActorSettings) -> int:
+    configure_logging(s.log_level)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    return main(config, config_from_args(args), stop)
+    return main(s.actor(), s.zenoh_session_config(), stop)
 
 
 if __name__ == "__main__":

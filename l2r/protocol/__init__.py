@@ -11,8 +11,7 @@ from l2r.protocol.messages import (
 )
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
-    DefaultsHelpFormatter, Rejections, add_daemon_arguments, config_from_args, configure_logging,
-    parse_daemon_args, session_config, wait_alive,
+    DaemonSettings, Rejections, configure_logging, session_config, wait_alive,
 )
 
 __all__ = [
@@ -21,7 +20,5 @@ __all__ = [
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "EpisodeSummary", "ExperienceChunk", "Frame",
     "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck", "SampleBatch",
     "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
-    "DefaultsHelpFormatter", "Rejections",
-    "add_daemon_arguments", "config_from_args", "configure_logging", "parse_daemon_args",
-    "session_config", "wait_alive",
+    "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive",
 ]

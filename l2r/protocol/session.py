@@ -1,19 +1,19 @@
-"""Zenoh session configuration and the command-line shape every l2r daemon shares."""
+"""Zenoh session configuration and the settings every l2r daemon shares."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import threading
 import time
-import tomllib
 from collections import Counter
 from pathlib import Path
-from typing import Sequence
+from typing import Annotated, Literal, Sequence
 
 import zenoh
+from pydantic import AfterValidator, field_validator
 
+from l2r.config import ONE_OR_MANY, FilePath, Settings, setting, zenoh_error_text
 from l2r.protocol.keys import check_name
 from l2r.protocol.messages import ProtocolError
 
@@ -43,68 +43,55 @@ def session_config(
     return conf
 
 
-class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows "(default: X)" after each flag's help, except where there is no default to show."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        if action.default is None or action.default is False or action.default is argparse.SUPPRESS \
-                or action.default == []:
-            return action.help or ""
-        return super()._get_help_string(action)
+NETWORK = "run and network (common to all l2r daemons)"
 
 
-def add_daemon_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the flags every daemon takes: run name, Zenoh endpoints and config, TOML config, logging."""
-    g = parser.add_argument_group("run and network (common to all l2r daemons)")
-    g.add_argument("--run", default="default", help="run name; keys are l2r/<run>/..., so runs never mix (default: %(default)s)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
-    g.add_argument("--mode", choices=("peer", "client", "router"), default=None,
-                   help="Zenoh mode (default: the --zenoh-config file's, else peer)")
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file; the flags above apply on top")
-    g.add_argument("--config", metavar="FILE.toml",
-                   help="TOML file whose keys are long flag names (e.g. run = \"exp1\"); flags on the command line win")
-    g.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                   help="log level (default: %(default)s)")
+def _endpoint(endpoint: str) -> str:
+    try:  # Zenoh's own parser decides what an endpoint is
+        zenoh.Config().insert_json5("connect/endpoints", json.dumps([endpoint]))
+    except zenoh.ZError:
+        raise ValueError("not a Zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)") from None
+    return endpoint
 
 
-def parse_daemon_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """Parse ``argv`` with values from ``--config FILE.toml`` as defaults; exits with a clear error on a bad file."""
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--config")
-    known, _ = pre.parse_known_args(argv)
-    if known.config:
-        parser.set_defaults(**_toml_defaults(parser, known.config))
-    args = parser.parse_args(argv)
-    try:
-        check_name(args.run)
-    except ValueError as e:
-        parser.error(str(e))
-    return args
+Endpoints = Annotated[list[Annotated[str, AfterValidator(_endpoint)]], ONE_OR_MANY]
+"""Zenoh endpoints; one string is a list of one."""
 
 
-def _toml_defaults(parser: argparse.ArgumentParser, path: str) -> dict:
-    try:
-        with open(path, "rb") as f:
-            table = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        parser.error(f"cannot read --config {path}: {e}")
-    dests = {a.dest for a in parser._actions}
-    defaults = {}
-    for key, value in table.items():
-        dest = key.replace("-", "_")
-        if dest not in dests or dest in ("help", "config"):
-            parser.error(f"--config {path}: unknown key {key!r} (keys are the long flag names)")
-        defaults[dest] = value
-    return defaults
+class DaemonSettings(Settings):
+    """What every daemon takes: run name, Zenoh endpoints and config file, log level."""
 
+    run: str = setting("default", "run name; keys are l2r/<run>/..., so runs never mix", group=NETWORK)
+    connect: Endpoints = setting([], "Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
+                                 group=NETWORK, metavar="ENDPOINT")
+    listen: Endpoints = setting([], "Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+                                group=NETWORK, metavar="ENDPOINT")
+    mode: Literal["peer", "client", "router"] | None = setting(
+        None, "Zenoh mode (default: the --zenoh-config file's, else peer)", group=NETWORK)
+    zenoh_config: FilePath | None = setting(None, "Zenoh JSON5 config file; the flags above apply on top",
+                                            group=NETWORK, metavar="FILE")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = setting("INFO", "log level", group=NETWORK)
 
-def config_from_args(args: argparse.Namespace) -> zenoh.Config:
-    """The Zenoh config the common flags describe."""
-    mode = args.mode or (None if args.zenoh_config else "peer")
-    return session_config(args.connect, args.listen, mode=mode, config_file=args.zenoh_config)
+    @field_validator("run")
+    @classmethod
+    def _run_name(cls, run: str) -> str:
+        check_name(run)
+        return run
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _readable_zenoh_config(cls, path: Path | None) -> Path | None:
+        if path is not None:
+            try:
+                zenoh.Config.from_file(str(path))
+            except zenoh.ZError as e:
+                raise ValueError(zenoh_error_text(e)) from None
+        return path
+
+    def zenoh_session_config(self) -> zenoh.Config:
+        """The Zenoh config these settings describe."""
+        mode = self.mode or (None if self.zenoh_config else "peer")
+        return session_config(self.connect, self.listen, mode=mode, config_file=self.zenoh_config)
 
 
 def configure_logging(level: str = "INFO") -> None:

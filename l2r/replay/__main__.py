@@ -2,67 +2,88 @@
 
 from __future__ import annotations
 
-import argparse
+import os
 import sys
-from pathlib import Path
 from typing import Sequence
 
-from l2r.protocol import (
-    DefaultsHelpFormatter, add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args,
+from l2r.config import (
+    CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
+from l2r.protocol import DaemonSettings, configure_logging
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.server import ServerConfig, main
-from l2r.replay.storage import StorageConfig
+from l2r.replay.storage import StorageConfig, storage_bytes
+
+SHARD, STORAGE, LIMITER, PERSISTENCE = "shard", "storage", "rate limiter", "persistence and reporting"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="l2r-replay", formatter_class=DefaultsHelpFormatter,
-        description="Replay server of an l2r run: stores experience chunks from actors and answers "
-                    "learners' sample queries over Zenoh (uniform or prioritized), with a "
-                    "samples-per-insert rate limiter and periodic atomic snapshots.",
-        epilog="Example: l2r-replay --run exp1 --listen tcp/0.0.0.0:7447 --snapshot-dir runs/exp1/replay")
-    add_daemon_arguments(p)
-    g = p.add_argument_group("shard")
-    g.add_argument("--shard", type=int, default=0, help="index of this shard; actor i feeds shard i %% num-shards")
-    g.add_argument("--num-shards", type=int, default=1, help="number of replay shards of the run")
-    g = p.add_argument_group("storage")
-    g.add_argument("--capacity", type=int, default=1_000_000, help="transitions kept, oldest evicted first")
-    g.add_argument("--obs-dim", type=int, default=41, help="observation width; other widths are rejected")
-    g.add_argument("--act-dim", type=int, default=18, help="action width; other widths are rejected")
-    g.add_argument("--side-fraction", type=float, default=0.125,
-                   help="rows for next observations at chunk and episode ends, as a fraction of capacity")
-    g.add_argument("--priority-exponent", type=float, default=0.6, help="alpha of prioritized sampling")
-    g.add_argument("--seed", type=int, default=0, help="sampling seed")
-    g = p.add_argument_group("rate limiter")
-    g.add_argument("--min-size", type=int, default=1000, help="transitions stored before sampling starts")
-    g.add_argument("--samples-per-insert", type=float, default=0.0,
-                   help="sampled transitions allowed per inserted one; 0 = no ratio limit")
-    g.add_argument("--error-buffer", type=float, default=10_000.0,
-                   help="slack around the ratio, in sampled transitions")
-    g = p.add_argument_group("persistence and reporting")
-    g.add_argument("--snapshot-dir", type=Path, help="directory for snapshots (none: memory only)")
-    g.add_argument("--snapshot-interval", type=float, default=120.0,
-                   help="seconds between snapshots = the most experience a crash can lose")
-    g.add_argument("--no-restore", action="store_true", help="do not load the snapshot at start")
-    g.add_argument("--stats-interval", type=float, default=10.0, help="seconds between stats reports")
-    return p
+class ReplaySettings(DaemonSettings):
+    shard: int = setting(0, "index of this shard; actor i feeds shard i % num-shards", group=SHARD, ge=0)
+    num_shards: int = setting(1, "number of replay shards of the run", group=SHARD, ge=1)
+    capacity: int = setting(1_000_000, "transitions kept, oldest evicted first", group=STORAGE, ge=2)
+    obs_dim: int = setting(41, "observation width; other widths are rejected", group=STORAGE, ge=1)
+    act_dim: int = setting(18, "action width; other widths are rejected", group=STORAGE, ge=1)
+    side_fraction: float = setting(0.125, "rows for next observations at chunk and episode ends, as a fraction "
+                                   "of capacity", group=STORAGE, gt=0, le=1)
+    priority_exponent: float = setting(0.6, "alpha of prioritized sampling", group=STORAGE, ge=0)
+    seed: int = setting(0, "sampling seed", group=STORAGE)
+    min_size: int = setting(1000, "transitions stored before sampling starts", group=LIMITER, ge=0)
+    samples_per_insert: float = setting(0.0, "sampled transitions allowed per inserted one; 0 = no ratio limit",
+                                        group=LIMITER, ge=0)
+    error_buffer: float = setting(10_000.0, "slack around the ratio, in sampled transitions", group=LIMITER, ge=0)
+    snapshot_dir: FilePath | None = setting(None, "directory for snapshots (default: none, memory only)",
+                                            group=PERSISTENCE)
+    snapshot_interval: float = setting(120.0, "seconds between snapshots = the most experience a crash can lose",
+                                       group=PERSISTENCE, gt=0)
+    no_restore: bool = setting(False, "do not load the snapshot at start", group=PERSISTENCE)
+    stats_interval: float = setting(10.0, "seconds between stats reports", group=PERSISTENCE, gt=0)
+
+    def check(self) -> None:
+        if self.shard >= self.num_shards:
+            raise UsageError(f"--shard {self.shard} must be below --num-shards {self.num_shards}")
+
+
+def build_parser() -> CommandParser:
+    return settings_parser(
+        ReplaySettings, "l2r-replay",
+        "Replay server of an l2r run: stores experience chunks from actors and answers learners' sample "
+        "queries over Zenoh (uniform or prioritized), with a samples-per-insert rate limiter and periodic "
+        "atomic snapshots.",
+        "Example: l2r-replay --run exp1 --listen tcp/0.0.0.0:7447 --snapshot-dir runs/exp1/replay")
+
+
+def parse_settings(argv: Sequence[str] | None = None) -> ReplaySettings:
+    return load(ReplaySettings, build_parser(), argv)
+
+
+def available_memory() -> int:
+    """Bytes a new allocation can have without swapping: MemAvailable on Linux, else physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def cli(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parse_daemon_args(parser, argv)
-    if not 0 <= args.shard < args.num_shards:
-        parser.error(f"--shard {args.shard} must be in [0, --num-shards {args.num_shards})")
-    if args.capacity < 2 or args.obs_dim < 1 or args.act_dim < 1 or not 0 < args.side_fraction <= 1:
-        parser.error("--capacity >= 2, --obs-dim and --act-dim >= 1, 0 < --side-fraction <= 1")
-    configure_logging(args.log_level)
-    server = ServerConfig(args.run, args.shard, args.num_shards, args.snapshot_dir, args.snapshot_interval,
-                          not args.no_restore, args.stats_interval)
-    storage = StorageConfig(args.capacity, args.obs_dim, args.act_dim, args.side_fraction,
-                            args.priority_exponent, args.seed)
-    limiter = RateLimiter(args.min_size, args.samples_per_insert, args.error_buffer)
-    return main(server, storage, limiter, config_from_args(args))
+    return run_command("l2r-replay", lambda: serve(parse_settings(argv)))
+
+
+def serve(s: ReplaySettings) -> int:
+    configure_logging(s.log_level)
+    storage = StorageConfig(s.capacity, s.obs_dim, s.act_dim, s.side_fraction, s.priority_exponent, s.seed)
+    # The storage is allocated and touched at start: more than the free memory is an OOM kill, not an error.
+    needed, available = storage_bytes(storage), available_memory()
+    if needed > available:
+        raise StartupFailure(f"--capacity {s.capacity} needs {needed / 2**30:.1f} GiB of memory; "
+                             f"{available / 2**30:.1f} GiB is available")
+    server = ServerConfig(s.run, s.shard, s.num_shards, s.snapshot_dir, s.snapshot_interval, not s.no_restore,
+                          s.stats_interval)
+    limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer)
+    return main(server, storage, limiter, s.zenoh_session_config())
 
 
 if __name__ == "__main__":

@@ -37,6 +37,15 @@ class StorageConfig:
     seed: int = 0
 
 
+def storage_bytes(config: StorageConfig) -> int:
+    """Bytes a `Storage` of ``config`` allocates (its ``nbytes``), known before allocating."""
+    c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
+    # per slot: obs, actions, reward, terminated and truncated flags, version, generation, next row
+    per_slot = 4 * config.obs_dim + 4 * config.act_dim + 4 + 2 + 3 * 8
+    per_side_row = 4 * config.obs_dim + 2 * 8  # next obs, owner and its generation
+    return c * per_slot + s * per_side_row + SumTree.nbytes_for(c)
+
+
 class ChunkRejected(ProtocolError):
     """A well-formed chunk this storage cannot hold (wrong widths, longer than capacity)."""
 

@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 
+def _leaves(capacity: int) -> int:
+    return 1 << max(1, (capacity - 1).bit_length())
+
+
 class SumTree:
     """Binary tree in one array: node i has children 2i and 2i+1, leaves start at ``leaves``.
 
@@ -14,9 +18,14 @@ class SumTree:
 
     def __init__(self, capacity: int):
         self.capacity = capacity
-        self.leaves = 1 << max(1, (capacity - 1).bit_length())
+        self.leaves = _leaves(capacity)
         self.tree = np.zeros(2 * self.leaves, dtype=np.float64)
         self._stale: list[tuple[int, int]] = []  # leaf ranges whose ancestors are out of date
+
+    @staticmethod
+    def nbytes_for(capacity: int) -> int:
+        """The size of the tree of ``capacity`` slots, without making one."""
+        return 2 * _leaves(capacity) * np.dtype(np.float64).itemsize
 
     @property
     def total(self) -> float:

@@ -25,6 +25,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.sim import model as body
 from l2r.sim import thelen
 from l2r.sim.opensim import read_osim
@@ -366,8 +367,10 @@ def format_markdown(report: dict) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="l2r validate", description=__doc__.split("\n\n")[0],
-                                     epilog="Exit status: 0 when the report was made (targets met or not), 2 on a bad reference file.")
+    parser = CommandParser(prog="l2r validate", description=__doc__.split("\n\n")[0],
+                           epilog="Exit status: 0 when the report was made (targets met or not), 1 when --dynamics "
+                                  "cannot run (OpenSim not installed, an unreadable --policy checkpoint), 2 on bad "
+                                  "usage or a bad reference file.")
     parser.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE, help="OpenSim figures to compare with (default: the packaged ones)")
     output = parser.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
@@ -386,8 +389,8 @@ def cli(argv: list[str] | None = None) -> int:
     try:
         report = validate(args.reference)
     except ReferenceError as e:
-        print(f"validate: bad reference file: {e}", file=sys.stderr)
-        return 2
+        print(f"l2r validate: bad reference file: {e}", file=sys.stderr)
+        return EXIT_USAGE
     print(json.dumps(report) if args.json else format_markdown(report) if args.markdown else format_table(report))
     return 0
 
@@ -402,16 +405,16 @@ def _dynamics(args: argparse.Namespace) -> int:
         try:
             checkpoint = load_checkpoint(args.policy)
         except CheckpointError as e:
-            print(f"validate: {e}", file=sys.stderr)
-            return 2
+            print(f"l2r validate: {e}", file=sys.stderr)
+            return EXIT_FAILURE
         deterministic = checkpoint.policy()
         policy = lambda obs: deterministic.act(obs[None], deterministic=True)[0]  # noqa: E731
     try:
         report = dynamics.check(dynamics.excitation_sequences(args.seed, policy=policy),
                                 progress=lambda line: print(line, file=sys.stderr))
     except ImportError as e:
-        print(f"validate: {e}", file=sys.stderr)
-        return 2
+        print(f"l2r validate: {e}", file=sys.stderr)
+        return EXIT_FAILURE
     print(json.dumps(report) if args.json else dynamics.format_table(report))
     return 0
 

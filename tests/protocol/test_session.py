@@ -1,18 +1,15 @@
-"""Session configuration, the daemons' shared flags, key expressions, and messages over real Zenoh."""
+"""Session configuration, key expressions, and messages over real Zenoh (the daemons' shared
+settings are in tests/test_config.py)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import threading
 
 import pytest
 import zenoh
 
-from l2r.protocol import (
-    Keys, add_daemon_arguments, config_from_args, decode, encode, parse_alive, parse_daemon_args,
-    session_config, shard_of, wait_alive,
-)
+from l2r.protocol import Keys, decode, encode, parse_alive, session_config, shard_of, wait_alive
 from tests.protocol.factories import every_message
 from tests.protocol.test_messages import assert_same
 
@@ -34,34 +31,7 @@ def test_zenoh_config_file_is_passed_through_with_flags_on_top(tmp_path):
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7002"]
 
 
-def daemon_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="l2r-test")
-    add_daemon_arguments(parser)
-    parser.add_argument("--capacity", type=int, default=10)
-    return parser
-
-
-def test_toml_config_gives_defaults_and_flags_win(tmp_path):
-    path = tmp_path / "d.toml"
-    path.write_text('run = "exp1"\ncapacity = 99\nconnect = ["tcp/127.0.0.1:1"]\nlog-level = "DEBUG"\n')
-    args = parse_daemon_args(daemon_parser(), ["--config", str(path), "--capacity", "5"])
-    assert (args.run, args.capacity, args.connect, args.log_level) == ("exp1", 5, ["tcp/127.0.0.1:1"], "DEBUG")
-    assert json.loads(config_from_args(args).get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
-
-
-@pytest.mark.parametrize("text, message", [("bogus = 1\n", "unknown key 'bogus'"), ("run = \n", "cannot read")])
-def test_bad_toml_config_is_a_clear_error(tmp_path, capsys, text, message):
-    path = tmp_path / "bad.toml"
-    path.write_text(text)
-    with pytest.raises(SystemExit):
-        parse_daemon_args(daemon_parser(), ["--config", str(path)])
-    assert message in capsys.readouterr().err
-
-
-def test_run_names_that_would_break_keys_are_refused(capsys):
-    with pytest.raises(SystemExit):
-        parse_daemon_args(daemon_parser(), ["--run", "a/b"])
-    assert "invalid run name" in capsys.readouterr().err
+def test_run_names_that_would_break_keys_are_refused():
     with pytest.raises(ValueError):
         Keys("runs/*")
 

@@ -179,4 +179,4 @@ def test_cli_help_and_bad_flags():
     out = subprocess.run([*run, "--help"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and "--samples-per-insert" in out.stdout and "--zenoh-config" in out.stdout
     bad = subprocess.run([*run, "--shard", "2", "--num-shards", "2"], capture_output=True, text=True, timeout=30)
-    assert bad.returncode == 2 and "--shard 2 must be in" in bad.stderr
+    assert bad.returncode == 2 and "--shard 2 must be below --num-shards 2" in bad.stderr

@@ -3,7 +3,7 @@ for the evaluators alone."""
 
 from pathlib import Path
 
-from l2r.actors.__main__ import build_parser as actor_parser
+from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.up import build_parser, plan_children
 
 
@@ -14,7 +14,7 @@ def env_ids(*argv: str) -> dict[str, str]:
     ids = {}
     for child in children:
         if child.argv[2] == "l2r.actors":
-            ids[child.name] = actor_parser().parse_args(child.argv[3:]).env_id
+            ids[child.name] = actor_settings(child.argv[3:]).env_id
     return ids
 
 
