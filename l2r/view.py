@@ -19,10 +19,10 @@ For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode fi
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
+import urllib.parse
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,23 +33,32 @@ import rerun.blueprint as rrb
 from mcap.reader import SeekingReader
 from mcap.records import Metadata
 
+from l2r.config import (
+    CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
+)
 from l2r.episodes.body import BodyModel, Shape, rotate
 from l2r.episodes.read import Episode, iter_records, read_episode
+from l2r.protocol.session import DaemonSettings, configure_logging
 
 APP_ID = "l2r"
 GROUND = "world/ground"  # the model's y-up frame, turned z-up under "world"
 GAP_SECONDS = 0.5  # pause on the timeline between two episodes
 GROUND_ROTATION = rr.Quaternion(xyzw=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # +90 deg about x
+CAMERA = f"{GROUND}/camera"  # follows the pelvis along the track; the 3D view looks through it
+CAMERA_HEIGHT, CAMERA_DISTANCE = 1.0, 4.0  # m above the ground, and beside the track
 
 
 # ------------------------------------------------------------------------------ recordings
 
 
-def blueprint() -> rrb.Blueprint:
+def blueprint(follow: bool = True) -> rrb.Blueprint:
+    """The layout: the runner in 3D (seen from its side through CAMERA, which moves with it, when
+    ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots."""
+    eye = rrb.EyeControls3D(tracking_entity=CAMERA) if follow else None
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(name="runner", origin="/world"),
+                rrb.Spatial3DView(name="runner", origin="/world", eye_controls=eye),
                 rrb.TextLogView(name="episodes", origin="/episodes"),
                 row_shares=[5, 1],
             ),
@@ -93,6 +102,9 @@ def log_body(rec: rr.RecordingStream, body: BodyModel) -> None:
     for name in body.bodies:
         _log_shapes(rec, f"{GROUND}/bodies/{name}/shape", [s for s in body.shapes if s.body == name])
     _log_shapes(rec, f"{GROUND}/floor", body.ground_shapes())
+    # Right, up, back: in the ground frame (x along the track, y up) it looks at the track along -z.
+    rec.log(CAMERA, rr.Pinhole(fov_y=0.9, aspect_ratio=1.6, camera_xyz=rr.ViewCoordinates.RUB,
+                               image_plane_distance=0.05), static=True)
     rec.log("plots/muscle_activation", rr.SeriesLines(names=list(body.muscles)), static=True)
     rec.log("plots/muscle_force", rr.SeriesLines(names=list(body.muscles)), static=True)
 
@@ -109,6 +121,9 @@ def log_episode(
     rec.log(f"{GROUND}/obstacles", rr.Ellipsoids3D(
         centers=[(x, y, 0.0) for x, y, _ in obstacles], half_sizes=[(r, r, r) for _, _, r in obstacles],
         colors=[(115, 90, 75)] * len(obstacles), fill_mode=rr.components.FillMode.Solid))  # fmt: skip
+    for series, names in (("ligament_force", "ligaments"), ("contact_force", "contacts")):
+        if episode.names.get(names):  # one plot line per ligament and foot sphere, by the model's name
+            rec.log(f"plots/{series}", rr.SeriesLines(names=list(episode.names[names])), static=True)
     s = episode.steps
     for name in ("reward", "distance", "pelvis_height"):
         rec.send_columns(f"plots/{name}", index, rr.Scalars.columns(scalars=s[name]))
@@ -121,10 +136,14 @@ def log_episode(
 
     if body is None or not episode.pos.size:
         return
-    for i, name in enumerate(episode.names.get("bodies") or body.bodies):
+    bodies = episode.names.get("bodies") or body.bodies
+    for i, name in enumerate(bodies):
         quat = episode.quat[:, i][:, [1, 2, 3, 0]]
         rec.send_columns(f"{GROUND}/bodies/{name}", index,
                          rr.Transform3D.columns(translation=episode.pos[:, i], quaternion=quat))  # fmt: skip
+    pelvis_x = episode.pos[:, list(bodies).index("pelvis"), 0]
+    eye = np.column_stack([pelvis_x, np.full_like(pelvis_x, CAMERA_HEIGHT), np.full_like(pelvis_x, CAMERA_DISTANCE)])
+    rec.send_columns(CAMERA, index, rr.Transform3D.columns(translation=eye))
     if s["muscle_activation"].size and body.paths:
         points = body.muscle_points(episode.pos, episode.quat)
         strips = [points[m][t] for t in range(len(times)) for m in range(len(points))]
@@ -278,42 +297,66 @@ def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str) -> Non
 # ------------------------------------------------------------------------------------- cli
 
 
-def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="l2r view", description="Watch logged episodes (one after the other), or a run's actors live, in Rerun.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="examples:\n  l2r view runs/exp1/episodes/*-eval.mcap\n  l2r view runs/exp1/episodes --save all.rrd\n"
-               "  l2r view --live --run exp1 --connect tcp/127.0.0.1:7447 --web",
-    )  # fmt: skip
-    parser.add_argument("files", nargs="*", type=Path,
-                        help="episode files (.mcap, or interrupted .mcap.part), or directories of them")
-    out = parser.add_mutually_exclusive_group()
-    out.add_argument("--save", type=Path, metavar="OUT.rrd", help="write a Rerun file instead of opening a viewer")
-    out.add_argument("--web", action="store_true", help="serve the web viewer (for a machine without a screen)")
-    parser.add_argument("--web-port", type=int, default=9090, help="web viewer port with --web (default: %(default)s)")
-    live = parser.add_argument_group("live")
-    live.add_argument("--live", action="store_true", help="watch the episodes a run's actors are running now")
-    live.add_argument("--duration", type=float, help="with --live: stop after this many seconds (default: until Ctrl-C)")
-    from l2r.protocol.session import add_daemon_arguments, config_from_args, configure_logging, parse_daemon_args
+EPISODES, OUTPUT, LIVE = "episodes", "output", "live"
 
-    add_daemon_arguments(parser)
-    args = parse_daemon_args(parser, argv)
-    configure_logging(args.log_level)
-    if args.live == bool(args.files):
-        parser.error("give episode files, or --live (with --run) to watch a running job")
-    given = args.files
-    args.files = [f for p in given for f in (sorted(p.glob("*.mcap")) if p.is_dir() else [p])]
-    if given and not args.files:
-        parser.error(f"no .mcap files in {', '.join(map(str, given))}")
-    missing = [str(p) for p in args.files if not p.is_file()]
+
+class ViewSettings(DaemonSettings):
+    files: list[FilePath] = setting([], "episode files (.mcap, or interrupted .mcap.part), or directories of them",
+                                    group=EPISODES, positional=True, metavar="FILE")
+    save: FilePath | None = setting(None, "write a Rerun file instead of opening a viewer", group=OUTPUT,
+                                    metavar="OUT.rrd")
+    web: bool = setting(False, "serve the web viewer (for a machine without a screen) and print the URL that opens "
+                        "it on the recording", group=OUTPUT)
+    web_port: int = setting(9090, "with --web: port of the web viewer", group=OUTPUT, ge=1, le=65535)
+    grpc_port: int = setting(9876, "with --web: port of the recording's gRPC server, which the web viewer reads",
+                             group=OUTPUT, ge=1, le=65535)
+    live: bool = setting(False, "watch the episodes a run's actors are running now", group=LIVE)
+    duration: float | None = setting(None, "with --live: stop after this many seconds (default: until Ctrl-C)",
+                                     group=LIVE, gt=0)
+
+    def check(self) -> None:
+        if self.save and self.web:
+            raise UsageError("--save and --web exclude each other")
+        if self.live == bool(self.files):
+            raise UsageError("give episode files, or --live (with --run) to watch a running job")
+
+
+def build_parser() -> CommandParser:
+    return settings_parser(
+        ViewSettings, "l2r view", "Watch logged episodes (one after the other), or a run's actors live, in Rerun.",
+        "examples:\n  l2r view runs/exp1/episodes/*-eval.mcap\n  l2r view runs/exp1/episodes --save all.rrd\n"
+        "  l2r view --live --run exp1 --connect tcp/127.0.0.1:7447 --web")
+
+
+def cli(argv: list[str] | None = None) -> int:
+    return run_command("l2r view", lambda: view(load(ViewSettings, build_parser(), argv)))
+
+
+def serve_web(rec: rr.RecordingStream, web_port: int, grpc_port: int, blueprint_: rrb.Blueprint) -> str:
+    """Serve ``rec`` over gRPC and the web viewer over HTTP; the URL that opens the viewer on the recording
+    (the viewer's own address alone opens its welcome page)."""
+    try:
+        grpc_url = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint_)
+        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
+    except RuntimeError as e:  # a port in use
+        raise StartupFailure(f"cannot serve the web viewer: {str(e).splitlines()[0]}") from None
+    return f"http://localhost:{web_port}/?url={urllib.parse.quote(grpc_url, safe='')}"
+
+
+def view(s: ViewSettings) -> int:
+    configure_logging(s.log_level)
+    files = [f for p in s.files for f in (sorted(p.glob("*.mcap")) if p.is_dir() else [p])]
+    if s.files and not files:
+        raise UsageError(f"no .mcap files in {', '.join(map(str, s.files))}")
+    missing = [str(p) for p in files if not p.is_file()]
     if missing:
-        parser.error(f"no such file: {', '.join(missing)}")
+        raise UsageError(f"no such file: {', '.join(missing)}")
     headless = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-    if headless and not (args.save or args.web):
-        parser.error("no screen here (DISPLAY is not set): use --save FILE.rrd, or --web to serve the web viewer")
+    if headless and not (s.save or s.web):
+        raise UsageError("no screen here (DISPLAY is not set): use --save FILE.rrd, or --web to serve the web viewer")
 
     episodes = []
-    for path in args.files:
+    for path in files:
         try:
             episodes.append(read_episode(path))
         except (ValueError, OSError) as e:
@@ -322,29 +365,27 @@ def cli(argv: list[str] | None = None) -> int:
             episode = episodes[-1]
             state = "" if episode.complete else " (interrupted: shown up to where it stops)"
             print(f"l2r view: {path.name}: {len(episode)} steps{state}", file=sys.stderr)
-    if args.files and not episodes:
-        print("l2r view: none of the files is a readable episode", file=sys.stderr)
-        return 1
+    if files and not episodes:
+        raise StartupFailure("none of the files is a readable episode")
 
+    layout = blueprint(follow=not s.live)
     rec = new_recording()
-    if args.save:
-        rec.save(str(args.save), default_blueprint=blueprint())
-    elif args.web:
-        url = rec.serve_grpc(default_blueprint=blueprint())
-        rr.serve_web_viewer(web_port=args.web_port, open_browser=False, connect_to=url)
-        print(f"l2r view: web viewer on http://localhost:{args.web_port} (Ctrl-C stops)", file=sys.stderr)
+    if s.save:
+        rec.save(str(s.save), default_blueprint=layout)
+    elif s.web:
+        url = serve_web(rec, s.web_port, s.grpc_port, layout)
+        print(f"l2r view: open {url} (Ctrl-C stops)", file=sys.stderr, flush=True)
     else:
         # The viewer binary comes with rerun-sdk next to this Python, which may not be on PATH.
         os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
         try:
-            rec.spawn(default_blueprint=blueprint())
+            rec.spawn(default_blueprint=layout)
         except RuntimeError as e:
-            print(f"l2r view: cannot start the Rerun viewer ({str(e).splitlines()[0]}); "
-                  "use --save FILE.rrd, or --web on a machine without a screen", file=sys.stderr)  # fmt: skip
-            return 1
+            raise StartupFailure(f"cannot start the Rerun viewer ({str(e).splitlines()[0]}); use --save FILE.rrd, "
+                                 "or --web on a machine without a screen") from None
 
-    if args.live:
-        status = watch_live(rec, config_from_args(args), args.run, args.duration)
+    if s.live:
+        status = watch_live(rec, s.zenoh_session_config(), s.run, s.duration)
     else:
         log_episodes(rec, episodes)
         status = 0
@@ -353,9 +394,9 @@ def cli(argv: list[str] | None = None) -> int:
     except RuntimeError as e:  # the viewer went away (closed, or could not open a window)
         print(f"l2r view: the Rerun viewer is gone: {e}", file=sys.stderr)
         return 1
-    if args.save:
-        print(f"l2r view: wrote {args.save}", file=sys.stderr)
-    elif args.web and not args.live:
+    if s.save:
+        print(f"l2r view: wrote {s.save}", file=sys.stderr)
+    elif s.web and not s.live:
         try:
             while True:
                 time.sleep(1.0)

@@ -13,9 +13,10 @@ import rerun as rr
 
 from l2r.actors.episode_log import EpisodeLogger, LogPolicy
 from l2r.episodes import schema
-from l2r.sim.env import RunEnv
+from l2r.sim.env import FOOT_SPHERES, RunEnv
+from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.model import BODIES, MUSCLES
-from l2r.view import find_episode, write_recording
+from l2r.view import CAMERA, CAMERA_DISTANCE, CAMERA_HEIGHT, find_episode, write_recording
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 STEPS = 12
@@ -75,6 +76,29 @@ def test_l2r_view_saves_a_recording_of_several_episodes(episodes, tmp_path):
     times = [t for c in chunks if c.entity_path == "/plots/reward"
              for t in c.to_record_batch().column("time").cast("int64").to_pylist()]  # fmt: skip
     assert len(set(times)) == len(rewards), "two episodes must not overlap in time"
+
+
+def test_the_camera_follows_the_pelvis_and_plot_lines_are_named_after_the_model(episodes, tmp_path):
+    files, produced = episodes
+    out = write_recording(files, tmp_path / "episodes.rrd")
+    chunks = rr.chunk.RrdReader(out).stream().to_chunks()
+    camera = np.array(temporal(chunks, f"/{CAMERA}", "Transform3D:translation"))
+    pelvis = np.array([i["body_pos"][1] for run in produced for i in run["info"]])
+    assert np.allclose(camera[:, 0], pelvis[:, 0], atol=1e-6)  # along the track with the runner,
+    assert np.allclose(camera[:, 1:], [CAMERA_HEIGHT, CAMERA_DISTANCE])  # at a fixed height beside it
+
+    def static(entity: str, component: str) -> list:
+        return [v for c in chunks if c.entity_path == entity and c.is_static
+                for v in c.to_record_batch().column(component).to_pylist()]  # fmt: skip
+
+    assert static(f"/{CAMERA}", "Pinhole:camera_xyz")
+    assert static("/plots/contact_force", "SeriesLines:names") == [list(FOOT_SPHERES)]
+    assert static("/plots/ligament_force", "SeriesLines:names") == [list(LIGAMENTS)]
+    # and the 3D view looks through that camera
+    reader = rr.chunk.RrdReader(out)
+    views = [c.to_record_batch() for c in reader.store(store=reader.blueprints()[0]).stream().to_chunks()]
+    tracked = [v.column(n).to_pylist() for v in views for n in v.schema.names if n == "EyeControls3D:tracking_entity"]
+    assert tracked == [[[CAMERA]]]
 
 
 def test_rerun_opens_an_episode_file_directly_with_the_body_moving(episodes):
