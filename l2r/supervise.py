@@ -141,18 +141,23 @@ class ProcessGroup:
         child.exits_without_progress = 0 if progressed else child.exits_without_progress + 1
         if code == USAGE_ERROR or child.exits_without_progress > self.max_restarts:
             child.state = FAILED
-            log.error("%s %s; giving up: %s", child.name, child.last_exit, self.give_up_reason(child))
+            log.error("%s %s; giving up: %s", child.name, child.last_exit, self.failure(child))
             return
         delay = restart_delay(child.exits_without_progress)
         child.state, child.restart_at = WAITING, now + delay
         log.warning("%s %s after %s; restarting it in %.0f s (see logs/%s.log)", child.name, child.last_exit,
                     "progress" if progressed else "no progress", delay, child.name)
 
-    def give_up_reason(self, child: Child) -> str:
+    def failure(self, child: Child) -> str:
+        """What is wrong with a child that exits without progress, in words."""
         if child.last_code == USAGE_ERROR:
             return f"{child.name} rejected its command line ({child.last_exit}), which a restart would repeat"
         return (f"{child.name} exited {child.exits_without_progress} times in a row without progress "
                 f"(last: {child.last_exit})")
+
+    def failing(self) -> list[Child]:
+        """The children whose last exits brought no progress: given up on, or not yet."""
+        return [c for c in self.children if c.exits_without_progress]
 
     def finished(self, name_prefix: str) -> bool:
         """Whether every child whose name starts with `name_prefix` has finished (exit code 0)."""

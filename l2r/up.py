@@ -165,6 +165,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
         parser.error(f"--resume {args.resume}: no launch.json there, so not a run directory of l2r up")
     except json.JSONDecodeError as e:
         parser.error(f"--resume: {launch_path} is not JSON ({e})")
+    if "args" not in launch:
+        print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
+              f"defaults apply", file=sys.stderr)
     stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(args) and k not in NOT_REUSED}
     parser.set_defaults(**stored)
     args = parser.parse_args(argv)
@@ -277,6 +280,7 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
     summary = {"outcome": outcome, "exit_code": code, **metrics.snapshot()}
     summary["restarts_by_process"] = {c.name: c.restarts for c in group.children if c.restarts}
     summary["last_exit_by_process"] = {c.name: c.last_exit for c in group.children if c.last_exit}
+    summary["failing"] = [group.failure(c) for c in group.failing()]
     episode = metrics.best_eval
     summary["best_eval_episode"] = None if episode is None else {
         "actor": int(episode["actor"]), "seed": int(episode["seed"]), "version": int(episode["version"]),
@@ -300,12 +304,13 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
 def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates_before: int) -> list[str]:
     """What the last lines say: what happened, and only the commands that have something to show."""
     best = summary["best_eval_distance"]
-    lines = [f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates "
+    lines = [failure for failure in summary["failing"] if failure not in summary["outcome"]]
+    lines += [f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates "
              f"({summary['updates'] - updates_before:,} in this session), best evaluation distance "
              f"{'-' if best is None else f'{best:.2f} m'}", f"run directory: {run_dir}",
              f"metrics: tensorboard --logdir {run_dir / 'metrics'}  (CSV files beside)"]
     if summary["updates"] == 0:
-        waiting = summary["replay_size"] < args.min_replay and not summary["exit_code"]
+        waiting = summary["replay_size"] < args.min_replay and not summary["failing"]
         lines.append("the learner made no update, so there is nothing to evaluate" + (
             f" (replay holds {summary['replay_size']:,} of the --min-replay {args.min_replay:,} transitions it "
             f"waits for)" if waiting else ""))
@@ -354,7 +359,7 @@ def cli(argv: list[str] | None = None) -> int:
     children = plan_children(args, run, run_dir, replay_port, learner_port)
     conf = session_config(connect=[loopback(replay_port), loopback(learner_port)], listen=["tcp/127.0.0.1:0"])
     print(f"l2r up: run directory {run_dir}  (Zenoh run {run!r}; Ctrl-C stops cleanly)", file=sys.stderr)
-    code, failed, spent = 0, None, None
+    code, spent = 0, None
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
         metrics = RunMetrics(session, Keys(run), run_dir / "metrics")
@@ -370,7 +375,7 @@ def cli(argv: list[str] | None = None) -> int:
                 while not stop.wait(0.25):
                     failed = group.poll()
                     if failed:
-                        reason[0], code = f"gave up: {group.give_up_reason(failed)}", 1
+                        reason[0], code = f"gave up: {group.failure(failed)}", 1
                         break
                     if group.finished("learner"):
                         reason[0] = "the learner finished"
@@ -402,9 +407,9 @@ def cli(argv: list[str] | None = None) -> int:
     summary = after_run(run_dir, metrics, best, group, reason[0], code)
     print(f"l2r up: {'failed' if code else 'done'}: {reason[0]}\n" + "\n".join(
         f"        {line}" for line in final_report(run_dir, summary, args, metrics.before.updates)), file=sys.stderr)
-    if failed is not None:  # its own words last, where they are seen
-        print(f"l2r up: the last lines of {group.log_path(failed)}:\n"
-              + "\n".join(f"    {line}" for line in last_lines(group.log_path(failed))), file=sys.stderr)
+    for child in group.failing():  # their own words last, where they are seen
+        print(f"l2r up: the last lines of {group.log_path(child)}:\n"
+              + "\n".join(f"    {line}" for line in last_lines(group.log_path(child))), file=sys.stderr)
     return code
 
 

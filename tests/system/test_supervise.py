@@ -44,7 +44,7 @@ def test_a_process_failing_without_progress_is_given_up_on_after_max_restarts(tm
     child = group.children[0]
     assert supervise_until_settled(group) is child
     assert child.state == FAILED and child.restarts == 3 and exits == [1, 1, 1, 1]
-    assert group.give_up_reason(child) == "proc exited 4 times in a row without progress (last: exit code 1)"
+    assert group.failure(child) == "proc exited 4 times in a row without progress (last: exit code 1)"
     assert last_lines(tmp_path / "proc.log") == ["attempt"] * 4
 
 
@@ -64,7 +64,7 @@ def test_a_usage_error_is_given_up_on_at_once_and_a_clean_exit_is_final(tmp_path
     group.start()
     failed = supervise_until_settled(group)
     assert failed is group.children[0] and failed.restarts == 0
-    assert "rejected its command line (exit code 2)" in group.give_up_reason(failed)
+    assert "rejected its command line (exit code 2)" in group.failure(failed)
 
     group = ProcessGroup([exiting(0)], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
     group.start()

@@ -89,7 +89,7 @@ def test_up_trains_restarts_writes_metrics_and_leaves_a_checkpoint_eval_loads(tm
 
     # The newest checkpoints, readable by everyone; eval steps with the action repeat of training.
     learner_files = sorted((run_dir / "learner").iterdir())
-    assert [p.name for p in learner_files if p.name.startswith("checkpoint-")].__len__() == 2
+    assert len([p for p in learner_files if p.name.startswith("checkpoint-")]) == 2
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in learner_files)
     ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "1", "--json"],
                         cwd=ROOT, capture_output=True, text=True, timeout=120)
