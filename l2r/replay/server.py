@@ -4,13 +4,15 @@ One shard of a run: it subscribes to ``experience/<shard>/*``, answers
 ``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, tells its actors
 what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats and
 answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
-joins and leaves.
+joins and leaves. With a snapshot directory, every chunk stored goes to a write-ahead log that
+is fsynced before an ack names it, so what is acknowledged survives a crash.
 Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 import time
@@ -29,6 +31,7 @@ from l2r.replay import snapshot
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import SequenceTracker
 from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig
+from l2r.replay.wal import WriteAheadLog
 
 log = logging.getLogger("l2r.replay")
 
@@ -57,13 +60,17 @@ class ServerConfig:
     stats_interval: float = 10.0
     ack_interval: float = 0.5
     """Seconds between acks to the actors (sent only when experience arrived since the last)."""
+    write_ahead_log: bool = True
+    """With a snapshot_dir: log every chunk stored and fsync it before acknowledging it."""
 
 
 class ReplayServer:
     """The shard's state and its message handlers (see the module docstring)."""
 
-    def __init__(self, config: ServerConfig, storage: Storage, limiter: RateLimiter):
+    def __init__(self, config: ServerConfig, storage: Storage, limiter: RateLimiter,
+                 wal: WriteAheadLog | None = None):
         self.config = config
+        self.wal = wal
         self.keys = Keys(config.run)
         self.storage = storage
         self.limiter = limiter
@@ -83,26 +90,60 @@ class ReplayServer:
     # -- handlers -----------------------------------------------------------------------
     def on_experience(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         try:
-            chunk = decode(sample.payload, ExperienceChunk)
-            self.storage.check(chunk)
+            chunk = self._check(payload)
             if key.rsplit("/", 1)[-1] != str(chunk.actor_id):
                 raise ProtocolError(f"experience: actor_id {chunk.actor_id} in the payload, but the key says "
                                     f"{key.rsplit('/', 1)[-1]!r}", "actor_id_mismatch")
         except ProtocolError as e:
             self.rejections.add(e, key)
             return
+        self._store(chunk, payload)
+
+    def _check(self, payload: bytes) -> ExperienceChunk:
+        chunk = decode(payload, ExperienceChunk)
+        self.storage.check(chunk)
+        return chunk
+
+    def _store(self, chunk: ExperienceChunk, payload: bytes | None) -> None:
+        """Store a new chunk and log its ``payload`` (None: it comes from the log)."""
         with self.lock:
             if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
                 return
             stored = self.storage.insert(chunk)
             self.sequences.stored(chunk.actor_id, stored)
             self.limiter.inserted += stored
+            if self.wal is not None and payload is not None and not self.wal.failed:
+                try:
+                    self.wal.append(payload)
+                except OSError as e:
+                    self._wal_failed(e)
+
+    def replay_log(self, first_segment: int) -> tuple[int, int]:
+        """Store the chunks of the write-ahead log's segments from ``first_segment`` on (at start,
+        after the snapshot); return (chunks, transitions) stored. Chunks the snapshot holds are
+        dropped as duplicates."""
+        chunks, inserted = 0, self.limiter.inserted
+        for payload in self.wal.records(first_segment):
+            try:
+                chunk = self._check(payload)
+            except ProtocolError as e:  # written by a server with other widths: not ours to store
+                self.rejections.add(e, "write-ahead log")
+                continue
+            self._store(chunk, None)
+            chunks += 1
+        return chunks, self.limiter.inserted - inserted
+
+    def _wal_failed(self, error: OSError) -> None:
+        self.wal.failed = f"{type(error).__name__}: {error}"
+        log.error("write-ahead log failed (%s): no more acks, so actors keep their chunks; the shard "
+                  "goes on storing in memory. Free the disk and restart it.", self.wal.failed)
 
     def on_sample_query(self, query: zenoh.Query) -> None:
         try:
             request = decode(query.payload if query.payload is not None else b"", SampleRequest)
-            if request.batch_size * reply_bytes_per_transition(self.storage.config) + REPLY_OVERHEAD > MAX_MESSAGE_BYTES:
+            if request.batch_size > self.max_batch_size:
                 raise ProtocolError(f"sample_request: a batch of {request.batch_size} would exceed the "
                                     f"{MAX_MESSAGE_BYTES}-byte message limit; at most {self.max_batch_size}",
                                     "too_large")
@@ -166,13 +207,26 @@ class ReplayServer:
         log.info("%s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
 
     def ack(self) -> ReplayAck | None:
-        """What is stored of each actor's current epoch; None when no chunk came since the last ack
-        (a resent duplicate counts: its sender has not heard an ack yet)."""
+        """What is stored of each actor's current epoch, durably when there is a write-ahead log;
+        None when no chunk came since the last ack (a resent duplicate counts: its sender has not
+        heard an ack yet), or when the log has failed."""
         with self.lock:
-            if self.sequences.received == self._acked_received:
+            if self.sequences.received == self._acked_received or (self.wal is not None and self.wal.failed):
                 return None
-            self._acked_received = self.sequences.received
+            received = self.sequences.received
             rows = self.sequences.acks()
+            try:
+                durable = self.wal.flush() if self.wal is not None else None
+            except OSError as e:
+                self._wal_failed(e)
+                return None
+        if durable is not None:  # fsync outside the lock: inserts go on meanwhile
+            try:
+                self.wal.sync(durable)
+            except OSError as e:
+                self._wal_failed(e)
+                return None
+        self._acked_received = received
         actors, epochs, highest, missing = zip(*rows) if rows else ((), (), (), ())
         return ReplayAck(self.config.shard, _int64(actors), _int64(epochs), _int64(highest),
                          _int64([len(m) for m in missing]), _int64([s for m in missing for s in m]))
@@ -230,6 +284,11 @@ class ReplayServer:
         with self.lock, _timed(pauses):
             copy = StateCopy(self.storage)
             meta = self._meta()
+            if self.wal is not None and not self.wal.failed:  # what comes from now on goes to a new segment
+                try:
+                    meta["wal_segment"] = self.wal.rotate()
+                except OSError as e:
+                    self._wal_failed(e)
         copy.touch()
         try:
             done = False
@@ -251,7 +310,7 @@ class ReplayServer:
         pauses = []
         with self.lock, _timed(pauses):
             arrays = self.storage.state()
-            meta = self._meta()
+            meta = self._meta() | ({"wal_segment": self.wal.segment} if self.wal is not None else {})
         self.snapshot_pause = pauses[0]
         return arrays, meta
 
@@ -299,8 +358,32 @@ def _save(server: ReplayServer, path: Path) -> None:
     except OSError as e:
         log.error("snapshot to %s failed (%s); the previous one is kept", path, e)
         return
+    if "wal_segment" in meta:  # the snapshot is durable: the log before it is not needed any more
+        server.wal.delete_before(meta["wal_segment"])
     log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",
              int(arrays["counters"][2]), size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
+
+
+def _restore(server: ReplayServer, path: Path) -> bool:
+    """Load the snapshot and replay the write-ahead log after it; False if the snapshot does not fit."""
+    loaded = snapshot.read(path)
+    first_segment = 0
+    if loaded:
+        try:
+            server.restore(*loaded)
+        except (ValueError, KeyError) as e:
+            log.error("cannot restore %s: %s. Start with matching flags, or move the file away.", path, e)
+            return False
+        first_segment = loaded[1].get("wal_segment", 0)
+        log.info("restored %d transitions from %s", server.storage.live, path)
+    if server.wal is not None:
+        start = time.perf_counter()
+        chunks, transitions = server.replay_log(first_segment)
+        if chunks:
+            log.info("replayed %d chunks (%d transitions new) from the write-ahead log in %.2f s",
+                     chunks, transitions, time.perf_counter() - start)
+        server.wal.start(after=first_segment)
+    return True
 
 
 def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimiter,
@@ -312,29 +395,27 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
             signal.signal(sig, lambda *_: stop.set())
 
     storage = Storage(storage_config)
-    server = ReplayServer(config, storage, limiter)
+    path = snapshot.snapshot_path(config.snapshot_dir, config.shard) if config.snapshot_dir else None
+    wal = WriteAheadLog(config.snapshot_dir, config.shard) if path and config.write_ahead_log else None
+    server = ReplayServer(config, storage, limiter, wal)
     log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/transition)",
              config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
              storage.nbytes / storage.capacity)
-    path = snapshot.snapshot_path(config.snapshot_dir, config.shard) if config.snapshot_dir else None
     if path and config.restore:
-        loaded = snapshot.read(path)
-        if loaded:
-            try:
-                server.restore(*loaded)
-                log.info("restored %d transitions from %s", storage.live, path)
-            except (ValueError, KeyError) as e:
-                log.error("cannot restore %s: %s. Start with matching flags, or move the file away.", path, e)
-                return 2
+        if not _restore(server, path):
+            return 2
+    elif wal is not None:
+        wal.delete_before(math.inf)  # the log of a state not restored
+        wal.start(after=0)
     if path:
-        log.info("snapshots every %.0f s to %s: a crash loses at most that much experience",
-                 config.snapshot_interval, path)
+        log.info("snapshots every %.0f s to %s; %s", config.snapshot_interval, path,
+                 "acks name only chunks fsynced to the write-ahead log" if wal else
+                 "no write-ahead log: a crash loses what came since the last snapshot")
 
     keys = server.keys
     with zenoh.open(zenoh_config) as session:
         acks = session.declare_publisher(keys.replay_ack(config.shard), **ACK_QOS.publisher())
         entities = [
-            acks,
             session.declare_subscriber(keys.experience_of_shard(config.shard), _direct(server.on_experience)),
             session.declare_queryable(keys.sample(config.shard), _direct(server.on_sample_query)),
             session.declare_queryable(keys.stats("replay", config.shard), _guarded(server.on_stats_query)),
@@ -375,11 +456,20 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
         log.info("stopping: no more inserts or samples")
         for entity in entities:
             entity.undeclare()
+        final_ack = server.ack()  # what came since the last one: its senders need not resend it
+        if final_ack is not None:
+            acks.put(encode(final_ack))
+        acks.undeclare()
         watcher.undeclare()
         token.undeclare()
     if writer:
         writer.join()
     if path:
         _save(server, path)  # the final snapshot, after the last insert
+    if wal is not None and not wal.failed:
+        try:
+            wal.close()
+        except OSError as e:
+            log.error("write-ahead log: %s", e)
     log.info("stopped")
     return 0

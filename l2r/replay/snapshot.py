@@ -30,12 +30,17 @@ def write(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> int:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)  # make the rename itself durable
-    finally:
-        os.close(dir_fd)
+    fsync_directory(path.parent)  # make the rename itself durable
     return path.stat().st_size
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make the names created, renamed or deleted in ``directory`` durable."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def read(path: Path) -> tuple[dict[str, np.ndarray], dict] | None:

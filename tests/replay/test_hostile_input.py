@@ -1,7 +1,7 @@
 """What another team's client might send a real l2r-replay over loopback Zenoh: every integer
 field at its limits and beyond, and each kind of message the issue found quietly accepted.
-After each message the server must still answer; afterwards its snapshot must restore what it
-stored, and it must go on storing."""
+After each message the server must still answer; afterwards both its write-ahead log and its
+snapshot must restore what it stored, and it must go on storing."""
 
 from __future__ import annotations
 
@@ -58,10 +58,15 @@ def test_experience_integers_at_their_limits_and_beyond(start_replay, connect, a
     assert (stats["size"], stats["rejected.out_of_range"]) == (5 * len(stored), rejected), stats
     assert ack.shard == 0
 
-    assert replay.stop(signal.SIGTERM) == 0  # the final snapshot holds them
+    replay.proc.kill()  # kill -9: the write-ahead log alone brings back what was acknowledged
+    replay.proc.wait()
     again = start_replay(*args, endpoint=replay.endpoint)
     session = connect(again)
     assert ask_stats(session)["size"] == 5 * len(stored), again.log()[-3000:]
+    assert again.stop(signal.SIGTERM) == 0  # and the final snapshot holds them
+    third = start_replay(*args, endpoint=replay.endpoint)
+    session = connect(third)
+    assert ask_stats(session)["size"] == 5 * len(stored), third.log()[-3000:]
     session.put(keys.experience(1), encode(make_chunk(actor_id=1, seq=0, steps=5)), **EXPERIENCE_QOS.put())
     acks_of(session).wait(lambda a: a.of(1, 1) is not None)
     assert ask_stats(session)["size"] == 5 * len(stored) + 5
@@ -127,9 +132,10 @@ def test_sequence_jumps_neither_stall_the_shard_nor_fill_its_snapshot(start_repl
     session = connect(replay)
     seqs = [10_000 * k for k in range(1, 31)] + [10**15]  # 10,000 missing, then a jump of 10^4 or more each
     for seq in seqs:
-        session.put(Keys(run_name).experience(3), encode(make_chunk(actor_id=3, seq=seq, steps=2)), **EXPERIENCE_QOS.put())
+        payload = encode(make_chunk(actor_id=3, seq=seq, steps=2))
+        session.put(Keys(run_name).experience(3), payload, **EXPERIENCE_QOS.put())
     start = time.monotonic()
-    stats = wait_for(lambda: (values := ask_stats(session)) and values["actor.3.transitions"] == 2 * len(seqs) and values)
+    stats = wait_for(lambda: (v := ask_stats(session)) and v["actor.3.transitions"] == 2 * len(seqs) and v)
     assert stats and time.monotonic() - start < 5, f"stalled: {stats}"  # each jump cost 6-8 s before
     assert 2**20 <= stats["gaps"] < 31 * 2**20 and stats["sequence_jumps"] == 1, stats
     assert replay.stop() == 0

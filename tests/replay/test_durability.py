@@ -1,0 +1,72 @@
+"""An ack means on disk: a real l2r-replay killed with -9 at any moment comes back with every
+chunk it acknowledged, from its snapshot and its write-ahead log."""
+
+from __future__ import annotations
+
+import pytest
+
+from l2r.protocol import EXPERIENCE_QOS, Keys, encode
+from tests.conftest import wait_for
+from tests.protocol.factories import make_chunk
+
+pytestmark = pytest.mark.slow
+
+
+def send(session, run: str, seqs, actor_id: int = 2, steps: int = 10) -> None:
+    for seq in seqs:
+        session.put(Keys(run).experience(actor_id), encode(make_chunk(actor_id=actor_id, seq=seq, steps=steps)),
+                    **EXPERIENCE_QOS.put())
+
+
+def all_stored_up_to(highest: int, actor_id: int = 2, epoch: int = 1):
+    def check(ack) -> bool:
+        row = ack.of(actor_id, epoch)
+        return row is not None and row[0] >= highest and len(row[1]) == 0
+    return check
+
+
+def test_what_was_acknowledged_survives_kill_9_between_snapshots(start_replay, connect, ask_stats, acks_of,
+                                                                 run_name, tmp_path):
+    snap = tmp_path / "snap"
+    replay = start_replay("--snapshot-dir", str(snap), "--snapshot-interval", "0.3")
+    session = connect(replay)
+    send(session, run_name, range(20))
+    acks_of(session).wait(all_stored_up_to(19))
+    assert wait_for(lambda: replay.log().count("snapshot: 200 transitions") >= 2), replay.log()
+    assert len(list(snap.glob("replay-shard0.wal.*"))) <= 2  # each snapshot lets the log before it go
+    assert replay.stop() == 0
+
+    args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
+    replay = start_replay(*args, endpoint=replay.endpoint)
+    session = connect(replay)
+    send(session, run_name, range(20, 50))  # after the last snapshot: only the log has these
+    acks_of(session).wait(all_stored_up_to(49))
+    replay.proc.kill()
+    replay.proc.wait()
+
+    again = start_replay(*args, endpoint=replay.endpoint)
+    session = connect(again)
+    stats = ask_stats(session)
+    assert stats["size"] == 500 and stats["actor.2.transitions"] == 500, again.log()[-3000:]
+    send(session, run_name, [49, 50])  # a resend of the last acknowledged chunk is still a duplicate
+    acks_of(session).wait(all_stored_up_to(50))
+    assert ask_stats(session)["duplicates"] == 1
+
+
+def test_a_record_cut_short_by_the_crash_ends_the_log(start_replay, connect, ask_stats, acks_of, run_name, tmp_path):
+    snap = tmp_path / "snap"
+    args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
+    replay = start_replay(*args)
+    session = connect(replay)
+    send(session, run_name, range(5))
+    acks_of(session).wait(all_stored_up_to(4))
+    replay.proc.kill()
+    replay.proc.wait()
+    segment = max(snap.glob("replay-shard0.wal.*"), key=lambda p: int(p.suffix[1:]))
+    with open(segment, "ab") as f:
+        f.write(b"\x00\x10\x00\x00half a header and no payload")
+
+    again = start_replay(*args, endpoint=replay.endpoint)
+    session = connect(again)
+    assert ask_stats(session)["size"] == 50
+    assert "bytes after the last whole record ignored" in again.log()
