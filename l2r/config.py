@@ -119,8 +119,6 @@ FilePath = Annotated[Path, Strict(False)]
 """A path field: a string is a path, even in a strict model."""
 ONE_OR_MANY = BeforeValidator(lambda v: [v] if isinstance(v, str) else v)
 """For a list field: one string is a list of one (``connect = "tcp/..."`` in a file)."""
-
-
 METAVARS = {int: "N", float: "X", FilePath: "PATH"}
 
 
@@ -150,7 +148,9 @@ def settings_parser(model: type[Settings], prog: str, description: str, epilog: 
     groups: dict[str, argparse._ArgumentGroup] = {}
     for name, info in model.model_fields.items():
         extra = info.json_schema_extra or {}
-        group = groups.get(extra["group"]) or groups.setdefault(extra["group"], parser.add_argument_group(extra["group"]))
+        if extra["group"] not in groups:
+            groups[extra["group"]] = parser.add_argument_group(extra["group"])
+        group = groups[extra["group"]]
         kind = _kind(info.annotation)
         help_ = info.description or ""
         if info.default is not None and info.default is not False and info.default != [] \
@@ -167,7 +167,7 @@ def settings_parser(model: type[Settings], prog: str, description: str, epilog: 
             options["metavar"] = METAVARS[kind]
         if extra.get("metavar"):
             options["metavar"] = extra["metavar"]
-        if extra.get("positional"):
+        if extra.get("positional"):  # a list of operands, such as l2r view's files
             group.add_argument(name, nargs="*", **{k: v for k, v in options.items() if k != "action"})
         else:
             group.add_argument(_flag(name), dest=name, **options)
