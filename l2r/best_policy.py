@@ -1,7 +1,8 @@
 """The best evaluated policy of a run, kept by `l2r up` as `learner/best.pt`.
 
 An evaluator runs rounds of `--eval-episodes` deterministic episodes, each round with one
-policy version, on the same seeds. When a round ends with a higher mean distance than any
+policy version, on the same seeds. With evaluators in several simulators, those of the first
+`--eval-env-id` judge. When a round ends with a higher mean distance than any
 before in the run, the policy of that version is saved as a policy checkpoint (see
 l2r.learner.checkpoint) that `l2r eval` reads. The weights come from the learner's weights
 messages, the very ones the evaluator loaded: the newest `CACHED_VERSIONS` are kept in memory
@@ -30,8 +31,9 @@ class BestPolicy:
     """Saves the policy of each evaluation round that beats the best mean distance so far."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, run_dir: Path, episodes_per_round: int,
-                 action_repeat: int):
+                 action_repeat: int, judges: set[int] | None = None):
         self.path = best_policy_path(run_dir)
+        self.judges = judges  # the evaluators (actor ids) whose rounds count; None: all of them
         self.episodes_per_round, self.action_repeat = episodes_per_round, action_repeat
         self.best: dict | None = None  # the evaluation of the policy in best.pt
         if self.path.exists():  # a resumed run: beat the best of the sessions before
@@ -75,7 +77,7 @@ class BestPolicy:
             ep = decode(sample.payload, EpisodeSummary)
         except ProtocolError:
             return
-        if not ep.evaluation:
+        if not ep.evaluation or (self.judges is not None and ep.actor_id not in self.judges):
             return
         with self._lock:
             round_ = self._rounds.setdefault((ep.actor_id, ep.policy_version), {})

@@ -29,7 +29,9 @@ def status_line(s: dict) -> str:
     return (f"[{s['time']:6.0f}s] env {s['env_steps_per_s']:7.0f} steps/s ({s['env_steps']:,})"
             f" | learner {s['updates_per_s']:5.1f} upd/s ({s['updates']:,}, v{s['version']})"
             f" | return {_num(s['recent_return'], '.2f')} distance {_num(s['recent_distance'], '.2f')} m"
-            f" | eval {_num(s['eval_distance'], '.2f')} m | lag {s['policy_lag']:.0f}"
+            f" | eval {_num(s['eval_distance'], '.2f')} m"
+            + ("" if s.get("opensim_eval_distance") is None else f" (OpenSim {s['opensim_eval_distance']:.2f} m)")
+            + f" | lag {s['policy_lag']:.0f}"
             f" | replay {s['replay_size']:,}")
 
 

@@ -6,7 +6,9 @@ writes them to `<run_dir>/metrics/`:
 
     events.out.tfevents.*   TensorBoard (`tensorboard --logdir runs/`): learner/* by updates;
                             actor/<id>/*, evaluator/<id>/*, replay/<shard>/*, train/* (episodes)
-                            and eval/* (evaluation episodes) by env steps
+                            and eval/* (evaluation episodes) by env steps; episodes of another
+                            simulator than the port under train/<env>/ and eval/<env>/, e.g.
+                            eval/RunOpenSim-v0/distance
     learner.csv, actors.csv, replay.csv     one row per stats message
     episodes.csv, evaluation.csv            one row per training / evaluation episode
     status.csv                              the status line's figures, every status interval
@@ -37,11 +39,12 @@ from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, ProtocolError, Stats, decode
+from l2r.sim import OPENSIM_ID, PORT_ID
 
 log = logging.getLogger("l2r.up")
 
 LEADING = ["time", "wall_time", "env_steps", "updates"]
-EPISODE_COLUMNS = ["actor", "env", "return", "distance", "length", "version", "seed", "difficulty"]
+EPISODE_COLUMNS = ["actor", "env", "simulator", "return", "distance", "length", "version", "seed", "difficulty"]
 
 
 class CsvLog:
@@ -157,8 +160,10 @@ class Counter:
 class RunMetrics:
     """Collects what the daemons publish, writes the metrics files, and gives the status figures."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, directory: Path, recent: int = 20):
+    def __init__(self, session: zenoh.Session, keys: Keys, directory: Path, recent: int = 20,
+                 simulators: dict[int, str] | None = None):
         directory.mkdir(parents=True, exist_ok=True)
+        self.simulators = simulators or {}  # actor id -> env id, for the episodes of other simulators
         self._lock = threading.Lock()
         self.before = RunCounters.read(directory)  # the sessions before a --resume
         self._start = time.monotonic()
@@ -261,13 +266,16 @@ class RunMetrics:
         with self._lock:
             self.episodes += 1
             (self.evals if ep.evaluation else self.train).append(ep)
+            simulator = self.simulators.get(ep.actor_id, PORT_ID)
             row = self._leading() | {
-                "actor": ep.actor_id, "env": ep.env_id, "return": ep.episode_return, "distance": ep.distance,
+                "actor": ep.actor_id, "env": ep.env_id, "simulator": simulator, "return": ep.episode_return,
+                "distance": ep.distance,
                 "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty}
             if ep.evaluation and (self.best_eval is None or ep.distance > float(self.best_eval["distance"])):
                 self.best_eval = row
             self._csv["evaluation" if ep.evaluation else "episodes"].write(row)
-            prefix = "eval" if ep.evaluation else "train"
+            # The port's episodes under eval/ and train/, another simulator's under eval/<its name>/.
+            prefix = ("eval" if ep.evaluation else "train") + ("" if simulator == PORT_ID else f"/{simulator.split('/')[-1]}")
             for name in ("return", "distance", "length"):
                 self._tensorboard.add(f"{prefix}/{name}", float(row[name]), row["env_steps"], ep.time)
 
@@ -301,6 +309,9 @@ class RunMetrics:
             def mean(eps, attr):
                 return sum(getattr(e, attr) for e in eps) / len(eps) if eps else None
 
+            def evals_in(simulator):
+                return [e for e in self.evals if self.simulators.get(e.actor_id, PORT_ID) == simulator]
+
             return {
                 "time": self.time,
                 "env_steps": self._env_steps(),
@@ -314,7 +325,8 @@ class RunMetrics:
                 "episodes": self.before.episodes + self.episodes,
                 "recent_return": mean(self.train, "episode_return"),
                 "recent_distance": mean(self.train, "distance"),
-                "eval_distance": mean(self.evals, "distance"),
+                "eval_distance": mean(evals_in(PORT_ID), "distance"),
+                "opensim_eval_distance": mean(evals_in(OPENSIM_ID), "distance"),
                 "best_eval_distance": None if self.best_eval is None else float(self.best_eval["distance"]),
             }
 

@@ -39,12 +39,14 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
 from l2r.run_metrics import RunCounters, RunMetrics
+from l2r.sim import OPENSIM_ID
 from l2r.supervise import Child, ProcessGroup, last_lines
 from l2r.view import find_episode, write_recording
 
@@ -105,10 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
     a.add_argument("--eval-episodes", type=int, default=2, help="episodes per evaluation round")
     a.add_argument("--eval-interval", type=float, default=20.0, help="least seconds between evaluation rounds")
-    a.add_argument("--eval-env-id", metavar="ENV_ID",
+    a.add_argument("--eval-env-id", metavar="ENV_ID", action="append", default=[],
                    help="gymnasium id of the evaluators' environment, e.g. l2r/RunOpenSim-v0 to measure the policy "
-                        "on OpenSim 4.6 as in 2017 while the actors train on MuJoCo; unset, the evaluators run the "
-                        "actors' environment (l2r/Run-v0 unless --actor-arg=--env-id=... names another)")
+                        "on OpenSim 4.6 as in 2017 while the actors train on MuJoCo. Repeatable: the evaluators take "
+                        "the ids in turn, at least one evaluator per id, so --eval-env-id l2r/Run-v0 --eval-env-id "
+                        "l2r/RunOpenSim-v0 draws the curves of both simulators; the first id judges learner/best.pt. "
+                        "Unset, the evaluators run the actors' environment")
+    a.add_argument("--opensim-actors", type=int, default=0,
+                   help="of the --actors, how many step l2r/RunOpenSim-v0 (OpenSim 4.6, about 100 steps/s) instead "
+                        "of the actors' environment: experience from the simulator that judges, mixed in replay")
     a.add_argument("--log-every", type=int, default=10,
                    help="actors log every Nth training episode as MCAP under episodes/ (0: none); "
                         "evaluation episodes are always logged")
@@ -169,8 +176,15 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
         print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
               f"defaults apply", file=sys.stderr)
     stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(args) and k not in NOT_REUSED}
+    if isinstance(stored.get("eval_env_id"), str) or stored.get("eval_env_id", []) is None:  # one id, before the list
+        stored["eval_env_id"] = [stored["eval_env_id"]] if stored["eval_env_id"] else []
     parser.set_defaults(**stored)
     args = parser.parse_args(argv)
+    # A repeatable flag given again replaces the stored list rather than adding to it.
+    given = build_parser().parse_args(argv)
+    for action in parser._actions:
+        if isinstance(action, argparse._AppendAction) and getattr(given, action.dest):
+            setattr(args, action.dest, getattr(given, action.dest))
     for dest, old in stored.items():
         if _stored(getattr(args, dest)) != old:
             print(f"l2r up: warning: --{dest.replace('_', '-')} {getattr(args, dest)} replaces {old} from "
@@ -198,6 +212,8 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error("--actors and --envs-per-actor must be at least 1")
     if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
+    if not 0 <= args.opensim_actors <= args.actors:
+        parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
     return args
 
 
@@ -225,8 +241,16 @@ def write_launch(run_dir: Path, args: argparse.Namespace, argv: list[str], launc
 
 # -- the processes -------------------------------------------------------------------------------
 
+def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
+    """The env id each evaluator is given (None: the actors' own): the --eval-env-id in turn."""
+    ids = args.eval_env_id
+    if not ids:
+        return [None] * args.evaluators
+    return [ids[i % len(ids)] for i in range(max(args.evaluators, len(ids)))]
+
+
 def learner_threads(args: argparse.Namespace) -> int:
-    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - args.evaluators - 1)
+    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args)) - 1)
 
 
 def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port: int, learner_port: int) -> list[Child]:
@@ -252,12 +276,14 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
     logs = [] if args.no_episode_logs else ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
+        # Last on the command line, so it overrides an --env-id among the actor arguments.
+        opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
-                                         "--random-steps", str(args.random_steps), *logs, *args.actor_arg]))
-    # Last on the evaluators' command line, so it overrides an --env-id among the actor arguments.
-    eval_env = [] if args.eval_env_id is None else ["--env-id", args.eval_env_id]
-    for i in range(args.evaluators):
+                                         "--random-steps", str(args.random_steps), *logs, *args.actor_arg,
+                                         *opensim]))
+    for i, env_id in enumerate(evaluator_env_ids(args)):
+        eval_env = [] if env_id is None else ["--env-id", env_id]
         # Evaluators take ids after the actors' so their keys never collide.
         actor_id = args.actors + i
         children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice,
@@ -269,6 +295,12 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
                                          *eval_env]))
     return children
+
+
+def simulator_of_each_actor(children: list[Child]) -> dict[int, str]:
+    """The env id each actor and evaluator steps, by actor id, as its own command line says."""
+    settings = [actor_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.actors"]
+    return {s.actor_id: s.env_id for s in settings}
 
 
 # -- what the run leaves -------------------------------------------------------------------------
@@ -362,8 +394,11 @@ def cli(argv: list[str] | None = None) -> int:
     code, spent = 0, None
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
-        metrics = RunMetrics(session, Keys(run), run_dir / "metrics")
-        best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, args.action_repeat)
+        simulators = simulator_of_each_actor(children)
+        metrics = RunMetrics(session, Keys(run), run_dir / "metrics", simulators=simulators)
+        judge = args.eval_env_id[0] if args.eval_env_id else None
+        best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, args.action_repeat,
+                          judges={i for i, env_id in simulators.items() if judge is None or env_id == judge})
         group = ProcessGroup(children, run_dir / "logs", progress=metrics.rises, max_restarts=args.max_restarts,
                              resume=args.resume is not None,
                              on_exit=lambda child, exit_code: metrics.note_exit(child.name, exit_code, child.last_exit))

@@ -10,6 +10,9 @@ loads only when an env is made:
 
 import gymnasium
 
+PORT_ID = "l2r/Run-v0"
+OPENSIM_ID = "l2r/RunOpenSim-v0"
+
 # Both envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
-gymnasium.register(id="l2r/Run-v0", entry_point="l2r.sim.env:RunEnv")
-gymnasium.register(id="l2r/RunOpenSim-v0", entry_point="l2r.sim.opensim_env:RunOpenSimEnv")
+gymnasium.register(id=PORT_ID, entry_point="l2r.sim.env:RunEnv")
+gymnasium.register(id=OPENSIM_ID, entry_point="l2r.sim.opensim_env:RunOpenSimEnv")

@@ -1,15 +1,18 @@
 """`l2r up` hands env ids to its actors and evaluators: --actor-arg for all of them, --eval-env-id
 for the evaluators alone."""
 
+import json
 from pathlib import Path
 
+import pytest
+
 from l2r.actors.__main__ import parse_settings as actor_settings
-from l2r.up import build_parser, plan_children
+from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
 def env_ids(*argv: str) -> dict[str, str]:
     """The env id each actor and evaluator of a planned job would run."""
-    args = build_parser().parse_args(["--actors", "2", *argv])
+    args, _ = parse_args(["--actors", "2", *argv])
     children = plan_children(args, "run", Path("runs/x"), 7447, 7448)
     ids = {}
     for child in children:
@@ -32,3 +35,39 @@ def test_eval_env_id_sets_the_evaluators_alone():
     # It wins over an --env-id among the actor arguments.
     assert env_ids("--actor-arg=--env-id=l2r/RunOpenSim-v0", "--eval-env-id", "l2r/Run-v0") == {
         "actor-0": "l2r/RunOpenSim-v0", "actor-1": "l2r/RunOpenSim-v0", "evaluator-0": "l2r/Run-v0"}
+
+
+def test_repeated_eval_env_ids_give_one_evaluator_per_simulator_at_least():
+    assert env_ids("--eval-env-id", "l2r/Run-v0", "--eval-env-id", "l2r/RunOpenSim-v0") == {
+        "actor-0": "l2r/Run-v0", "actor-1": "l2r/Run-v0",
+        "evaluator-0": "l2r/Run-v0", "evaluator-1": "l2r/RunOpenSim-v0"}
+    assert list(env_ids("--evaluators", "3", "--eval-env-id", "l2r/RunOpenSim-v0").values())[2:] == [
+        "l2r/RunOpenSim-v0"] * 3
+
+
+def test_opensim_actors_are_the_last_of_the_actors():
+    assert env_ids("--actors", "3", "--opensim-actors", "1") == {
+        "actor-0": "l2r/Run-v0", "actor-1": "l2r/Run-v0", "actor-2": "l2r/RunOpenSim-v0",
+        "evaluator-0": "l2r/Run-v0"}
+    with pytest.raises(SystemExit):
+        env_ids("--opensim-actors", "3")
+
+
+def test_the_job_knows_which_simulator_each_actor_id_steps():
+    args = build_parser().parse_args(["--actors", "2", "--opensim-actors", "1", "--eval-env-id", "l2r/RunOpenSim-v0"])
+    assert simulator_of_each_actor(plan_children(args, "run", Path("runs/x"), 7447, 7448)) == {
+        0: "l2r/Run-v0", 1: "l2r/RunOpenSim-v0", 2: "l2r/RunOpenSim-v0"}
+
+
+def test_resume_takes_the_stored_env_ids_and_a_repeated_flag_given_again_replaces_them(tmp_path, capsys):
+    launch = {"args": {"eval_env_id": ["l2r/Run-v0", "l2r/RunOpenSim-v0"], "actor_arg": ["--chunk-size=16"]}}
+    (tmp_path / "launch.json").write_text(json.dumps(launch))
+    args, _ = parse_args(["--resume", str(tmp_path)])
+    assert args.eval_env_id == ["l2r/Run-v0", "l2r/RunOpenSim-v0"] and args.actor_arg == ["--chunk-size=16"]
+    args, _ = parse_args(["--resume", str(tmp_path), "--eval-env-id", "l2r/RunOpenSim-v0"])
+    assert args.eval_env_id == ["l2r/RunOpenSim-v0"] and args.actor_arg == ["--chunk-size=16"]
+    assert "replaces" in capsys.readouterr().err
+    # launch.json of a run from before the flag was repeatable: one id, or none.
+    for old, new in (("l2r/RunOpenSim-v0", ["l2r/RunOpenSim-v0"]), (None, [])):
+        (tmp_path / "launch.json").write_text(json.dumps({"args": {"eval_env_id": old}}))
+        assert parse_args(["--resume", str(tmp_path)])[0].eval_env_id == new

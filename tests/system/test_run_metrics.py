@@ -1,0 +1,38 @@
+"""What `l2r up` makes of episode summaries when its evaluators run in two simulators."""
+
+import csv
+
+import zenoh
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from l2r.protocol import EpisodeSummary, Keys, encode, session_config
+from l2r.run_metrics import RunMetrics
+from tests.conftest import free_port, wait_for
+
+PORT, OPENSIM = "l2r/Run-v0", "l2r/RunOpenSim-v0"
+
+
+def test_episodes_are_kept_apart_by_the_simulator_their_actor_steps(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = Keys("metrics-test")
+    with zenoh.open(session_config(listen=[endpoint])) as listener, \
+            zenoh.open(session_config(connect=[endpoint])) as sender:
+        metrics = RunMetrics(listener, keys, tmp_path, simulators={0: PORT, 1: PORT, 2: OPENSIM})
+        try:
+            for actor_id, distance, evaluation in ((0, 0.5, False), (1, 1.0, True), (2, 3.0, True), (2, 5.0, True)):
+                episode = EpisodeSummary(actor_id=actor_id, env_id=0, episode_return=distance, distance=distance,
+                                         length=100, policy_version=1, difficulty=0, seed=0, evaluation=evaluation)
+                sender.put(keys.episodes(actor_id), encode(episode))
+            wait_for(lambda: metrics.episodes == 4, 10)
+            figures = metrics.record_status()
+        finally:
+            metrics.close()
+    assert figures["eval_distance"] == 1.0 and figures["opensim_eval_distance"] == 4.0
+    with open(tmp_path / "evaluation.csv", newline="") as f:
+        assert [(r["simulator"], r["distance"]) for r in csv.DictReader(f)] == [
+            (PORT, "1.0"), (OPENSIM, "3.0"), (OPENSIM, "5.0")]
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    assert [e.value for e in events.Scalars("eval/distance")] == [1.0]
+    assert [e.value for e in events.Scalars("eval/RunOpenSim-v0/distance")] == [3.0, 5.0]
+    assert [e.value for e in events.Scalars("train/distance")] == [0.5]
