@@ -1,9 +1,10 @@
 """Draw how a trained policy moves: a stick-figure chronophotograph of one deterministic episode.
 
-    python bench/gait_strip.py runs/NAME [--seconds 2] [--every 0.1] [--out docs/gait.png]
+    python bench/gait_strip.py runs/NAME [--env-id l2r/RunOpenSim-v0] [--seconds 2] [--every 0.1] [--out docs/gait.png]
 
-The figure is drawn from the MuJoCo body frames (each body's origin joined to its parent's), so
-it shows what the simulation did, not what a renderer makes of it. Below it: pelvis height and
+The figure is drawn from the body frames the simulator reports (each body's origin joined to its
+parent's in the MuJoCo body's tree; OpenSim reports its bodies in the same order), so it shows
+what the simulation did, not what a renderer makes of it. Below it: pelvis height and
 the height of each foot over time. Prints one JSON line with the episode's figures.
 """
 
@@ -18,14 +19,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+import gymnasium  # noqa: E402
+
 from l2r.learner.checkpoint import load_checkpoint  # noqa: E402
 from l2r.policy import act  # noqa: E402
+from l2r.sim import PORT_ID  # noqa: E402
 from l2r.sim.env import STEP_SECONDS, RunEnv  # noqa: E402
 
 
-def record(policy, seed: int, action_repeat: int) -> tuple[RunEnv, np.ndarray, float]:
+def record(policy, env_id: str, seed: int, action_repeat: int) -> tuple[np.ndarray, float]:
     """Body positions (steps, bodies, 3) of one deterministic episode, and its distance."""
-    env = RunEnv()
+    env = gymnasium.make(env_id)
     obs, info = env.reset(seed=seed)
     frames = [info["body_pos"]]
     done = False
@@ -37,7 +41,8 @@ def record(policy, seed: int, action_repeat: int) -> tuple[RunEnv, np.ndarray, f
             done = terminated or truncated
             if done:
                 break
-    return env, np.array(frames), info["distance"]
+    env.close()
+    return np.array(frames), info["distance"]
 
 
 def main() -> None:
@@ -46,13 +51,14 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated time drawn in the strip")
     parser.add_argument("--every", type=float, default=0.1, help="seconds between drawn figures")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--action-repeat", type=int, default=3)
+    parser.add_argument("--env-id", default=PORT_ID, help="the simulator: l2r/Run-v0 or l2r/RunOpenSim-v0")
+    parser.add_argument("--action-repeat", type=int, help="default: what the checkpoint says training used")
     parser.add_argument("--out", default="docs/gait.png")
     args = parser.parse_args()
 
     ckpt = load_checkpoint(args.checkpoint)
-    env, pos, distance = record(ckpt.policy(), args.seed, args.action_repeat)
-    m = env.model
+    pos, distance = record(ckpt.policy(), args.env_id, args.seed, args.action_repeat or ckpt.action_repeat or 3)
+    m = RunEnv().model  # the skeleton: which body hangs from which
     names = [m.body(i).name for i in range(m.nbody)]
     bones = [(int(m.body_parentid[i]), i) for i in range(1, m.nbody) if m.body_parentid[i] != 0]
     feet = {side: names.index(f"toes_{side}") for side in "rl"}
@@ -70,7 +76,7 @@ def main() -> None:
     strip.set_aspect("equal")
     strip.set_xlabel("x (m)")
     strip.set_ylabel("y (m)")
-    strip.set_title(f"{ckpt.path.parent.parent.name}, version {ckpt.version}: the first {args.seconds:g} s, "
+    strip.set_title(f"{ckpt.path.parent.parent.name}, version {ckpt.version}, in {args.env_id}: the first {args.seconds:g} s, "
                     f"a figure every {args.every:g} s (right leg thick); episode: {distance:.1f} m in "
                     f"{t[-1]:.2f} s", fontsize=10)
     heights.plot(t, pos[:, names.index("pelvis"), 1], label="pelvis")
@@ -84,7 +90,7 @@ def main() -> None:
     fig.savefig(args.out, dpi=100)
 
     pelvis_y = pos[:, names.index("pelvis"), 1]
-    print(json.dumps({"checkpoint": str(ckpt.path), "version": ckpt.version, "distance": distance,
+    print(json.dumps({"checkpoint": str(ckpt.path), "version": ckpt.version, "env_id": args.env_id, "distance": distance,
                       "seconds": float(t[-1]), "mean_speed": distance / max(t[-1], 1e-9),
                       "pelvis_height_min": float(pelvis_y.min()), "pelvis_height_max": float(pelvis_y.max()),
                       "plot": args.out}))
