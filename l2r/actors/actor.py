@@ -4,9 +4,10 @@ Each loop iteration swaps in the newest weights if some arrived, picks actions f
 environments at once (uniform random excitations during warm-up, the stochastic policy while
 training, its mean when evaluating), steps every environment, and hands finished chunks and
 episodes to Zenoh. Nothing here blocks on the learner: without new weights the actor goes on
-with the policy it has. Without any live replay shard it waits, since its experience would be lost.
-Sent chunks stay in a resend buffer until the replay shard acknowledges them; a background
-thread sends the unacknowledged ones again, so chunks lost in flight (a cut link) are not lost.
+with the policy it has. While its own replay shard is not alive it waits, since its experience
+would be lost. Sent chunks stay in a resend buffer until that shard acknowledges them; a
+background thread sends the unacknowledged ones again, so chunks lost in flight (a cut link) are
+not lost, and on shutdown the actor waits a little for the acks of its last chunks.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from l2r.episodes.live import LiveFrames
 from l2r.policy import act
 from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ProtocolError, Rejections, ReplayAck, Stats,
-    decode, encode, parse_alive, shard_of,
+    decode, encode, shard_of,
 )
 from l2r.sim.wrappers import ActionRepeat
 
@@ -67,6 +68,8 @@ class ActorConfig:
     """Sent chunks kept until the replay shard acknowledges them (MiB; oldest dropped beyond; 0: off)."""
     resend_delay: float = 3.0
     """Seconds after its last send before an unacknowledged chunk is sent again (then doubling)."""
+    final_ack_wait: float = 5.0
+    """At shutdown, seconds to wait for the shard to acknowledge the last chunks (when it acknowledges at all)."""
     seed: int = 0
     num_shards: int = 1
     evaluate: bool = False
@@ -103,25 +106,16 @@ def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
 
 
 class ReplayWatch:
-    """Whether any replay shard of the run holds a liveliness token."""
+    """Whether the replay shard an actor feeds holds its liveliness token: another shard alive
+    does not store this actor's chunks."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys):
-        self._alive: set[str] = set()
-        self._lock = threading.Lock()
-        self._sub = session.liveliness().declare_subscriber(keys.alive_role("replay"), self._on_token, history=True)
+    def __init__(self, session: zenoh.Session, keys: Keys, shard: int):
+        self.shard = shard
+        self.alive = False
+        self._sub = session.liveliness().declare_subscriber(keys.alive("replay", shard), self._on_token, history=True)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        _, instance = parse_alive(sample.key_expr)
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(instance)
-            else:
-                self._alive.discard(instance)
-
-    @property
-    def any_alive(self) -> bool:
-        with self._lock:
-            return bool(self._alive)
+        self.alive = sample.kind == zenoh.SampleKind.PUT
 
 
 @dataclass
@@ -147,7 +141,8 @@ class Actor:
         self.keys = Keys(config.run)
         self.session = session
         self.weights = WeightFollower(session, self.keys)
-        self.replay = None if config.evaluate else ReplayWatch(session, self.keys)
+        self.replay = None if config.evaluate else ReplayWatch(
+            session, self.keys, shard_of(config.actor_id, config.num_shards))
         self.rng = np.random.default_rng([config.seed, config.actor_id])
         self.epoch = time.time_ns()
         self.seq = 0
@@ -343,6 +338,7 @@ class Actor:
         if not self.config.evaluate:
             self.flush(force=True)
         if self.resender is not None:
+            self.await_last_acks()
             self.resender.close()
         if self.episode_logger is not None:
             self.episode_logger.close()
@@ -352,6 +348,22 @@ class Actor:
             slot.env.close()
 
 
+    def await_last_acks(self) -> None:
+        """Wait (bounded) until the shard has acknowledged every chunk sent, so that closing the
+        session loses nothing: an ack means the shard holds the chunk. Not when the shard has
+        never acknowledged (an older one) or is gone: then nothing would come."""
+        if not self.resender.heard_ack or not self.replay.alive or not len(self.resend):
+            return
+        start, unacked = time.monotonic(), len(self.resend)
+        while len(self.resend) and time.monotonic() - start < self.config.final_ack_wait:
+            time.sleep(0.05)
+        if len(self.resend):
+            log.warning("%d of the last %d chunks unacknowledged after %.0f s; stopping without them",
+                        len(self.resend), unacked, self.config.final_ack_wait)
+        else:
+            log.info("the replay shard acknowledged the last %d chunks after %.1f s", unacked, time.monotonic() - start)
+
+
 class Resender:
     """Applies the shard's acks to the actor's resend buffer and sends due chunks again, on a
     thread of its own: a put that blocks on a silent link never holds up the environments."""
@@ -359,8 +371,8 @@ class Resender:
     def __init__(self, actor: Actor, session: zenoh.Session):
         self.actor = actor
         self.rejections = Rejections(log)
-        shard = shard_of(actor.config.actor_id, actor.config.num_shards)
-        self._acks = session.declare_subscriber(actor.keys.replay_ack(shard), self._on_ack)
+        self.heard_ack = False  # whether the shard ever acknowledged a chunk of this actor
+        self._acks = session.declare_subscriber(actor.keys.replay_ack(actor.replay.shard), self._on_ack)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="resend", daemon=True)
         self._thread.start()
@@ -373,11 +385,12 @@ class Resender:
             return
         mine = ack.of(self.actor.config.actor_id, self.actor.epoch)
         if mine is not None:
+            self.heard_ack = True
             self.actor.resend.ack(*mine)
 
     def _run(self) -> None:
         while not self._stop.wait(0.25):
-            if not self.actor.replay.any_alive:
+            if not self.actor.replay.alive:
                 continue  # nobody to send to; the waits are not used up meanwhile
             for payload in self.actor.resend.due(time.monotonic()):
                 if self._stop.is_set():
@@ -470,12 +483,12 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
                     else:
                         stop.wait(0.2)
                     continue
-                if not actor.replay.any_alive:
-                    # Without a replay shard the experience would be lost: wait for one.
+                if not actor.replay.alive:
+                    # Without its replay shard the experience would be lost: wait for it.
                     if waited_since is None:
                         waited_since = time.monotonic()
                         actor.waiting_for_replay = True
-                        log.info("no replay server alive; waiting")
+                        log.info("no replay server alive for shard %d; waiting", actor.replay.shard)
                     actor.weights.poll()
                     stop.wait(0.2)
                     continue
