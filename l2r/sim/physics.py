@@ -17,6 +17,9 @@ the final state without an extra mj_forward.
 
 The kernels compute with numpy's error model: a diverging state gives NaN forces, which MuJoCo
 catches and resets (the env ends the episode), rather than an exception inside the step.
+Numba's cache checks only the file a kernel is defined in: after editing a module whose kernels
+these call (thelen, contact, paths, ligaments), delete `__pycache__/physics.*.nb?` here, or the
+cached step keeps the old code.
 """
 
 from __future__ import annotations
