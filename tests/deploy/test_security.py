@@ -143,6 +143,18 @@ def test_only_learners_may_publish_weights(open_as, keys):
     sub.undeclare()
 
 
+def test_only_replay_servers_may_publish_acks(open_as, keys):
+    """An ack makes actors forget chunks: from anyone else it would lose their experience."""
+    inbox = Inbox()
+    actor = open_as("actor")
+    sub = actor.declare_subscriber(keys.replay_ack(0), inbox)
+    forbidden = {"actor": open_as("actor"), "learner": open_as("learner"),
+                 "replay-cert-with-actor-password": open_as("replay", password_of="actor")}
+    time.sleep(SETTLE_S)
+    assert_only_allowed_arrive(inbox, forbidden, open_as("replay"), keys.replay_ack(0))
+    sub.undeclare()
+
+
 @pytest.fixture
 def replay_daemon(secure_router, keys, tmp_path):
     """A real l2r-replay with the replay role's config, connected to the secure router."""
@@ -187,6 +199,23 @@ def test_only_learners_may_query_the_replay_server(open_as, keys, replay_daemon)
         for name, session in queriers.items()
     }
     assert answered == {"learner": ["SampleBatch"], "actor": [], "replay": [], "learner-cert-with-replay-password": []}
+
+
+def test_learners_and_actors_may_ask_a_replay_server_for_its_stats_and_only_it_answers(open_as, keys,
+                                                                                       replay_daemon):
+    def answers(session: zenoh.Session, shard: int) -> list[str]:
+        replies = session.get(keys.stats("replay", shard), timeout=3.0)
+        return [messages.decode(r.ok.payload.to_bytes()).role for r in replies if r.ok is not None]
+
+    for role in ("learner", "actor"):
+        session = open_as(role)
+        assert wait_for(lambda: answers(session, 0) == ["replay"], timeout=20), role
+    impostor = open_as("learner")
+    queryable = impostor.declare_queryable(
+        keys.stats("replay", 1), lambda q: q.reply(q.key_expr, messages.encode(messages.Stats("replay", "1", 0.0, {}))))
+    time.sleep(SETTLE_S)
+    assert answers(open_as("actor"), 1) == []
+    queryable.undeclare()
 
 
 def test_experience_of_another_protocol_version_or_run_is_dropped(open_as, keys, replay_daemon):
