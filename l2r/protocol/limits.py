@@ -9,8 +9,9 @@ from __future__ import annotations
 
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
-ID = (0, 2**31 - 1)
-"""Actors, environments, shards: small non-negative numbers, also written into key expressions."""
+ID = (0, 2**32 - 1)
+"""Actors, environments, shards: non-negative numbers, also written into key expressions. Up to
+2^32 - 1 because deploy/docker-compose.yml numbers each actor by the CRC-32 of its hostname."""
 COUNT = (0, INT64_MAX)
 """Counters and nanosecond times."""
 VERSION = (-1, INT64_MAX)
