@@ -42,6 +42,7 @@ from typing import Any, Mapping
 
 import torch
 
+from l2r.durable import fsync_directory
 from l2r.learner.sac import SACConfig, TrainState, init_state
 from l2r.policy import Policy, build_policy
 
@@ -96,7 +97,7 @@ def save_checkpoint(path: str | Path, state: TrainState, config: SACConfig, obs_
         kept = sorted(path.parent.glob(f"{path.stem}-{'[0-9]' * UPDATES_DIGITS}{path.suffix}"))
         for old in kept[:-keep]:
             old.unlink()
-        _fsync_directory(path.parent)
+        fsync_directory(path.parent)
     return path
 
 
@@ -128,16 +129,8 @@ def _write(path: Path, payload: dict) -> Path:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    _fsync_directory(path.parent)  # the rename itself survives a power cut
+    fsync_directory(path.parent)  # the rename itself survives a power cut
     return path
-
-
-def _fsync_directory(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 @dataclass

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from l2r.durable import fsync_directory
+
 log = logging.getLogger("l2r.replay.snapshot")
 
 
@@ -32,15 +34,6 @@ def write(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> int:
         tmp.unlink(missing_ok=True)
     fsync_directory(path.parent)  # make the rename itself durable
     return path.stat().st_size
-
-
-def fsync_directory(directory: Path) -> None:
-    """Make the names created, renamed or deleted in ``directory`` durable."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def read(path: Path) -> tuple[dict[str, np.ndarray], dict] | None:

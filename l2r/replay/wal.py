@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
-from l2r.replay.snapshot import fsync_directory
+from l2r.durable import fsync_directory
 
 log = logging.getLogger("l2r.replay.wal")
 
