@@ -20,7 +20,7 @@ from pathlib import Path
 import zenoh
 
 from l2r.learner.checkpoint import CheckpointError, best_policy_path, load_checkpoint, save_policy_checkpoint
-from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, ProtocolError, Weights, decode
+from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Weights, watched
 
 log = logging.getLogger("l2r.up")
 
@@ -54,10 +54,9 @@ class BestPolicy:
         return -math.inf if self.best is None else float(self.best["mean_distance"])
 
     def _on_weights(self, sample: zenoh.Sample) -> None:
-        try:
-            weights = decode(sample.payload, Weights)
-        except ProtocolError:
-            return  # the actors report malformed weights; nothing to keep here
+        weights = watched(sample, Weights)
+        if weights is None:
+            return
         with self._lock:
             self._weights[weights.version] = weights
             while len(self._weights) > CACHED_VERSIONS:
@@ -65,17 +64,15 @@ class BestPolicy:
                 self._updates.pop(oldest, None)
 
     def _on_version(self, sample: zenoh.Sample) -> None:
-        try:
-            beacon = decode(sample.payload, LearnerVersion)
-        except ProtocolError:
+        beacon = watched(sample, LearnerVersion)
+        if beacon is None:
             return
         with self._lock:
             self._updates[beacon.version] = beacon.updates
 
     def _on_episode(self, sample: zenoh.Sample) -> None:
-        try:
-            ep = decode(sample.payload, EpisodeSummary)
-        except ProtocolError:
+        ep = watched(sample, EpisodeSummary)
+        if ep is None:
             return
         if not ep.evaluation or (self.judges is not None and ep.actor_id not in self.judges):
             return

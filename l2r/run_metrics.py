@@ -38,7 +38,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, ProtocolError, Stats, decode
+from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Stats, watched
 from l2r.sim import OPENSIM_ID, PORT_ID
 
 log = logging.getLogger("l2r.up")
@@ -229,10 +229,8 @@ class RunMetrics:
     # -- what the daemons publish -------------------------------------------------------------
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
-        try:
-            stats = decode(sample.payload, Stats)
-        except ProtocolError as e:
-            log.debug("ignored stats on %s: %s", sample.key_expr, e)
+        stats = watched(sample, Stats)
+        if stats is None:
             return
         with self._lock:
             values = stats.values
@@ -258,10 +256,8 @@ class RunMetrics:
                 self._tensorboard.add(f"{prefix}/{name}", float(value), step, stats.time)
 
     def _on_episode(self, sample: zenoh.Sample) -> None:
-        try:
-            ep = decode(sample.payload, EpisodeSummary)
-        except ProtocolError as e:
-            log.debug("ignored episode summary on %s: %s", sample.key_expr, e)
+        ep = watched(sample, EpisodeSummary)
+        if ep is None:
             return
         with self._lock:
             self.episodes += 1
@@ -280,9 +276,8 @@ class RunMetrics:
                 self._tensorboard.add(f"{prefix}/{name}", float(row[name]), row["env_steps"], ep.time)
 
     def _on_version(self, sample: zenoh.Sample) -> None:
-        try:
-            beacon = decode(sample.payload, LearnerVersion)
-        except ProtocolError:
+        beacon = watched(sample, LearnerVersion)
+        if beacon is None:
             return
         with self._lock:
             self.version = max(self.version, beacon.version)

@@ -11,7 +11,7 @@ from l2r.protocol.messages import (
 )
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
-    DaemonSettings, Rejections, configure_logging, session_config, wait_alive,
+    DaemonSettings, Rejections, configure_logging, session_config, wait_alive, watched,
 )
 
 __all__ = [
@@ -20,5 +20,5 @@ __all__ = [
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "EpisodeSummary", "ExperienceChunk", "Frame",
     "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck", "SampleBatch",
     "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
-    "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive",
+    "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive", "watched",
 ]

@@ -15,7 +15,7 @@ from pydantic import AfterValidator, field_validator
 
 from l2r.config import ONE_OR_MANY, FilePath, Settings, setting, zenoh_error_text
 from l2r.protocol.keys import check_name
-from l2r.protocol.messages import ProtocolError
+from l2r.protocol.messages import Message, ProtocolError, decode
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -128,6 +128,16 @@ class Rejections:
         """``rejected`` and ``rejected.<reason>`` for a daemon's stats."""
         with self._lock:
             return {"rejected": self.total, **{f"rejected.{r}": n for r, n in self.by_reason.items()}}
+
+
+def watched(sample: zenoh.Sample, expected: type[Message]) -> Message | None:
+    """The message of a sample a watcher (status, metrics) listens to, or None when it is
+    malformed: rejecting and counting it is its receiver's job, so here it is a debug line."""
+    try:
+        return decode(sample.payload, expected)
+    except ProtocolError as e:
+        logging.getLogger("l2r.protocol").debug("ignored %s on %s: %s", expected.KIND, sample.key_expr, e)
+        return None
 
 
 def wait_alive(session: zenoh.Session, key_expr: str, timeout: float = 10.0) -> list[str]:
