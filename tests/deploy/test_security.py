@@ -121,37 +121,26 @@ def test_the_router_logs_who_connects_and_as_whom(secure_router, open_as):
     assert wait_for(lambda: "as learner" in log.read_text()), log.read_text()[-2000:]
 
 
-def test_only_actors_may_publish_experience(open_as, keys):
+# (who may publish, who listens, the key listened to, the key published, who may not,
+#  whose password the allowed role's certificate tries): an ack makes actors forget chunks, so
+#  from anyone but a replay server it would lose their experience.
+ONLY_ONE_ROLE_PUBLISHES = {
+    "experience": ("actor", "replay", lambda k: k.experience_of_shard(0), lambda k: k.experience(actor_id=3),
+                   ("learner", "replay"), "learner"),
+    "weights": ("learner", "actor", lambda k: k.weights, lambda k: k.weights, ("actor", "replay"), "actor"),
+    "acks": ("replay", "actor", lambda k: k.replay_ack(0), lambda k: k.replay_ack(0), ("actor", "learner"), "actor"),
+}
+
+
+@pytest.mark.parametrize("what", ONLY_ONE_ROLE_PUBLISHES)
+def test_only_one_role_may_publish(what, open_as, keys):
+    allowed, listener, listened, published, others, password_of = ONLY_ONE_ROLE_PUBLISHES[what]
     inbox = Inbox()
-    replay = open_as("replay")
-    sub = replay.declare_subscriber(keys.experience_of_shard(0), inbox)
-    forbidden = {"learner": open_as("learner"), "replay": open_as("replay"),
-                 "actor-cert-with-learner-password": open_as("actor", password_of="learner")}
+    sub = open_as(listener).declare_subscriber(listened(keys), inbox)
+    forbidden = {role: open_as(role) for role in others}
+    forbidden[f"{allowed}-cert-with-{password_of}-password"] = open_as(allowed, password_of=password_of)
     time.sleep(SETTLE_S)  # let the subscription reach every session through the router
-    assert_only_allowed_arrive(inbox, forbidden, open_as("actor"), keys.experience(actor_id=3))
-    sub.undeclare()
-
-
-def test_only_learners_may_publish_weights(open_as, keys):
-    inbox = Inbox()
-    actor = open_as("actor")
-    sub = actor.declare_subscriber(keys.weights, inbox)
-    forbidden = {"actor": open_as("actor"), "replay": open_as("replay"),
-                 "learner-cert-with-actor-password": open_as("learner", password_of="actor")}
-    time.sleep(SETTLE_S)
-    assert_only_allowed_arrive(inbox, forbidden, open_as("learner"), keys.weights)
-    sub.undeclare()
-
-
-def test_only_replay_servers_may_publish_acks(open_as, keys):
-    """An ack makes actors forget chunks: from anyone else it would lose their experience."""
-    inbox = Inbox()
-    actor = open_as("actor")
-    sub = actor.declare_subscriber(keys.replay_ack(0), inbox)
-    forbidden = {"actor": open_as("actor"), "learner": open_as("learner"),
-                 "replay-cert-with-actor-password": open_as("replay", password_of="actor")}
-    time.sleep(SETTLE_S)
-    assert_only_allowed_arrive(inbox, forbidden, open_as("replay"), keys.replay_ack(0))
+    assert_only_allowed_arrive(inbox, forbidden, open_as(allowed), published(keys))
     sub.undeclare()
 
 
