@@ -19,6 +19,7 @@ import numpy as np
 
 from l2r.sim import model as body
 from l2r.sim import thelen
+from l2r.sim.layout import JOINTS, OBS_SIZE, PELVIS, TRACKED_BODIES
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.opensim import read_osim
 from l2r.sim.physics import Physics
@@ -32,15 +33,11 @@ LIGAMENT_PENALTY = 1e-7  # reward per N·m of the ligament forces' Euclidean nor
 NUM_OBSTACLES = 3
 NO_OBSTACLE = (100.0, 0.0, 0.0)  # what the 2017 env reports when no obstacle lies ahead
 
-PELVIS = ("pelvis_tilt", "pelvis_tx", "pelvis_ty")
-JOINTS = ("hip_flexion_r", "knee_angle_r", "ankle_angle_r", "hip_flexion_l", "knee_angle_l", "ankle_angle_l")
-TRACKED_BODIES = ("head", "pelvis", "torso", "toes_l", "toes_r", "talus_l", "talus_r")
 FOOT_SPHERES = body.CONTACT_SPHERES  # the rows of info["contact_force"]
 PSOAS_RIGHT = "iliopsoas_r"
 # The 2017 code scaled muscle index 11 with the left psoas strength: glut_max_l, not iliopsoas_l.
 LEFT_PSOAS_CHOICES = ("glut_max_l", "iliopsoas_l")
 
-OBS_SIZE = 41
 NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
 
