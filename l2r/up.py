@@ -176,8 +176,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
         print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
               f"defaults apply", file=sys.stderr)
     stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(args) and k not in NOT_REUSED}
-    if isinstance(stored.get("eval_env_id"), str) or stored.get("eval_env_id", []) is None:  # one id, before the list
-        stored["eval_env_id"] = [stored["eval_env_id"]] if stored["eval_env_id"] else []
+    eval_env_id = stored.get("eval_env_id", [])
+    if not isinstance(eval_env_id, list):  # one id or none, from before the flag was repeatable
+        stored["eval_env_id"] = [eval_env_id] if eval_env_id else []
     parser.set_defaults(**stored)
     args = parser.parse_args(argv)
     # A repeatable flag given again replaces the stored list rather than adding to it.
