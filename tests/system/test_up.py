@@ -84,8 +84,11 @@ def test_up_trains_restarts_writes_metrics_and_leaves_a_checkpoint_eval_loads(tm
         os.kill(pid_of(run_dir, "learner"), signal.SIGKILL)
         assert wait_for(lambda: "learner killed by SIGKILL" in up_log(run_dir), timeout=10)
         resumed_at = updates()
+        # Every process's stats too: the learner's come every few seconds, and a fast machine reaches
+        # the updates before the restarted learner's first.
         assert wait_for(lambda: updates() >= max(200, resumed_at + 50) and (run_dir / "learner" / "best.pt").exists()
-                        and rows(run_dir / "metrics" / "evaluation.csv"), timeout=180), "no training after the restart"
+                        and all(rows(run_dir / "metrics" / f"{table}.csv") for table in ("evaluation", "learner", "replay")),
+                        timeout=180), "no training after the restart"
         proc.send_signal(signal.SIGTERM)
     finally:
         out = finish(proc, tmp_path / "up.out", 120)
@@ -151,20 +154,22 @@ def test_the_env_step_budget_ends_a_job_and_resume_reuses_its_flags_and_counters
 
     # No flag but the budget: the small networks, one actor and no evaluator come from launch.json
     # (a learner started with the default networks would refuse the checkpoint and the job give up).
-    second = l2r_up(tmp_path / "second.out", "--resume", str(run_dir), "--env-steps", "3000")
+    # The budget goes beyond what the first session spent, however far it overshot its own.
+    budget = str(before["env_steps"] + 1500)
+    second = l2r_up(tmp_path / "second.out", "--resume", str(run_dir), "--env-steps", budget)
     out = finish(second, tmp_path / "second.out", 400)
     assert second.returncode == 0, out
-    assert f"--env-steps 3000 replaces 1500 from {run_dir / 'launch.json'}" in out
+    assert f"--env-steps {budget} replaces 1500 from {run_dir / 'launch.json'}" in out
     launch = json.loads((run_dir / "launch.json").read_text())
     assert launch["args"]["actors"] == 1 and "--learner-arg=--hidden=64,64" in launch["argv"]
-    assert [s["argv"] for s in launch["sessions"]] == [launch["argv"], ["--resume", str(run_dir), "--env-steps", "3000"]]
+    assert [s["argv"] for s in launch["sessions"]] == [launch["argv"], ["--resume", str(run_dir), "--env-steps", budget]]
     assert "started evaluator" not in up_log(run_dir) and "started actor-1" not in up_log(run_dir)
 
     resumed = re.findall(r"resumed from .*checkpoint.pt: version (\d+), (\d+) updates",
                          (run_dir / "logs" / "learner.log").read_text())
     assert len(resumed) == 1 and int(resumed[0][1]) > 0  # the checkpoint was kept and continued
     after = json.loads((run_dir / "summary.json").read_text())
-    assert after["env_steps"] >= 3000 and after["updates"] > int(resumed[0][1]) and after["time"] > before["time"]
+    assert after["env_steps"] >= int(budget) and after["updates"] > int(resumed[0][1]) and after["time"] > before["time"]
     status = rows(run_dir / "metrics" / "status.csv")
     times, steps = [float(r["time"]) for r in status], [int(r["env_steps"]) for r in status]
     assert times == sorted(times) and steps == sorted(steps)  # the counters went on, not back to 0
