@@ -333,7 +333,7 @@ def encode(message: Message) -> bytes:
 
 
 def _pack_array(a: np.ndarray) -> dict:
-    a = np.ascontiguousarray(a)
+    a = np.asarray(a, order="C")  # (ascontiguousarray would make a 0-d array 1-d)
     if a.dtype.byteorder == ">":
         a = a.astype(a.dtype.newbyteorder("<"))
     return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.reshape(-1).view(np.uint8).data}

@@ -32,7 +32,8 @@ def every_message() -> list:
     b = 8
     return [
         make_chunk(3, 7, steps=12, ends=(4,), truncate=(11,)),
-        Weights(5, {"pi.0.weight": rng.random((4, 41), np.float32), "pi.0.bias": np.zeros(4, np.float16)},
+        Weights(5, {"pi.0.weight": rng.random((4, 41), np.float32), "pi.0.bias": np.zeros(4, np.float16),
+                    "observation_filter.count": np.array(3.0, np.float32)},  # a 0-d buffer keeps its shape
                 {"hidden": [512, 512], "activation": "elu"}),
         SampleRequest(256, 2, True, 9),
         SampleBatch(1, 1000, True, rng.random((b, 41), np.float32), rng.random((b, 18), np.float32),

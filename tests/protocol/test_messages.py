@@ -24,9 +24,10 @@ def assert_same(a: Message, b: Message) -> None:
     for f in dataclasses.fields(a):
         x, y = getattr(a, f.name), getattr(b, f.name)
         if isinstance(x, np.ndarray):
-            assert x.dtype == y.dtype and np.array_equal(x, y), f.name
+            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), f.name
         elif isinstance(x, dict) and x and isinstance(next(iter(x.values())), np.ndarray):
-            assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) and x[k].dtype == y[k].dtype for k in x)
+            assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) and x[k].dtype == y[k].dtype
+                                                and x[k].shape == y[k].shape for k in x)
         else:
             assert x == y, f.name
 
