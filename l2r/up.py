@@ -27,6 +27,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import sys
@@ -96,12 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="restarts of one process in a row without progress (learner updates, env steps, "
                         "replay inserts) before the job gives up on it and exits with code 1")
     a = p.add_argument_group("actors")
-    a.add_argument("--actors", type=int, default=2, help="actor processes")
-    a.add_argument("--envs-per-actor", type=int, default=2, help="environments per actor, batched in one policy call")
+    a.add_argument("--actors", type=int, default=1, help="actor processes")
+    a.add_argument("--envs-per-actor", type=int, default=4, help="environments per actor, batched in one policy call")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--action-repeat", type=int, default=3,
                    help="0.01 s environment steps per action (stored in checkpoints for `l2r eval`)")
-    a.add_argument("--random-steps", type=int, default=1000,
+    a.add_argument("--random-steps", type=int, default=10_000,
                    help="uniform random steps of each actor before it uses the policy (warm-up)")
     a.add_argument("--evaluators", type=int, default=1,
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
@@ -129,7 +130,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--batch-size", type=int, default=256, help="learner batch size")
-    le.add_argument("--min-replay", type=int, default=1000, help="transitions stored before the learner starts")
+    # The learning recipe for a small CPU machine (docs/training.md, "The recipe"); the learner's
+    # own defaults are the 2017 reference solution's, sized for a GPU.
+    le.add_argument("--hidden", default="256,256", help="hidden layer widths of policy and critics, comma-separated")
+    le.add_argument("--update-repeat", type=int, default=1, help="gradient steps per sampled batch")
+    for flag, text in (("relative-x", "networks see world x coordinates as distances from the pelvis"),
+                       ("normalize-obs", "networks see observations standardised by running statistics"),
+                       ("mirror", "the learner swaps the legs of a random half of each batch (symmetry augmentation)")):
+        le.add_argument(f"--{flag}", action=argparse.BooleanOptionalAction, default=True, help=text)
+    le.add_argument("--min-replay", type=int, default=10_000, help="transitions stored before the learner starts")
     le.add_argument("--samples-per-insert", type=float, default=0.0,
                     help="replay rate limit: sampled transitions per inserted one (0: no limit)")
     le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions")
@@ -213,6 +222,8 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error("--actors and --envs-per-actor must be at least 1")
     if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
+    if not re.fullmatch(r"[1-9]\d*(,[1-9]\d*)*", args.hidden) or args.update_repeat < 1:
+        parser.error(f"--hidden takes widths such as 256,256 (got {args.hidden!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
     return args
@@ -268,6 +279,9 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
                                      "--device", args.device, "--batch-size", str(args.batch_size),
+                                     "--hidden", args.hidden, "--update-repeat", str(args.update_repeat),
+                                     *[f"--{flag}" for flag in ("relative-x", "normalize-obs", "mirror")
+                                       if getattr(args, flag.replace("-", "_"))],
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(args.action_repeat),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
