@@ -13,10 +13,13 @@ process that finished (the learner's --max-updates, an actor's --max-steps): it 
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import logging
 import os
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,6 +87,20 @@ class Child:
         return "" if self.last_code is None else exit_reason(self.last_code)
 
 
+PR_SET_PDEATHSIG = 1  # from <linux/prctl.h>
+
+
+def _before_exec(parent: int, nice: int) -> None:
+    """In a child between fork and exec: its niceness, and on Linux a SIGTERM when `l2r up` dies,
+    even by SIGKILL, so that no daemon outlives the job (the child runs in a session of its own)."""
+    if nice:
+        os.nice(nice)
+    if sys.platform == "linux":
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:  # the parent died before the request took effect
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
 class ProcessGroup:
     """Starts the children with one log file each, restarts the ones that exit, stops them in tiers.
 
@@ -108,7 +125,7 @@ class ProcessGroup:
             # stops the children in order.
             child.process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                              start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                                             preexec_fn=(lambda: os.nice(child.nice)) if child.nice else None)
+                                             preexec_fn=functools.partial(_before_exec, os.getpid(), child.nice))
         child.state = RUNNING
         child.progress_at_start = self.progress(*child.progress)
         log.info("started %s (pid %d)%s", child.name, child.process.pid, " with --resume" if resume and child.resume_args else "")

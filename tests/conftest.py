@@ -1,12 +1,16 @@
-"""What tests in every directory share: a free loopback port, and waiting for a condition."""
+"""What tests in every directory share: the repository root, a free loopback port, and waiting for a
+condition."""
 
 from __future__ import annotations
 
 import socket
 import time
+from pathlib import Path
 from typing import Callable, TypeVar
 
 T = TypeVar("T")
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:

@@ -7,7 +7,6 @@ import subprocess
 import sys
 import time
 import uuid
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,9 +14,8 @@ import zenoh
 
 from l2r.policy import build_policy, policy_state
 from l2r.protocol import EpisodeSummary, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
-from tests.conftest import free_port, wait_for
+from tests.conftest import ROOT, free_port, wait_for
 
-ROOT = Path(__file__).resolve().parents[2]
 STANDIN = "tests.actors.standin:StandIn-v0"
 SPEC = {"obs_dim": 41, "act_dim": 18, "hidden": [32], "activation": "elu", "layer_norm": False}
 

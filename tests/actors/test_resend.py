@@ -5,16 +5,14 @@ import socket
 import subprocess
 import sys
 import uuid
-from pathlib import Path
 
 import pytest
 import zenoh
 
 from l2r.actors.experience import ResendBuffer
 from l2r.protocol import Keys, decode, session_config
-from tests.conftest import free_port, wait_for
+from tests.conftest import ROOT, free_port, wait_for
 
-ROOT = Path(__file__).resolve().parents[2]
 STANDIN = "tests.actors.standin:StandIn-v0"
 
 

@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import uuid
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -21,9 +20,8 @@ from l2r.episodes.read import read_episode
 from l2r.protocol.keys import Keys
 from l2r.protocol.session import session_config, wait_alive
 from l2r.sim.wrappers import ActionRepeat
-from tests.conftest import free_port
+from tests.conftest import ROOT, free_port
 
-ROOT = Path(__file__).parents[2]
 
 
 @pytest.mark.slow

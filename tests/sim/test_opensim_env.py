@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 import uuid
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -28,11 +27,10 @@ from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE
 from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 from l2r.sim.opensim_env import RunOpenSimEnv
 from l2r.sim.wrappers import ActionRepeat
-from tests.conftest import free_port
+from tests.conftest import ROOT, free_port
 
 opensim = pytest.importorskip("opensim")
 
-ROOT = Path(__file__).parents[2]
 REFERENCE = ROOT / "l2r" / "sim" / "assets" / "opensim_reference.json"
 SUBPROCESS_ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 

@@ -4,15 +4,14 @@ says clearly when there is no checkpoint."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import torch
 
 from l2r.evaluate import evaluate
 from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.sac import SACConfig, init_state
+from tests.conftest import ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def l2r_eval(*argv: str) -> subprocess.CompletedProcess:

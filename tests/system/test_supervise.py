@@ -2,7 +2,9 @@
 progress is given up on after a set number of restarts however fast it fails, one that makes
 progress is not, a usage error is given up on at once and a clean exit is final."""
 
+import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -10,7 +12,7 @@ from l2r import supervise
 from l2r.supervise import (
     FAILED, FINISHED, RUNNING, WAITING, Child, ProcessGroup, exit_reason, last_lines, restart_delay,
 )
-from tests.conftest import wait_for
+from tests.conftest import ROOT, wait_for
 
 
 @pytest.fixture
@@ -75,3 +77,34 @@ def test_a_usage_error_is_given_up_on_at_once_and_a_clean_exit_is_final(tmp_path
 def test_exit_reasons_name_the_signal():
     assert exit_reason(1) == "exit code 1"
     assert exit_reason(-9) == "killed by SIGKILL"
+
+
+def test_the_processes_stop_when_their_supervisor_is_killed(tmp_path):
+    # A supervisor in a process of its own, killed by SIGKILL: it can stop nobody, the kernel must.
+    supervisor = subprocess.Popen([sys.executable, "-c", f"""
+import sys, time
+from pathlib import Path
+from l2r.supervise import Child, ProcessGroup
+group = ProcessGroup([Child("sleeper", [sys.executable, "-c", "import time; time.sleep(120)"], tier=0,
+                            progress=("actor", "0", "env_steps"), nice=5)],
+                     Path({str(tmp_path)!r}), progress=lambda *key: 0, max_restarts=0, on_exit=lambda c, code: None)
+group.start()
+print(group.children[0].process.pid, flush=True)
+time.sleep(120)
+"""], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(supervisor.stdout.readline())
+        assert alive(child)
+        supervisor.kill()
+        supervisor.wait()
+        assert wait_for(lambda: not alive(child), timeout=10), "the supervised process outlived its supervisor"
+    finally:
+        supervisor.kill()
+
+
+def alive(pid: int) -> bool:
+    """Running, not merely a zombie waiting for a parent to read its exit."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False

@@ -19,9 +19,8 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from l2r.view import episode_metadata
-from tests.conftest import wait_for
+from tests.conftest import ROOT, wait_for
 
-ROOT = Path(__file__).resolve().parents[2]
 # Small networks and batches so a few hundred updates fit in seconds on two shared cores.
 SMALL = ["--learner-arg=--hidden=64,64", "--learner-arg=--publish-every=20", "--learner-arg=--update-repeat=1",
          "--learner-arg=--checkpoint-interval=3", "--batch-size", "64", "--random-steps", "300", "--min-replay", "300",
