@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
@@ -71,3 +72,19 @@ def test_resume_takes_the_stored_env_ids_and_a_repeated_flag_given_again_replace
     for old, new in (("l2r/RunOpenSim-v0", ["l2r/RunOpenSim-v0"]), (None, [])):
         (tmp_path / "launch.json").write_text(json.dumps({"args": {"eval_env_id": old}}))
         assert parse_args(["--resume", str(tmp_path)])[0].eval_env_id == new
+
+
+def learner_config(*argv: str):
+    """The SAC settings the learner of a planned job would train with."""
+    args, _ = parse_args(list(argv))
+    learner = next(c for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) if c.name == "learner")
+    return learner_settings(learner.argv[3:]).sac()
+
+
+def test_the_learner_trains_with_up_s_recipe_and_a_learner_arg_wins():
+    config = learner_config()
+    assert (config.hidden, config.update_repeat, config.batch_size) == ((256, 256), 1, 256)
+    assert config.relative_x and config.normalize_obs and config.mirror
+    config = learner_config("--no-mirror", "--no-normalize-obs", "--hidden", "64,64", "--learner-arg=--update-repeat=2")
+    assert (config.hidden, config.update_repeat, config.normalize_obs, config.mirror) == ((64, 64), 2, False, False)
+    assert config.relative_x
