@@ -88,8 +88,8 @@ class BestPolicy:
             weights = self._weights.get(ep.policy_version)
             if weights is None:
                 log.warning("evaluation of v%d: best mean distance so far (%.2f m), but its weights are no longer "
-                            "at hand; %s keeps v%s", ep.policy_version, mean, self.path,
-                            self.best["version"] if self.best else "nothing")
+                            "at hand; %s keeps %s", ep.policy_version, mean, self.path,
+                            f"v{self.best['version']}" if self.best else "no policy yet")
                 return
             evaluation = {"version": ep.policy_version, "mean_distance": mean, "episodes": len(round_),
                           "seeds": sorted(round_), "evaluator": ep.actor_id}
