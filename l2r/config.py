@@ -7,9 +7,11 @@ value from the first of these that has one:
     --flag VALUE  >  --config FILE.toml  >  L2R_<FLAG> environment variable  >  the default
 
 Keys in the file are the long flag names (``batch-size = 128``); a variable is the flag's
-name in capitals (``L2R_BATCH_SIZE=128``; a list is comma-separated). Every value is checked
-against its field's type and limits wherever it came from, and one that does not fit is a
-`UsageError` saying where it came from, which key, and what it should be.
+name in capitals (``L2R_BATCH_SIZE=128``; a list is comma-separated). A field may also name a
+variable of another tool, read below its L2R_ one (l2r-learner's --world-size reads torchrun's
+``$WORLD_SIZE``). Every value is checked against its field's type and limits wherever it came
+from, and one that does not fit is a `UsageError` saying where it came from, which key, and
+what it should be.
 
 Exit codes, the same in every command (`run_command`):
     0  done
@@ -102,15 +104,14 @@ class Settings(BaseModel):
 
 
 def setting(default: Any = None, help: str = "", *, group: str, metavar: str | None = None,
-            positional: bool = False, **limits) -> Any:
-    """A field of a `Settings` model: its default (or default_factory=), flag help, help group and
-    limits (ge=, gt=, le=...).
+            positional: bool = False, variable: str | None = None, **limits) -> Any:
+    """A field of a `Settings` model: its default, flag help, help group and limits (ge=, gt=,
+    le=...); ``variable``: an environment variable of another tool that supplies the field when
+    its L2R_<FLAG> variable does not.
 
     The help shows the default, unless it is None, False or empty (say then what happens in the help)."""
-    extra = {"group": group, "metavar": metavar, "positional": positional}
-    if "default_factory" not in limits:
-        limits["default"] = default
-    return Field(description=help, json_schema_extra=extra, **limits)
+    extra = {"group": group, "metavar": metavar, "positional": positional, "variable": variable}
+    return Field(default, description=help, json_schema_extra=extra, **limits)
 
 
 S = TypeVar("S", bound=Settings)
@@ -154,7 +155,7 @@ def settings_parser(model: type[Settings], prog: str, description: str, epilog: 
         kind = _kind(info.annotation)
         help_ = info.description or ""
         if info.default is not None and info.default is not False and info.default != [] \
-                and info.default_factory is None and "(default" not in help_:
+                and "(default" not in help_:
             help_ += f" (default: {info.default})"
         options: dict[str, Any] = {"default": argparse.SUPPRESS, "help": help_.replace("%", "%%")}
         if kind is bool:
@@ -180,8 +181,13 @@ def load(model: type[S], parser: argparse.ArgumentParser, argv: Sequence[str] | 
     and the environment, checked; raises UsageError naming the source and key of a bad value."""
     given = vars(parser.parse_args(argv))
     path = given.pop("config", None)
+    environ = os.environ if environ is None else environ
     values: dict[str, Any] = {}
-    values |= _validated(model, _environment(model, os.environ if environ is None else environ), "env", strict=False)
+    for name, info in model.model_fields.items():
+        variable = (info.json_schema_extra or {}).get("variable")
+        if variable and variable in environ:
+            values |= _validated(model, {name: environ[variable]}, f"${variable}", strict=False)
+    values |= _validated(model, _environment(model, environ), "env", strict=False)
     if path:
         values |= _validated(model, _toml(model, path), f"--config {path}", strict=True)
     values |= _validated(model, given, "flag", strict=False)
@@ -234,6 +240,8 @@ def _describe(error: Mapping[str, Any], source: str) -> str:
     value = error["input"]
     if source == "env":
         where = f"${ENV_PREFIX}{name.upper()}={value!r}" if name else "environment"
+    elif source.startswith("$"):  # a variable of another tool, such as $WORLD_SIZE
+        where = f"{source}={value!r}"
     elif source == "flag":
         where = f"{_flag(name)} {value}" if name else "command line"
     else:

@@ -78,6 +78,17 @@ def test_a_bad_environment_value_names_the_variable(environ, message):
     assert str(error.value).startswith(message)
 
 
+def test_torchruns_variables_come_below_flags_and_l2r_variables():
+    def place(argv: list[str], environ: dict[str, str]) -> tuple[int, int]:
+        settings = learner_settings(argv, environ)
+        return settings.world_size, settings.rank
+
+    torchrun = {"WORLD_SIZE": "4", "RANK": "3"}
+    assert place([], torchrun) == (4, 3)
+    assert place(["--rank", "1"], torchrun | {"L2R_WORLD_SIZE": "2"}) == (2, 1)
+    assert place([], {}) == (1, 0)
+
+
 def test_the_memory_check_counts_what_storage_allocates():
     for capacity, side_fraction in ((2, 0.125), (1000, 0.125), (12345, 1.0), (777, 0.001)):
         config = StorageConfig(capacity=capacity, side_fraction=side_fraction)

@@ -50,10 +50,11 @@ class LearnerSettings(DaemonSettings):
     max_updates: int = setting(0, "stop after this many updates in total; 0 = until stopped", group=PROCESS, ge=0)
     seed: int | None = setting(None, "torch seed (each rank adds its rank)", group=PROCESS)
 
-    world_size: int = setting(help="number of learners (default: $WORLD_SIZE or 1)", group=PARALLEL, ge=1,
-                              default_factory=lambda: int(os.environ.get("WORLD_SIZE", 1)))
-    rank: int = setting(help="this learner's rank; rank 0 publishes weights and checkpoints (default: $RANK or 0)",
-                        group=PARALLEL, ge=0, default_factory=lambda: int(os.environ.get("RANK", 0)))
+    # torchrun's variables, so that each rank it starts knows its place
+    world_size: int = setting(1, "number of learners (default: $WORLD_SIZE or 1)", group=PARALLEL, ge=1,
+                              variable="WORLD_SIZE")
+    rank: int = setting(0, "this learner's rank; rank 0 publishes weights and checkpoints (default: $RANK or 0)",
+                        group=PARALLEL, ge=0, variable="RANK")
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 

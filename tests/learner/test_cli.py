@@ -26,6 +26,20 @@ def test_bad_arguments_are_usage_errors(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("variables, message", [
+    ({"WORLD_SIZE": "two"}, "$WORLD_SIZE='two': should be a valid integer"),
+    ({"RANK": "-1"}, "$RANK='-1': should be greater than or equal to 0"),
+    ({"WORLD_SIZE": "2", "RANK": "2"}, "--rank 2 must be below --world-size 2"),
+])
+def test_malformed_torchrun_variables_are_usage_errors(variables, message, capsys, monkeypatch):
+    monkeypatch.setattr("l2r.learner.__main__.train", lambda settings: 0)  # settings that pass must not train
+    for name, value in variables.items():
+        monkeypatch.setenv(name, value)
+    assert cli([]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith(f"l2r-learner: {message}"), err
+
+
 def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(capsys, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     assert cli(["--device", "cuda", "--run", "nothing-here"]) == 1
