@@ -33,6 +33,7 @@ import socket
 import sys
 import threading
 import time
+import tomllib
 import zipfile
 from datetime import datetime, timezone
 from pathlib import Path
@@ -53,8 +54,9 @@ from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
 
-# Flags a --resume does not take from launch.json: they name the run directory, not the job.
-NOT_REUSED = {"resume", "name", "runs_dir"}
+# Flags a --resume does not take from launch.json: they name the run directory, not the job, or
+# the --config file, whose values launch.json keeps as the flags they set.
+NOT_REUSED = {"resume", "name", "runs_dir", "config"}
 
 
 def loopback(port: int) -> str:
@@ -81,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
                "learner made no update; 2 bad usage.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    p.add_argument("--config", type=Path, metavar="FILE.toml",
+                   help="TOML file of flags, keys being the long flag names (seconds = 7200, eval-env-id = "
+                        "[\"l2r/Run-v0\"], mirror = false); the command line wins over it, and it wins over the "
+                        "flags stored in launch.json on --resume")
     b = p.add_argument_group("budget of the whole run, whichever is spent first; time and env steps "
                              "continue across --resume")
     b.add_argument("--seconds", type=float, default=100.0, help="seconds of training (0: no limit)")
@@ -166,45 +172,98 @@ def _stored(value):
 
 
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
-    """The job's flags and, for --resume, the run's launch.json. On --resume the stored flags
-    are the defaults, so a flag given again wins; each change of a stored flag is warned of."""
+    """The job's flags and, for --resume, the run's launch.json. Each flag's value comes from the
+    first that has one: the command line, the --config file, launch.json on --resume, the default.
+    Each change of a flag stored in launch.json is warned of."""
     parser = build_parser()
+    given = parser.parse_args(argv)  # the command line alone
+    launch, stored = _launch(parser, given) if given.resume is not None else (None, {})
+    from_file = _config_file(parser, given.config) if given.config is not None else {}
+    parser.set_defaults(**(stored | from_file))
     args = parser.parse_args(argv)
-    if args.resume is None:
-        return _checked(parser, args), None
-    launch_path = args.resume / "launch.json"
-    if not args.resume.is_dir():
-        parser.error(f"--resume {args.resume}: no such run directory")
-    try:
-        launch = json.loads(launch_path.read_text())
-    except FileNotFoundError:
-        parser.error(f"--resume {args.resume}: no launch.json there, so not a run directory of l2r up")
-    except json.JSONDecodeError as e:
-        parser.error(f"--resume: {launch_path} is not JSON ({e})")
-    if "args" not in launch:
-        print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
-              f"defaults apply", file=sys.stderr)
-    stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(args) and k not in NOT_REUSED}
-    eval_env_id = stored.get("eval_env_id", [])
-    if not isinstance(eval_env_id, list):  # one id or none, from before the flag was repeatable
-        stored["eval_env_id"] = [eval_env_id] if eval_env_id else []
-    parser.set_defaults(**stored)
-    args = parser.parse_args(argv)
-    # A repeatable flag given again replaces the stored list rather than adding to it.
-    given = build_parser().parse_args(argv)
+    # A repeatable flag on the command line replaces the file's or launch.json's list rather than adding to it.
     for action in parser._actions:
         if isinstance(action, argparse._AppendAction) and getattr(given, action.dest):
             setattr(args, action.dest, getattr(given, action.dest))
+    if launch is None:
+        return _checked(parser, args), None
     for dest, old in stored.items():
         if _stored(getattr(args, dest)) != old:
             print(f"l2r up: warning: --{dest.replace('_', '-')} {getattr(args, dest)} replaces {old} from "
-                  f"{launch_path}", file=sys.stderr)
+                  f"{args.resume / 'launch.json'}", file=sys.stderr)
     snapshot_capacity = replay_snapshot_capacity(args.resume / "replay")
     if snapshot_capacity not in (None, args.capacity):
         print(f"l2r up: warning: the replay snapshot in {args.resume / 'replay'} holds {snapshot_capacity:,} "
               f"transitions' capacity; the replay server cannot restore it with --capacity {args.capacity:,} and the "
               f"job will give up (move replay/ away to start with an empty replay)", file=sys.stderr)
     return _checked(parser, args), launch
+
+
+def _launch(parser: argparse.ArgumentParser, given: argparse.Namespace) -> tuple[dict, dict]:
+    """The launch.json of the run directory to --resume, and the flags it stores that are reused."""
+    launch_path = given.resume / "launch.json"
+    if not given.resume.is_dir():
+        parser.error(f"--resume {given.resume}: no such run directory")
+    try:
+        launch = json.loads(launch_path.read_text())
+    except FileNotFoundError:
+        parser.error(f"--resume {given.resume}: no launch.json there, so not a run directory of l2r up")
+    except json.JSONDecodeError as e:
+        parser.error(f"--resume: {launch_path} is not JSON ({e})")
+    if "args" not in launch:
+        print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
+              f"defaults apply", file=sys.stderr)
+    stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(given) and k not in NOT_REUSED}
+    eval_env_id = stored.get("eval_env_id", [])
+    if not isinstance(eval_env_id, list):  # one id or none, from before the flag was repeatable
+        stored["eval_env_id"] = [eval_env_id] if eval_env_id else []
+    return launch, stored
+
+
+def _config_file(parser: argparse.ArgumentParser, path: Path) -> dict:
+    """The flags' values in a --config file, checked against the flags' types. A file's values are
+    typed: "7200" is no number there, nor 7200 a string."""
+    try:
+        with open(path, "rb") as f:
+            table = tomllib.load(f)
+    except OSError as e:
+        parser.error(f"--config {path}: {e.strerror}")
+    except tomllib.TOMLDecodeError as e:
+        parser.error(f"--config {path}: not TOML: {e}")
+    flags = {action.dest: action for action in parser._actions
+             if action.option_strings and action.dest not in ("help", "version", "config", "resume")}
+    values = {}
+    for key, value in table.items():
+        action = flags.get(key.replace("-", "_"))
+        if action is None:
+            parser.error(f"--config {path}: unknown key {key!r} (keys are the long flag names, except resume "
+                         f"and config)")
+        try:
+            values[action.dest] = _file_value(action, value)
+        except ValueError as e:
+            parser.error(f"--config {path}: {key} = {value!r}: {e}")
+    return values
+
+
+def _file_value(action: argparse.Action, value):
+    """A --config file's ``value`` for the flag of ``action``, as the command line would set it;
+    raises ValueError saying what it should be."""
+    if action.nargs == 0:  # --flag, --[no-]flag
+        kind, fits = "true or false", isinstance(value, bool)
+    elif isinstance(action, argparse._AppendAction):
+        kind, fits = "a list of strings", isinstance(value, list) and all(isinstance(v, str) for v in value)
+    elif action.type in (int, float):
+        kind = "an integer" if action.type is int else "a number"
+        fits = isinstance(value, int if action.type is int else (int, float)) and not isinstance(value, bool)
+    else:
+        kind, fits = "a string", isinstance(value, str)
+    if not fits:
+        raise ValueError(f"should be {kind}")
+    if action.type is not None:
+        value = action.type(value)
+    if action.choices is not None and value not in action.choices:
+        raise ValueError(f"should be one of {', '.join(map(str, action.choices))}")
+    return value
 
 
 def replay_snapshot_capacity(directory: Path) -> int | None:
