@@ -11,6 +11,7 @@ from l2r.config import (
 )
 from l2r.protocol import DaemonSettings, configure_logging
 from l2r.replay.rate_limiter import RateLimiter
+from l2r.replay.sequences import MAX_ACTORS
 from l2r.replay.server import ServerConfig, main
 from l2r.replay.storage import StorageConfig, storage_bytes
 
@@ -20,6 +21,9 @@ SHARD, STORAGE, LIMITER, PERSISTENCE = "shard", "storage", "rate limiter", "pers
 class ReplaySettings(DaemonSettings):
     shard: int = setting(0, "index of this shard; actor i feeds shard i % num-shards", group=SHARD, ge=0)
     num_shards: int = setting(1, "number of replay shards of the run", group=SHARD, ge=1)
+    max_actors: int = setting(MAX_ACTORS, "actor ids this shard keeps sequence records of; chunks of further "
+                              "ids are rejected (too_many_actors), so a peer inventing ids cannot exhaust "
+                              "its memory", group=SHARD, ge=1)
     capacity: int = setting(1_000_000, "transitions kept, oldest evicted first", group=STORAGE, ge=2)
     obs_dim: int = setting(41, "observation width; other widths are rejected", group=STORAGE, ge=1)
     act_dim: int = setting(18, "action width; other widths are rejected", group=STORAGE, ge=1)
@@ -81,7 +85,7 @@ def serve(s: ReplaySettings) -> int:
         raise StartupFailure(f"--capacity {s.capacity} needs {needed / 2**30:.1f} GiB of memory; "
                              f"{available / 2**30:.1f} GiB is available")
     server = ServerConfig(s.run, s.shard, s.num_shards, s.snapshot_dir, s.snapshot_interval, not s.no_restore,
-                          s.stats_interval)
+                          s.stats_interval, max_actors=s.max_actors)
     limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer)
     return main(server, storage, limiter, s.zenoh_session_config())
 

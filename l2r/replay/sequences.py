@@ -9,7 +9,9 @@ Missing numbers are kept as runs ``[start, stop)``, so a jump of any size costs 
 what one actor can make the shard remember is bounded: numbers more than ``MAX_MISSING_SPAN``
 below its highest, and the oldest runs beyond ``MAX_MISSING_RUNS``, are given up (a late
 chunk with such a number is then dropped like a duplicate). Both bounds are far beyond what an
-actor's resend buffer holds, so no chunk an actor can still resend is given up.
+actor's resend buffer holds, so no chunk an actor can still resend is given up. How many actors
+a shard tracks is bounded too: a chunk of a new actor id beyond ``max_actors`` is rejected
+(``too_many_actors``), so a peer inventing ids cannot grow the shard's records without end.
 
 ``acks`` says, per actor, what is stored of its current epoch, so the actor can resend the rest.
 """
@@ -20,6 +22,7 @@ import logging
 from bisect import bisect_right
 from dataclasses import dataclass, field
 
+from l2r.protocol import ProtocolError
 from l2r.protocol.limits import COUNT, ID
 
 log = logging.getLogger("l2r.replay")
@@ -27,6 +30,7 @@ log = logging.getLogger("l2r.replay")
 MAX_MISSING_SPAN = 2**20  # sequence numbers below an actor's highest that the shard still waits for
 MAX_MISSING_RUNS = 16_384  # runs of missing numbers remembered per actor
 MAX_ACK_MISSING = 4096  # missing sequence numbers per actor in one ack
+MAX_ACTORS = 4096  # actor ids one shard tracks by default
 
 
 class MissingRuns:
@@ -123,15 +127,20 @@ class ActorRecord:
 
 
 class SequenceTracker:
-    def __init__(self) -> None:
+    def __init__(self, max_actors: int = MAX_ACTORS) -> None:
         self.actors: dict[int, ActorRecord] = {}
+        self.max_actors = max_actors
         self.restarts = 0
         self.received = 0  # chunks seen, duplicates included: an ack is due when this moves
 
     def accept(self, actor_id: int, epoch: int, seq: int) -> bool:
-        """True if chunk ``seq`` of this actor is new; False for a duplicate or a superseded epoch."""
-        self.received += 1
+        """True if chunk ``seq`` of this actor is new; False for a duplicate or a superseded epoch.
+        Raises ProtocolError (``too_many_actors``) for a new actor id once ``max_actors`` are tracked."""
         record = self.actors.get(actor_id)
+        if record is None and len(self.actors) >= self.max_actors:
+            raise ProtocolError(f"experience: actor {actor_id} would be one more than the {self.max_actors} actor "
+                                f"ids this shard tracks (--max-actors)", "too_many_actors")
+        self.received += 1
         if record is None or epoch > record.epoch:
             if record is not None:
                 self.restarts += 1

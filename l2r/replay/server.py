@@ -29,7 +29,7 @@ from l2r.protocol import (
 )
 from l2r.replay import snapshot
 from l2r.replay.rate_limiter import RateLimiter
-from l2r.replay.sequences import SequenceTracker
+from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
 from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig
 from l2r.replay.wal import WriteAheadLog
 
@@ -62,6 +62,8 @@ class ServerConfig:
     """Seconds between acks to the actors (sent only when experience arrived since the last)."""
     write_ahead_log: bool = True
     """With a snapshot_dir: log every chunk stored and fsync it before acknowledging it."""
+    max_actors: int = MAX_ACTORS
+    """Actor ids the shard keeps sequence records of; chunks of further ids are rejected."""
 
 
 class ReplayServer:
@@ -74,7 +76,7 @@ class ReplayServer:
         self.keys = Keys(config.run)
         self.storage = storage
         self.limiter = limiter
-        self.sequences = SequenceTracker()
+        self.sequences = SequenceTracker(config.max_actors)
         self.rejections = Rejections(log)
         self.lock = threading.Lock()
         self.learner_version = -1
@@ -96,10 +98,9 @@ class ReplayServer:
             if key.rsplit("/", 1)[-1] != str(chunk.actor_id):
                 raise ProtocolError(f"experience: actor_id {chunk.actor_id} in the payload, but the key says "
                                     f"{key.rsplit('/', 1)[-1]!r}", "actor_id_mismatch")
+            self._store(chunk, payload)
         except ProtocolError as e:
             self.rejections.add(e, key)
-            return
-        self._store(chunk, payload)
 
     def _check(self, payload: bytes) -> ExperienceChunk:
         chunk = decode(payload, ExperienceChunk)
@@ -107,7 +108,8 @@ class ReplayServer:
         return chunk
 
     def _store(self, chunk: ExperienceChunk, payload: bytes | None) -> None:
-        """Store a new chunk and log its ``payload`` (None: it comes from the log)."""
+        """Store a new chunk and log its ``payload`` (None: it comes from the log); raises
+        ProtocolError for a chunk of one actor too many."""
         with self.lock:
             if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
                 return
@@ -128,10 +130,10 @@ class ReplayServer:
         for payload in self.wal.records(first_segment):
             try:
                 chunk = self._check(payload)
-            except ProtocolError as e:  # written by a server with other widths: not ours to store
+                self._store(chunk, None)
+            except ProtocolError as e:  # written by a server with other widths or more --max-actors: not ours to store
                 self.rejections.add(e, "write-ahead log")
                 continue
-            self._store(chunk, None)
             chunks += 1
         return chunks, self.limiter.inserted - inserted
 

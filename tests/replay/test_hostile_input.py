@@ -99,6 +99,22 @@ def test_what_was_quietly_accepted_is_rejected_with_its_reason(start_replay, con
         assert f"({reason}: 1 so far" in log, reason
 
 
+def test_chunks_of_more_actor_ids_than_max_actors_are_rejected(start_replay, connect, ask_stats, run_name):
+    replay = start_replay("--max-actors", "3")
+    session = connect(replay)
+    keys = Keys(run_name)
+    for actor in range(1, 7):  # a peer inventing actor ids: from the fourth on, each is one too many
+        session.put(keys.experience(actor), encode(make_chunk(actor_id=actor, steps=5)), **EXPERIENCE_QOS.put())
+    # until each of the six chunks of 5 transitions is stored or rejected
+    stats = wait_for(lambda: (v := ask_stats(session)) and v["size"] + 5 * v["rejected"] == 30 and v)
+    assert (stats["size"], stats["rejected"], stats.get("rejected.too_many_actors")) == (15, 3, 3), stats
+    assert [name for name in stats if name.endswith(".transitions")] == [f"actor.{a}.transitions" for a in (1, 2, 3)]
+    assert "(too_many_actors: 1 so far" in replay.log()
+    # the actors it tracks go on
+    session.put(keys.experience(2), encode(make_chunk(actor_id=2, seq=1, steps=5)), **EXPERIENCE_QOS.put())
+    assert wait_for(lambda: (values := ask_stats(session)) and values["size"] == 20), ask_stats(session)
+
+
 def sample(session: zenoh.Session, keys: Keys, **fields) -> list:
     raw = msgpack.unpackb(encode(SampleRequest(batch_size=4)), raw=False) | fields
     return list(session.get(keys.sample(0), payload=msgpack.packb(raw), timeout=10,
