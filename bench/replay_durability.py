@@ -63,7 +63,7 @@ def shard_command(endpoint: str, run: str, directory: Path, capacity: int, snaps
 
 
 def run_shard(spec: dict) -> int:
-    """The shard as ``l2r-replay`` runs it, with the write-ahead log on or off (no flag turns it off)."""
+    """The shard as ``l2r-replay`` runs it, with the write-ahead log on or off (as --no-wal turns it off)."""
     configure_logging()
     config = ServerConfig(run=spec["run"], snapshot_dir=Path(spec["directory"]),
                           snapshot_interval=spec["snapshot_interval"], stats_interval=3600,

@@ -40,6 +40,8 @@ class ReplaySettings(DaemonSettings):
     snapshot_interval: float = setting(120.0, "seconds between snapshots = the most experience a crash can lose",
                                        group=PERSISTENCE, gt=0)
     no_restore: bool = setting(False, "do not load the snapshot at start", group=PERSISTENCE)
+    no_wal: bool = setting(False, "write no write-ahead log, for speed over durability: acks then mean stored in "
+                           "memory, and a crash loses what came since the last snapshot", group=PERSISTENCE)
     stats_interval: float = setting(10.0, "seconds between stats reports", group=PERSISTENCE, gt=0)
 
     def check(self) -> None:
@@ -85,7 +87,7 @@ def serve(s: ReplaySettings) -> int:
         raise StartupFailure(f"--capacity {s.capacity} needs {needed / 2**30:.1f} GiB of memory; "
                              f"{available / 2**30:.1f} GiB is available")
     server = ServerConfig(s.run, s.shard, s.num_shards, s.snapshot_dir, s.snapshot_interval, not s.no_restore,
-                          s.stats_interval, max_actors=s.max_actors)
+                          s.stats_interval, write_ahead_log=not s.no_wal, max_actors=s.max_actors)
     limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer)
     return main(server, storage, limiter, s.zenoh_session_config())
 

@@ -4,8 +4,8 @@ One shard of a run: it subscribes to ``experience/<shard>/*``, answers
 ``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, tells its actors
 what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats and
 answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
-joins and leaves. With a snapshot directory, every chunk stored goes to a write-ahead log that
-is fsynced before an ack names it, so what is acknowledged survives a crash.
+joins and leaves. With a snapshot directory (and without --no-wal), every chunk stored goes to a
+write-ahead log that is fsynced before an ack names it, so what is acknowledged survives a crash.
 Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
 """
 
@@ -122,12 +122,12 @@ class ReplayServer:
                 except OSError as e:
                     self._wal_failed(e)
 
-    def replay_log(self, first_segment: int) -> tuple[int, int]:
-        """Store the chunks of the write-ahead log's segments from ``first_segment`` on (at start,
-        after the snapshot); return (chunks, transitions) stored. Chunks the snapshot holds are
-        dropped as duplicates."""
+    def replay_log(self, wal: WriteAheadLog, first_segment: int) -> tuple[int, int]:
+        """Store the chunks of ``wal``'s segments from ``first_segment`` on (at start, after the
+        snapshot); return (chunks, transitions) stored. Chunks the snapshot holds are dropped as
+        duplicates."""
         chunks, inserted = 0, self.limiter.inserted
-        for payload in self.wal.records(first_segment):
+        for payload in wal.records(first_segment):
             try:
                 chunk = self._check(payload)
                 self._store(chunk, None)
@@ -366,8 +366,9 @@ def _save(server: ReplayServer, path: Path) -> None:
              int(arrays["counters"][2]), size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
 
 
-def _restore(server: ReplayServer, path: Path) -> bool:
-    """Load the snapshot and replay the write-ahead log after it; False if the snapshot does not fit."""
+def _restore(server: ReplayServer, path: Path, log_on_disk: WriteAheadLog) -> bool:
+    """Load the snapshot and replay the write-ahead log after it, even one that an earlier session
+    left to a shard that writes none; False if the snapshot does not fit."""
     loaded = snapshot.read(path)
     first_segment = 0
     if loaded:
@@ -378,12 +379,12 @@ def _restore(server: ReplayServer, path: Path) -> bool:
             return False
         first_segment = loaded[1].get("wal_segment", 0)
         log.info("restored %d transitions from %s", server.storage.live, path)
+    start = time.perf_counter()
+    chunks, transitions = server.replay_log(log_on_disk, first_segment)
+    if chunks:
+        log.info("replayed %d chunks (%d transitions new) from the write-ahead log in %.2f s",
+                 chunks, transitions, time.perf_counter() - start)
     if server.wal is not None:
-        start = time.perf_counter()
-        chunks, transitions = server.replay_log(first_segment)
-        if chunks:
-            log.info("replayed %d chunks (%d transitions new) from the write-ahead log in %.2f s",
-                     chunks, transitions, time.perf_counter() - start)
         server.wal.start(after=first_segment)
     return True
 
@@ -398,17 +399,20 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
 
     storage = Storage(storage_config)
     path = snapshot.snapshot_path(config.snapshot_dir, config.shard) if config.snapshot_dir else None
-    wal = WriteAheadLog(config.snapshot_dir, config.shard) if path and config.write_ahead_log else None
+    # Read even when this shard writes no log: an earlier session's holds chunks it acknowledged as durable.
+    log_on_disk = WriteAheadLog(config.snapshot_dir, config.shard) if path else None
+    wal = log_on_disk if config.write_ahead_log else None
     server = ReplayServer(config, storage, limiter, wal)
     log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/transition)",
              config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
              storage.nbytes / storage.capacity)
     if path and config.restore:
-        if not _restore(server, path):
+        if not _restore(server, path, log_on_disk):
             return 2
-    elif wal is not None:
-        wal.delete_before(math.inf)  # the log of a state not restored
-        wal.start(after=0)
+    elif log_on_disk is not None:
+        log_on_disk.delete_before(math.inf)  # the log of a state not restored
+        if wal is not None:
+            wal.start(after=0)
     if path:
         log.info("snapshots every %.0f s to %s; %s", config.snapshot_interval, path,
                  "acks name only chunks fsynced to the write-ahead log" if wal else

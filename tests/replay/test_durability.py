@@ -1,5 +1,6 @@
 """An ack means on disk: a real l2r-replay killed with -9 at any moment comes back with every
-chunk it acknowledged, from its snapshot and its write-ahead log."""
+chunk it acknowledged, from its snapshot and its write-ahead log. With --no-wal it writes no
+log, but still replays one an earlier session left."""
 
 from __future__ import annotations
 
@@ -70,3 +71,34 @@ def test_a_record_cut_short_by_the_crash_ends_the_log(start_replay, connect, ask
     session = connect(again)
     assert ask_stats(session)["size"] == 50
     assert "bytes after the last whole record ignored" in again.log()
+
+
+def test_no_wal_writes_no_log(start_replay, connect, acks_of, run_name, tmp_path):
+    snap = tmp_path / "snap"
+    replay = start_replay("--snapshot-dir", str(snap), "--snapshot-interval", "0.3", "--no-wal")
+    session = connect(replay)
+    send(session, run_name, range(5))
+    acks_of(session).wait(all_stored_up_to(4))
+    assert wait_for(lambda: "snapshot: 50 transitions" in replay.log()), replay.log()
+    assert replay.stop() == 0
+    assert [path.name for path in snap.iterdir()] == ["replay-shard0.npz"]
+
+
+def test_no_wal_still_replays_the_log_an_earlier_session_left(start_replay, connect, ask_stats, acks_of, run_name,
+                                                               tmp_path):
+    snap = tmp_path / "snap"
+    args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
+    replay = start_replay(*args)
+    session = connect(replay)
+    send(session, run_name, range(5))
+    acks_of(session).wait(all_stored_up_to(4))
+    replay.proc.kill()  # only the log holds what was acknowledged
+    replay.proc.wait()
+    logged = {path: path.stat().st_size for path in snap.glob("replay-shard0.wal.*")}
+
+    again = start_replay(*args, "--no-wal", endpoint=replay.endpoint)
+    session = connect(again)
+    assert ask_stats(session)["size"] == 50, again.log()[-3000:]
+    send(session, run_name, range(5, 10))
+    acks_of(session).wait(all_stored_up_to(9))
+    assert {path: path.stat().st_size for path in snap.glob("replay-shard0.wal.*")} == logged  # nor adds to it
