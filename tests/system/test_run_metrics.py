@@ -19,11 +19,14 @@ def test_episodes_are_kept_apart_by_the_simulator_their_actor_steps(tmp_path):
             zenoh.open(session_config(connect=[endpoint])) as sender:
         metrics = RunMetrics(listener, keys, tmp_path, simulators={0: PORT, 1: PORT, 2: OPENSIM})
         try:
+            publishers = {i: sender.declare_publisher(keys.episodes(i)) for i in range(3)}
+            # A put before the sender has learnt of the listener's subscriber is dropped.
+            assert wait_for(lambda: all(p.matching_status.matching for p in publishers.values()), 10)
             for actor_id, distance, evaluation in ((0, 0.5, False), (1, 1.0, True), (2, 3.0, True), (2, 5.0, True)):
                 episode = EpisodeSummary(actor_id=actor_id, env_id=0, episode_return=distance, distance=distance,
                                          length=100, policy_version=1, difficulty=0, seed=0, evaluation=evaluation)
-                sender.put(keys.episodes(actor_id), encode(episode))
-            wait_for(lambda: metrics.episodes == 4, 10)
+                publishers[actor_id].put(encode(episode))
+            assert wait_for(lambda: metrics.episodes == 4, 10)
             figures = metrics.record_status()
         finally:
             metrics.close()
