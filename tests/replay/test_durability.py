@@ -26,6 +26,18 @@ def all_stored_up_to(highest: int, actor_id: int = 2, epoch: int = 1):
     return check
 
 
+def killed_after_acks(start_replay, connect, acks_of, run: str, args, seqs, **start):
+    """A replay server started with `args` that acknowledged the chunks `seqs` and was then killed
+    with -9 (after its last snapshot, only its write-ahead log holds them)."""
+    replay = start_replay(*args, **start)
+    session = connect(replay)
+    send(session, run, seqs)
+    acks_of(session).wait(all_stored_up_to(seqs[-1]))
+    replay.proc.kill()
+    replay.proc.wait()
+    return replay
+
+
 def test_what_was_acknowledged_survives_kill_9_between_snapshots(start_replay, connect, ask_stats, acks_of,
                                                                  run_name, tmp_path):
     snap = tmp_path / "snap"
@@ -38,12 +50,8 @@ def test_what_was_acknowledged_survives_kill_9_between_snapshots(start_replay, c
     assert replay.stop() == 0
 
     args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
-    replay = start_replay(*args, endpoint=replay.endpoint)
-    session = connect(replay)
-    send(session, run_name, range(20, 50))  # after the last snapshot: only the log has these
-    acks_of(session).wait(all_stored_up_to(49))
-    replay.proc.kill()
-    replay.proc.wait()
+    # After the last snapshot: only the log has these.
+    replay = killed_after_acks(start_replay, connect, acks_of, run_name, args, range(20, 50), endpoint=replay.endpoint)
 
     again = start_replay(*args, endpoint=replay.endpoint)
     session = connect(again)
@@ -57,12 +65,7 @@ def test_what_was_acknowledged_survives_kill_9_between_snapshots(start_replay, c
 def test_a_record_cut_short_by_the_crash_ends_the_log(start_replay, connect, ask_stats, acks_of, run_name, tmp_path):
     snap = tmp_path / "snap"
     args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
-    replay = start_replay(*args)
-    session = connect(replay)
-    send(session, run_name, range(5))
-    acks_of(session).wait(all_stored_up_to(4))
-    replay.proc.kill()
-    replay.proc.wait()
+    replay = killed_after_acks(start_replay, connect, acks_of, run_name, args, range(5))
     segment = max(snap.glob("replay-shard0.wal.*"), key=lambda p: int(p.suffix[1:]))
     with open(segment, "ab") as f:
         f.write(b"\x00\x10\x00\x00half a header and no payload")
@@ -88,12 +91,7 @@ def test_no_wal_still_replays_the_log_an_earlier_session_left(start_replay, conn
                                                                tmp_path):
     snap = tmp_path / "snap"
     args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
-    replay = start_replay(*args)
-    session = connect(replay)
-    send(session, run_name, range(5))
-    acks_of(session).wait(all_stored_up_to(4))
-    replay.proc.kill()  # only the log holds what was acknowledged
-    replay.proc.wait()
+    replay = killed_after_acks(start_replay, connect, acks_of, run_name, args, range(5))
     logged = {path: path.stat().st_size for path in snap.glob("replay-shard0.wal.*")}
 
     again = start_replay(*args, "--no-wal", endpoint=replay.endpoint)
