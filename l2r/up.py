@@ -27,7 +27,6 @@ import argparse
 import json
 import logging
 import os
-import re
 import signal
 import socket
 import sys
@@ -45,6 +44,7 @@ from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
 from l2r.learner.checkpoint import checkpoint_path
+from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
 from l2r.run_metrics import RunCounters, RunMetrics
@@ -57,6 +57,13 @@ log = logging.getLogger("l2r.up")
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
 # the --config file, whose values launch.json keeps as the flags they set.
 NOT_REUSED = {"resume", "name", "runs_dir", "config"}
+
+# The learner's on/off options that the recipe turns on; up passes each one that is on.
+LEARNER_OPTIONS = {
+    "relative-x": "networks see world x coordinates as distances from the pelvis",
+    "normalize-obs": "networks see observations standardised by running statistics",
+    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation)",
+}
 
 
 def loopback(port: int) -> str:
@@ -140,9 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     # own defaults are the 2017 reference solution's, sized for a GPU.
     le.add_argument("--hidden", default="256,256", help="hidden layer widths of policy and critics, comma-separated")
     le.add_argument("--update-repeat", type=int, default=1, help="gradient steps per sampled batch")
-    for flag, text in (("relative-x", "networks see world x coordinates as distances from the pelvis"),
-                       ("normalize-obs", "networks see observations standardised by running statistics"),
-                       ("mirror", "the learner swaps the legs of a random half of each batch (symmetry augmentation)")):
+    for flag, text in LEARNER_OPTIONS.items():
         le.add_argument(f"--{flag}", action=argparse.BooleanOptionalAction, default=True, help=text)
     le.add_argument("--min-replay", type=int, default=10_000, help="transitions stored before the learner starts")
     le.add_argument("--samples-per-insert", type=float, default=0.0,
@@ -281,7 +286,7 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error("--actors and --envs-per-actor must be at least 1")
     if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
-    if not re.fullmatch(r"[1-9]\d*(,[1-9]\d*)*", args.hidden) or args.update_repeat < 1:
+    if not HIDDEN_WIDTHS.fullmatch(args.hidden) or args.update_repeat < 1:
         parser.error(f"--hidden takes widths such as 256,256 (got {args.hidden!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
@@ -339,8 +344,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
                                      "--device", args.device, "--batch-size", str(args.batch_size),
                                      "--hidden", args.hidden, "--update-repeat", str(args.update_repeat),
-                                     *[f"--{flag}" for flag in ("relative-x", "normalize-obs", "mirror")
-                                       if getattr(args, flag.replace("-", "_"))],
+                                     *[f"--{flag}" for flag in LEARNER_OPTIONS if getattr(args, flag.replace("-", "_"))],
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(args.action_repeat),
                                      "--keep-checkpoints", str(args.keep_checkpoints),

@@ -9,7 +9,6 @@ import os
 # every parallel region waits for a descheduled spinner (measured: 3-4x fewer updates/s).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import re  # noqa: E402
 import sys  # noqa: E402
 from typing import Literal, Sequence  # noqa: E402
 
@@ -20,7 +19,7 @@ from l2r.config import (  # noqa: E402
 )
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
-from l2r.learner.sac import SACConfig  # noqa: E402
+from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
 
 SAC_DEFAULTS = SACConfig()
@@ -82,7 +81,7 @@ class LearnerSettings(DaemonSettings):
     @field_validator("hidden")
     @classmethod
     def _widths(cls, hidden: str) -> str:
-        if not re.fullmatch(r"[1-9]\d*(,[1-9]\d*)*", hidden):
+        if not HIDDEN_WIDTHS.fullmatch(hidden):
             raise ValueError("should be layer widths separated by commas, e.g. 512,512,512")
         return hidden
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 from dataclasses import asdict, dataclass, field
 from typing import Mapping
 
@@ -26,6 +27,9 @@ from torch.nn import functional as F
 
 from l2r.policy import ACTIVATIONS, Policy, check_spec, to_tanh_space
 from l2r.sim import layout
+
+# `hidden` as command lines write it: widths separated by commas, e.g. 256,256.
+HIDDEN_WIDTHS = re.compile(r"[1-9]\d*(,[1-9]\d*)*")
 
 
 @dataclass
