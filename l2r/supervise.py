@@ -88,6 +88,8 @@ class Child:
 
 
 PR_SET_PDEATHSIG = 1  # from <linux/prctl.h>
+# Looked up here, in the parent: loading a library between fork and exec can deadlock.
+_prctl = ctypes.CDLL(None, use_errno=True).prctl if sys.platform == "linux" else None
 
 
 def _before_exec(parent: int, nice: int) -> None:
@@ -95,8 +97,8 @@ def _before_exec(parent: int, nice: int) -> None:
     even by SIGKILL, so that no daemon outlives the job (the child runs in a session of its own)."""
     if nice:
         os.nice(nice)
-    if sys.platform == "linux":
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if _prctl is not None:
+        _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
         if os.getppid() != parent:  # the parent died before the request took effect
             os.kill(os.getpid(), signal.SIGTERM)
 
