@@ -1,7 +1,8 @@
 """The MuJoCo body's geometry from OpenSim's: the knee coupling and the muscle paths.
 
-The knee's coupled translation is a least-squares quartic of the .osim splines, so the converter
-reproduces its output exactly. The muscle paths need no fit: their sites are the .osim path
+The MJCF's knee coupling is a least-squares quartic of the .osim splines (MuJoCo's `polycoef`),
+so the converter reproduces its output exactly; the env replaces it with the splines themselves
+as it steps (`l2r.sim.knee`), and the quartic serves MuJoCo used on its own. The muscle paths need no fit: their sites are the .osim path
 points, and what a fixed site cannot do (conditional and moving points) `l2r.sim.paths` does.
 """
 
@@ -67,17 +68,6 @@ def knee_origin(osim: Osim, body: str) -> np.ndarray:
     """Where the knee's translation splines put the tibia at knee angle 0 (femur frame)."""
     joint = osim.bodies[body].joint
     return np.array([f(np.zeros(1))[0] for _, _, f in joint.translations])
-
-
-def coupled_translations(osim: Osim) -> dict:
-    """The knee translation as MuJoCo's quartic coupling makes it, for `body_frames`."""
-    out = {}
-    for name, body in osim.bodies.items():
-        if body.joint is not None and body.joint.kind == "CustomJoint":
-            coefs, origin = knee_coupling(osim, name), knee_origin(osim, name)
-            out[name] = lambda q, c=coefs, o=origin: o + np.stack(
-                [np.polyval(c[0][::-1], q), np.polyval(c[1][::-1], q), np.zeros_like(q)], axis=1)
-    return out
 
 
 def path_length(frames: dict, path: MusclePath) -> np.ndarray:

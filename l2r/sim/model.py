@@ -7,10 +7,14 @@ slide joints `knee_tx_*`/`knee_ty_*`. Keyframe "default" is the .osim default po
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import mujoco
 import numpy as np
+
+from l2r.sim.knee import KneeCoupling
+from l2r.sim.opensim import read_osim
 
 MODEL_PATH = Path(__file__).parent / "assets" / "runner.xml"
 OSIM_PATH = Path(__file__).parent / "assets" / "gait9dof18musc.osim"  # the OpenSim model it ports
@@ -46,18 +50,21 @@ def load_model(path: Path | str = MODEL_PATH) -> mujoco.MjModel:
 
 
 def set_pose(model: mujoco.MjModel, data: mujoco.MjData, pose: dict[str, float]) -> None:
-    """Set coordinates by name and move the knee slides to where their coupling puts them.
+    """Set coordinates by name and move the knee slides to where OpenSim's splines put them.
 
     Coordinates not named keep their current values; call `mujoco.mj_forward` afterwards.
     """
     for name, value in pose.items():
         data.qpos[model.joint(name).qposadr[0]] = value
-    for knee, slides in KNEE_SLIDES.items():
-        angle = data.qpos[model.joint(knee).qposadr[0]] - model.qpos0[model.joint(knee).qposadr[0]]
-        for slide in slides:
-            eq = model.equality(f"{slide}_coupling")
-            address = model.joint(slide).qposadr[0]
-            data.qpos[address] = model.qpos0[address] + np.polyval(eq.data[4::-1], angle)
+    coupling = _knee_coupling()
+    for k, (knee, slide) in enumerate(zip(coupling.knee_names, coupling.slide_names)):
+        address = model.joint(slide).qposadr[0]
+        data.qpos[address] = model.qpos0[address] + coupling.slide_position(k, data.qpos[model.joint(knee).qposadr[0]])
+
+
+@functools.cache
+def _knee_coupling() -> KneeCoupling:
+    return KneeCoupling(load_model(), read_osim(OSIM_PATH), KNEE_SLIDES)
 
 
 def reset_to_default(model: mujoco.MjModel, data: mujoco.MjData) -> None:

@@ -37,3 +37,5 @@ mj_step1 = types.ExternalFunction("mj_step1", _MODEL_DATA)
 mj_step2 = types.ExternalFunction("mj_step2", _MODEL_DATA)
 mj_forward = types.ExternalFunction("mj_forward", _MODEL_DATA)
 mj_transmission = types.ExternalFunction("mj_transmission", _MODEL_DATA)
+# mj_solveM(m, d, x, y, n): x = M^-1 y for n vectors (rows), with the factor of the last mj_step1
+mj_solveM = types.ExternalFunction("mj_solveM", types.void(types.voidptr, types.voidptr, types.voidptr, types.voidptr, types.intc))

@@ -13,6 +13,10 @@
   motion adds is supplied here: its share of the lengthening speed (`add_point_speeds`) and
   its work as a generalised force on the coordinate (`MovingPoints.torques`), as OpenSim's
   `GeometryPath` adds it. Both need `rates` first, at the state the points were placed in.
+  OpenSim takes that share from the splines' slope at the coordinate itself, not clamped: past
+  the range the point stands still, yet its speed share and generalised force go on as if it
+  moved (at 10 degrees of knee hyperextension they halve the knee torque of vasti and rectus
+  femoris). So do the rates here.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ MOVING_TORQUE = "_moving_points"  # suffix of the actuator on a coordinate that 
 # at 0.5 mrad spacing the knee splines' curvature leaves errors below 0.1 µm.
 TABLE_SPAN = (-3.0, 3.0)
 TABLE_STEP = 5e-4
+SLOPE_STEP = 1e-6  # rad, the central difference of the splines' slope
 
 
 def path_points(muscle: Muscle, tendon: str) -> list:
@@ -81,7 +86,7 @@ class MovingPoints:
 
     def __init__(self, model: mujoco.MjModel, osim: Osim, muscles: list[Muscle]):
         grid = np.arange(TABLE_SPAN[0], TABLE_SPAN[1] + TABLE_STEP / 2, TABLE_STEP)
-        sites, neighbours, tendons, coords, dofs, actuators, bodies, tables = [], [], [], [], [], [], [], []
+        sites, neighbours, tendons, coords, dofs, actuators, bodies, tables, slopes = [], [], [], [], [], [], [], [], []
         for m in muscles:
             for tendon in (m.name, m.name + OFF):
                 if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TENDON, tendon) < 0:
@@ -102,6 +107,9 @@ class MovingPoints:
                     bodies.append(model.site_bodyid[site])
                     q = np.clip(grid, *osim.coordinate(p.coordinate).range)
                     tables.append(np.stack([f(q) for f in p.moving], axis=1))
+                    # the slope at the coordinate unclamped (a SimmSpline's end slope past its knots)
+                    slopes.append(np.stack([(f(grid + SLOPE_STEP) - f(grid - SLOPE_STEP)) / (2 * SLOPE_STEP)
+                                            for f in p.moving], axis=1))
         self.site = np.array(sites, dtype=int)
         self.neighbours = np.array(neighbours, dtype=int).reshape(-1, 2)
         self.tendon = np.array(tendons, dtype=int)
@@ -109,7 +117,8 @@ class MovingPoints:
         self.dof = np.array(dofs, dtype=int)
         self.actuator = np.array(actuators, dtype=int)
         self.body = np.array(bodies, dtype=int)
-        self.table = np.array(tables).reshape(-1, len(grid), 3)
+        self.table = np.array(tables).reshape(-1, len(grid), 3)  # positions in the body
+        self.slope = np.array(slopes).reshape(-1, len(grid), 3)  # their d/dq, as OpenSim moves them
         self.torque_actuators = np.unique(self.actuator)
         self.rate = np.zeros(len(sites))  # d(path length)/d(coordinate) through each point's motion
 
@@ -120,7 +129,7 @@ class MovingPoints:
     def rates(self, data: mujoco.MjData) -> None:
         """How fast each path lengthens per unit of its coordinate through the point's motion
         alone; needs the kinematics of the state the points were placed in."""
-        point_rates(self.table, self.qpos, self.site, self.neighbours, self.body, data.qpos, data.site_xpos, data.xmat, self.rate)
+        point_rates(self.slope, self.qpos, self.site, self.neighbours, self.body, data.qpos, data.site_xpos, data.xmat, self.rate)
 
     def torques(self, tension: np.ndarray, ctrl: np.ndarray) -> None:
         """Set `ctrl` of the coordinates' actuators to the points' generalised force for the
@@ -146,14 +155,14 @@ def place_points(table, coord, site, qpos, site_pos):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def point_rates(table, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
+def point_rates(slope, coord, site, neighbours, body, qpos, site_xpos, xmat, rate):
     """`MovingPoints.rates` from its arrays."""
     local, world, v = np.empty(3), np.empty(3), np.empty(3)
     for k in range(site.shape[0]):
-        i, _ = _lookup(table[k], qpos[coord[k]])
+        i, t = _lookup(slope[k], qpos[coord[k]])
         # dP/dq in the body, then in the world
         for c in range(3):
-            local[c] = (table[k, i + 1, c] - table[k, i, c]) / TABLE_STEP
+            local[c] = slope[k, i, c] + t * (slope[k, i + 1, c] - slope[k, i, c])
         for r in range(3):
             world[r] = 0.0
             for c in range(3):

@@ -31,6 +31,7 @@ import numpy as np
 from l2r.sim import model as body
 from l2r.sim import thelen
 from l2r.sim.contact import contact_law, ground_forces
+from l2r.sim.knee import KneeCoupling, follow_splines, project
 from l2r.sim.ligaments import default_limits, engage, ligament_table
 from l2r.sim.mujoco_numba import mj_forward, mj_step1, mj_step2, mj_transmission
 from l2r.sim.opensim import Muscle, Osim
@@ -45,9 +46,9 @@ class Physics:
     """The muscles', feet's, path points' and ligaments' state for one MjModel and MjData, and
     the kernels that advance it with MuJoCo's.
 
-    The kernels take the arrays in six groups, tuples built once here: MuJoCo's arrays, the
-    muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`) and the
-    ligaments (`ligaments.LIGAMENTS`). The public arrays are updated in place; `params` is this
+    The kernels take the arrays in seven groups, tuples built once here: MuJoCo's arrays, the
+    muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`), the
+    ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public arrays are updated in place; `params` is this
     episode's muscle table, which the env may scale before `reset`.
     """
 
@@ -88,8 +89,8 @@ class Physics:
         )
         self._switches = (paths.on, paths.muscle, paths.qpos, paths.low, paths.high, paths.off_tendon, paths.off_actuator)
         self._moving = (
-            moving.table, moving.qpos, moving.site, moving.neighbours, moving.body, moving.tendon, moving.dof,
-            moving.actuator, moving.torque_actuators, moving.rate,
+            moving.table, moving.slope, moving.qpos, moving.site, moving.neighbours, moving.body, moving.tendon,
+            moving.dof, moving.actuator, moving.torque_actuators, moving.rate,
         )
         self._feet = (
             contact_law(osim).table(), m.geom_size[spheres, 0].copy(), spheres, sphere_body,
@@ -105,6 +106,8 @@ class Physics:
             np.zeros(len(joints)), np.zeros(len(joints)),  # spring forces and engaged dampings in effect
             self.ligament_force,
         )
+        coupling = KneeCoupling(m, osim, body.KNEE_SLIDES)
+        self._knees = (coupling.equality, coupling.knee, coupling.slide, coupling.breaks, coupling.cubics, m.eq_data)
 
     def reset(self) -> None:
         """From the pose MjData holds, at rest: ligaments and moving points for the pose, one
@@ -112,12 +115,13 @@ class Physics:
         fibres in equilibrium with their tendons."""
         self.excitation[:] = 0.0
         self.activation[:] = thelen.DEFAULT_ACTIVATION
-        _start(self._model, self._data, self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments)
+        _start(self._model, self._data, self._mujoco, self._muscles, self._switches, self._moving, self._feet,
+               self._ligaments, self._knees)
 
     def step(self, substeps: int) -> None:
         """Hold `excitation` (in [0, 1]) over `substeps` physics steps."""
         _advance(self._model, self._data, substeps, self.dt,
-                 self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments)
+                 self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments, self._knees)
 
     def drive(self) -> None:
         """The first part of a physics step alone: the actuators for the coming one."""
@@ -126,24 +130,26 @@ class Physics:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _advance(model, data, substeps, dt, mj, muscles, switches, moving, feet, ligaments):
+def _advance(model, data, substeps, dt, mj, muscles, switches, moving, feet, ligaments, knees):
     """`substeps` physics steps, then the state the env reports."""
     for _ in range(substeps):
         _drive(dt, mj, muscles, switches, moving, feet)
         mj_transmission(model, data)  # the contact sites moved: their actuators' moment arms
         mj_step2(model, data)
-        # The ligaments depend on positions alone: set after the integration moved the joints and
-        # before step1 computes the passive (damping) forces.
-        _place(mj, moving, ligaments)
+        equality, knee, slide, breaks, cubics, eq_data = knees
+        project(model, data, knee, slide, breaks, cubics, mj[0], mj[1])
+        # The ligaments and knee couplings depend on positions alone: set after the integration
+        # moved the joints and before step1 computes the passive forces and the constraints.
+        _place(mj, moving, ligaments, knees)
         mj_step1(model, data)
     _read_state(mj, muscles, switches, feet, ligaments)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _start(model, data, mj, muscles, switches, moving, feet, ligaments):
-    """`Physics.reset`'s forward pass; the ligaments come before it, so that the passive forces
-    include their damping."""
-    _place(mj, moving, ligaments)
+def _start(model, data, mj, muscles, switches, moving, feet, ligaments, knees):
+    """`Physics.reset`'s forward pass; the ligaments and knee couplings come before it, so that
+    the passive forces include their damping and the constraints follow the splines."""
+    _place(mj, moving, ligaments, knees)
     mj_forward(model, data)
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
     _select_lengths(mj, switches, tendons, length)
@@ -165,10 +171,10 @@ def _drive(dt, mj, muscles, switches, moving, feet):
     (qpos, qvel, ctrl, actuator_velocity, ten_length, ten_velocity, qfrc_applied, xpos, xmat, cvel,
      subtree_com, geom_xpos, site_xpos, site_pos, biasprm, dof_damping) = mj
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
-    table, coordinate, site, neighbours, body, tendon, dof, actuator, torque_actuators, rate = moving
+    table, slope, coordinate, site, neighbours, body, tendon, dof, actuator, torque_actuators, rate = moving
     law, radius, sphere, sphere_body, sphere_root, contact_site, x_actuator, y_actuator, point, local, ground, damping = feet
 
-    point_rates(table, coordinate, site, neighbours, body, qpos, site_xpos, xmat, rate)
+    point_rates(slope, coordinate, site, neighbours, body, qpos, site_xpos, xmat, rate)
     speed[:] = ten_velocity
     add_point_speeds(tendon, dof, rate, qvel, speed)
     _muscle_actuation(dt, params, activation, fiber, excitation, end_force, stiffness, tension, tendons,
@@ -181,19 +187,22 @@ def _drive(dt, mj, muscles, switches, moving, feet):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _place(mj, moving, ligaments):
-    """Ligaments and moving points for the joint positions: the ligaments' springs in
-    qfrc_applied and their damping in dof_damping (the body has no other joint damping), the
-    moving points' sites where their coordinates put them."""
+def _place(mj, moving, ligaments, knees):
+    """Ligaments, moving points and knee couplings for the joint positions: the ligaments'
+    springs in qfrc_applied and their damping in dof_damping (the body has no other joint
+    damping), the moving points' sites where their coordinates put them, each knee slide's
+    coupling the cubic of its spline's segment."""
     (qpos, qvel, ctrl, actuator_velocity, ten_length, ten_velocity, qfrc_applied, xpos, xmat, cvel,
      subtree_com, geom_xpos, site_xpos, site_pos, biasprm, dof_damping) = mj
-    table, coordinate, site, neighbours, body, tendon, dof, actuator, torque_actuators, rate = moving
+    table, slope, coordinate, site, neighbours, body, tendon, dof, actuator, torque_actuators, rate = moving
     limits, qpos_adr, dof_adr, springs, dampings, total = ligaments
     engage(limits, qpos, qpos_adr, springs, dampings)
     for i in range(dof_adr.shape[0]):
         qfrc_applied[dof_adr[i]] = springs[i]
         dof_damping[dof_adr[i]] = dampings[i]
     place_points(table, coordinate, site, qpos, site_pos)
+    equality, knee, slide, breaks, cubics, eq_data = knees
+    follow_splines(equality, knee, breaks, cubics, qpos, eq_data)
 
 
 @numba.njit(cache=True, error_model="numpy")
