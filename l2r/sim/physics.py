@@ -18,7 +18,7 @@ the final state without an extra mj_forward.
 The kernels compute with numpy's error model: a diverging state gives NaN forces, which MuJoCo
 catches and resets (the env ends the episode), rather than an exception inside the step.
 Numba's cache checks only the file a kernel is defined in: after editing a module whose kernels
-these call (thelen, contact, paths, ligaments), delete `__pycache__/physics.*.nb?` here, or the
+these call (thelen, contact, paths, ligaments, knee), delete `__pycache__/physics.*.nb?` here, or the
 cached step keeps the old code.
 """
 
@@ -48,8 +48,9 @@ class Physics:
 
     The kernels take the arrays in seven groups, tuples built once here: MuJoCo's arrays, the
     muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`), the
-    ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public arrays are updated in place; `params` is this
-    episode's muscle table, which the env may scale before `reset`.
+    ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public
+    arrays are updated in place; `params` is this episode's muscle table, which the env may scale
+    before `reset`.
     """
 
     def __init__(self, m: mujoco.MjModel, d: mujoco.MjData, osim: Osim, muscles: list[Muscle]):
@@ -136,8 +137,10 @@ def _advance(model, data, substeps, dt, mj, muscles, switches, moving, feet, lig
         _drive(dt, mj, muscles, switches, moving, feet)
         mj_transmission(model, data)  # the contact sites moved: their actuators' moment arms
         mj_step2(model, data)
+        # the knee slides back onto their splines before anything reads the new positions
         equality, knee, slide, breaks, cubics, eq_data = knees
-        project(model, data, knee, slide, breaks, cubics, mj[0], mj[1])
+        qpos, qvel = mj[0], mj[1]
+        project(model, data, knee, slide, breaks, cubics, qpos, qvel)
         # The ligaments and knee couplings depend on positions alone: set after the integration
         # moved the joints and before step1 computes the passive forces and the constraints.
         _place(mj, moving, ligaments, knees)
