@@ -12,6 +12,7 @@ from l2r.sim import model as body
 from l2r.sim.model import MUSCLES, OSIM_PATH
 from l2r.sim.opensim import read_osim
 from l2r.sim.paths import MovingPoints, PathSwitches
+from tests.sim.knee_torques import knee_torque
 from l2r.sim.validate import cli
 
 osim = pytest.importorskip("opensim")
@@ -176,34 +177,13 @@ def test_knee_torques_of_the_quadriceps_are_opensims(knee):
     moment arm. Past the knee's 10 degrees of hyperextension OpenSim holds the moving points
     still but goes on adding their work at the splines' slope, which halves these torques."""
     m = body.load_model()
-    d = mujoco.MjData(m)
-    ordered = [{mu.name: mu for mu in read_osim(OSIM_PATH).muscles}[n] for n in MUSCLES]
-    moving, switches = MovingPoints(m, read_osim(OSIM_PATH), ordered), PathSwitches(m, ordered)
+    osim_file = read_osim(OSIM_PATH)
+    ordered = [{mu.name: mu for mu in osim_file.muscles}[n] for n in MUSCLES]
+    moving, switches = MovingPoints(m, osim_file, ordered), PathSwitches(m, ordered)
     pose = {"knee_angle_r": knee, "hip_flexion_r": 0.3}
     model, state = opensim_pose(pose)
-    step = 1e-6
-
-    def length(tendon, q, place):
-        body.reset_to_default(m, d)
-        body.set_pose(m, d, {**pose, "knee_angle_r": q})
-        if place:
-            moving.place(m, d.qpos)
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_tendon(m, d)
-        return d.ten_length[tendon]
-
     for name in ("vasti_r", "rect_fem_r"):
-        body.set_pose(m, d, pose)
-        tendon = switches.tendons(d.qpos)[MUSCLES.index(name)]
-        length(tendon, knee, place=True)  # the sites where the knee puts them, then held
-        fixed = (length(tendon, knee + step, False) - length(tendon, knee - step, False)) / (2 * step)
-        length(tendon, knee, place=True)
-        mujoco.mj_forward(m, d)
-        tension, ctrl = np.zeros(m.ntendon), np.zeros(m.nu)
-        tension[tendon] = 1000.0
-        moving.rates(d)
-        moving.torques(tension, ctrl)
-        ours = -1000.0 * fixed + ctrl[m.actuator("knee_angle_r_moving_points").id]
+        ours, _ = knee_torque(m, moving, switches, MUSCLES.index(name), pose)
         theirs = 1000.0 * model.getMuscles().get(name).computeMomentArm(state, model.getCoordinateSet().get("knee_angle_r"))
         assert ours == pytest.approx(theirs, abs=0.05), name  # N·m; 50 µm of moment arm
 

@@ -8,6 +8,7 @@ import pytest
 
 from l2r.sim import convert, model as body, opensim, thelen
 from l2r.sim.paths import OFF, MovingPoints, PathSwitches
+from tests.sim.knee_torques import STEP, knee_torque
 
 REFERENCE = json.loads((convert.ASSETS / "opensim_reference.json").read_text())
 
@@ -209,35 +210,12 @@ def test_moving_points_add_the_work_of_their_motion(m, osim, knee):
     """OpenSim's generalised force of a muscle with a moving point is -F dL/dq along the knee;
     MuJoCo's tendon moment arm holds the site fixed, and the knee's moving-point actuator adds
     the rest. Checked for vasti and rectus femoris against OpenSim's lengths."""
-    d = mujoco.MjData(m)
     moving, switches = MovingPoints(m, osim, osim.muscles), PathSwitches(m, osim.muscles)
-    step = 1e-6
-
-    def mujoco_length(tendon, q, place):
-        body.reset_to_default(m, d)
-        body.set_pose(m, d, {"knee_angle_r": q, "hip_flexion_r": 0.3})
-        if place:
-            moving.place(m, d.qpos)
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_tendon(m, d)
-        return d.ten_length[tendon]
-
     for name in ("vasti_r", "rect_fem_r"):
         index, muscle = next((i, mu) for i, mu in enumerate(osim.muscles) if mu.name == name)
-        body.set_pose(m, d, {"knee_angle_r": knee})
-        tendon = switches.tendons(d.qpos)[index]  # the path the knee selects
-        lengths = [opensim.opensim_length(osim, muscle, {"knee_angle_r": np.array([knee + s]), "hip_flexion_r": np.array([0.3])})[0] for s in (step, -step)]
-        dl_dq = (lengths[0] - lengths[1]) / (2 * step)
-        mujoco_length(tendon, knee, place=True)  # the sites where the knee puts them, then held
-        fixed = (mujoco_length(tendon, knee + step, False) - mujoco_length(tendon, knee - step, False)) / (2 * step)
-        mujoco_length(tendon, knee, place=True)
-        mujoco.mj_forward(m, d)
-        tension = np.zeros(m.ntendon)
-        tension[tendon] = 1000.0
-        ctrl = np.zeros(m.nu)
-        moving.rates(d)
-        moving.torques(tension, ctrl)
-        generalised = -1000.0 * fixed + ctrl[m.actuator("knee_angle_r_moving_points").id]
-        assert abs(ctrl[m.actuator("knee_angle_r_moving_points").id]) > 1.0  # the term matters
-        # within half a millimetre of moment arm: the knee coupling's fit to the splines
+        lengths = [opensim.opensim_length(osim, muscle, {"knee_angle_r": np.array([knee + s]), "hip_flexion_r": np.array([0.3])})[0] for s in (STEP, -STEP)]
+        dl_dq = (lengths[0] - lengths[1]) / (2 * STEP)
+        generalised, share = knee_torque(m, moving, switches, index, {"knee_angle_r": knee, "hip_flexion_r": 0.3})
+        assert abs(share) > 1.0  # the term matters
+        # within half a millimetre of moment arm
         assert generalised == pytest.approx(-1000.0 * dl_dq, abs=0.5), name
