@@ -10,7 +10,9 @@ Integration, per physics step of `dt` with the excitation held and L moving at i
 speed:
 - activation is advanced exactly (the ODE separates for a constant excitation);
 - fibre length by backward Euler on `substeps` sub-steps: its time constant drops below a
-  millisecond at low activation, where any explicit step of MuJoCo's size diverges;
+  millisecond at low activation, where any explicit step of MuJoCo's size diverges. The Newton
+  solve takes the speed curve's analytic slope (half the curve evaluations of a difference
+  quotient);
 - `stiffness` returns dF/dL of the step's end force, so that the env can hand MuJoCo's implicit
   integrator the tendon's stiffness as damping over the step (a stiff Achilles tendon at full
   activation would otherwise ring the light foot at the edge of the step's stability).
@@ -67,13 +69,15 @@ def muscle_parameters(muscles: list[Muscle]) -> np.ndarray:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _tendon_force(strain: float, p: np.ndarray) -> float:
-    """Normalised tendon force: exponential toe, then linear."""
+def _tendon_curve(strain: float, p: np.ndarray) -> tuple[float, float]:
+    """Normalised tendon force (exponential toe, then linear) and its slope in the strain."""
     if strain > p[TOE_STRAIN]:
-        return p[TENDON_SLOPE] * (strain - p[TOE_STRAIN]) + TOE_FORCE
+        return p[TENDON_SLOPE] * (strain - p[TOE_STRAIN]) + TOE_FORCE, p[TENDON_SLOPE]
     if strain > 0.0:
-        return TOE_FORCE / (math.exp(TOE_SHAPE) - 1.0) * (math.exp(TOE_SHAPE * strain / p[TOE_STRAIN]) - 1.0)
-    return 0.0
+        scale = TOE_FORCE / (math.exp(TOE_SHAPE) - 1.0)
+        grown = math.exp(TOE_SHAPE * strain / p[TOE_STRAIN])
+        return scale * (grown - 1.0), scale * grown * TOE_SHAPE / p[TOE_STRAIN]
+    return 0.0, 0.0
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -83,11 +87,21 @@ def _cos_pennation(lce: float, p: np.ndarray) -> float:
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _tendon(lce: float, length: float, p: np.ndarray) -> tuple[float, float, float]:
+    """Tendon force (N) of a fibre of length `lce` in a muscle-tendon unit of length `length`,
+    and its partial derivatives in `length` and in `lce` (N/m; d(lce cos)/dlce = 1 / cos)."""
+    clamped = lce <= p[MIN_FIBER_LENGTH]
+    lce = max(lce, p[MIN_FIBER_LENGTH])
+    cos = _cos_pennation(lce, p)
+    force, slope = _tendon_curve((length - lce * cos) / p[SLACK_LENGTH] - 1.0, p)
+    dforce_dlength = p[MAX_FORCE] * slope / p[SLACK_LENGTH]
+    return p[MAX_FORCE] * force, dforce_dlength, 0.0 if clamped else -dforce_dlength / cos
+
+
+@numba.njit(cache=True, error_model="numpy")
 def tendon_force(lce: float, length: float, p: np.ndarray) -> float:
     """Tendon force (N) of a fibre of length `lce` in a muscle-tendon unit of length `length`."""
-    lce = max(lce, p[MIN_FIBER_LENGTH])
-    tendon = length - lce * _cos_pennation(lce, p)
-    return p[MAX_FORCE] * _tendon_force(tendon / p[SLACK_LENGTH] - 1.0, p)
+    return _tendon(lce, length, p)[0]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -96,48 +110,66 @@ def _active_length(ln: float) -> float:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _passive_length(ln: float, p: np.ndarray) -> float:
+def _passive_curve(ln: float, p: np.ndarray) -> tuple[float, float]:
+    """Normalised passive fibre force and its slope in the normalised length."""
     if ln <= 1.0:
-        return 0.0
-    return (math.exp(p[PASSIVE_SHAPE] * (ln - 1.0) / p[MUSCLE_STRAIN]) - 1.0) / p[PASSIVE_SCALE]
+        return 0.0, 0.0
+    rate = p[PASSIVE_SHAPE] / p[MUSCLE_STRAIN]
+    grown = math.exp(rate * (ln - 1.0))
+    return (grown - 1.0) / p[PASSIVE_SCALE], rate * grown / p[PASSIVE_SCALE]
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _normalised_speed(a: float, fal: float, force: float) -> float:
+def _normalised_speed(a: float, fal: float, force: float) -> tuple[float, float, float]:
     """Fibre speed in units of max speed for a normalised force a·fal·fv (Thelen 2003 eqs. 6-7,
-    linear beyond the concentric asymptote and near the eccentric one, as OpenSim extends it)."""
+    linear beyond the concentric asymptote and near the eccentric one, as OpenSim extends it),
+    and its partial derivatives in the force and in fal."""
     afl = a * fal
     asymptote = afl * FLEN
     scale = 0.25 + 0.75 * a
+    c = (2.0 + 2.0 / AF) / (FLEN - 1.0)
     if 0.0 < force < FV_EXTRAPOLATION * asymptote:
         if force <= afl:
-            b = afl + force / AF
+            b, db_df, db_dafl = afl + force / AF, 1.0 / AF, 1.0
         else:
-            b = (2.0 + 2.0 / AF) * (asymptote - force) / (FLEN - 1.0)
-        return scale * (force - afl) / b
+            b, db_df, db_dafl = c * (asymptote - force), -c, c * FLEN
+        v = scale * (force - afl) / b
+        return v, (scale - v * db_df) / b, (-scale - v * db_dafl) / b * a
     if force <= 0.0:
         f0, b, db = 0.0, afl, 1.0 / AF
     else:
         f0 = FV_EXTRAPOLATION * asymptote
-        b = (2.0 + 2.0 / AF) * (asymptote - f0) / (FLEN - 1.0)
-        db = -(2.0 + 2.0 / AF) / (FLEN - 1.0)
+        b = c * (asymptote - f0)
+        db = -c
     slope = scale / b - scale * (f0 - afl) / (b * b) * db
-    return scale * (f0 - afl) / b + slope * (force - f0)
+    # f0 and b are proportional to afl there, so slope·f0 and the constant part do not move with it
+    return scale * (f0 - afl) / b + slope * (force - f0), slope, -slope * force / afl * a
 
 
 @numba.njit(cache=True, error_model="numpy")
-def fiber_velocity(a: float, lce: float, length: float, p: np.ndarray) -> float:
-    """d lce / dt (m/s): the speed at which the fibre's force balances the tendon's."""
+def fiber_velocity(a: float, lce: float, length: float, p: np.ndarray) -> tuple[float, float, float]:
+    """d lce / dt (m/s), the speed at which the fibre's force balances the tendon's, and its
+    partial derivatives in lce and in the muscle-tendon length (1/s)."""
     a = min(max(a, MIN_ACTIVATION), 1.0)
     clamped = lce <= p[MIN_FIBER_LENGTH]
     lce = max(lce, p[MIN_FIBER_LENGTH])
     cos = _cos_pennation(lce, p)
-    fse = _tendon_force((length - lce * cos) / p[SLACK_LENGTH] - 1.0, p)
+    fse, fse_slope = _tendon_curve((length - lce * cos) / p[SLACK_LENGTH] - 1.0, p)
     ln = lce / p[OPTIMAL_LENGTH]
-    speed = _normalised_speed(a, _active_length(ln), fse / cos - _passive_length(ln, p))
+    fal = _active_length(ln)
+    fpe, fpe_slope = _passive_curve(ln, p)
+    speed, dv_dforce, dv_dfal = _normalised_speed(a, fal, fse / cos - fpe)
     if clamped and speed <= 0.0:
-        return 0.0  # a fibre at its shortest length stays there
-    return speed * p[MAX_SPEED]
+        return 0.0, 0.0, 0.0  # a fibre at its shortest length stays there
+    # of the force fse / cos - fpe: d(lce cos)/dlce = 1 / cos and dcos/dlce = sin^2 / (lce cos)
+    sin2 = 1.0 - cos * cos
+    dforce_dlength = fse_slope / (p[SLACK_LENGTH] * cos)
+    dforce_dlce = -(dforce_dlength + fse * sin2 / (lce * cos * cos)) / cos - fpe_slope / p[OPTIMAL_LENGTH]
+    if clamped:
+        dforce_dlce = 0.0
+    dfal_dlce = 0.0 if clamped else -2.0 * (ln - 1.0) / KSHAPE_ACTIVE * fal / p[OPTIMAL_LENGTH]
+    return (speed * p[MAX_SPEED], (dv_dforce * dforce_dlce + dv_dfal * dfal_dlce) * p[MAX_SPEED],
+            dv_dforce * dforce_dlength * p[MAX_SPEED])
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -173,23 +205,31 @@ def activation_step(a: float, excitation: float, h: float, p: np.ndarray) -> flo
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _fiber_step(lce0: float, a: float, length: float, h: float, p: np.ndarray) -> tuple[float, float]:
-    """Backward Euler: lce1 = lce0 + h v(a, lce1, L), by Newton with a difference quotient;
-    returns (lce1, dv/dlce at lce1)."""
-    eps = 1e-8 * p[OPTIMAL_LENGTH]
+def _fiber_step(lce0: float, a: float, length: float, h: float, p: np.ndarray) -> tuple[float, float, float]:
+    """Backward Euler: lce1 = lce0 + h v(a, lce1, L), the root of g = lce - lce0 - h v, by Newton
+    kept inside the bracket its iterates have found. Where the tendon goes slack the speed's
+    slope jumps, and plain Newton can cycle there for ever; a step that leaves the bracket
+    bisects it instead. Returns lce1 and the speed's partial derivatives at the last iterate."""
     lmin = p[MIN_FIBER_LENGTH]
-    lce, dv = lce0, 0.0
-    for _ in range(40):
-        v = fiber_velocity(a, lce, length, p)
-        dv = (fiber_velocity(a, lce + eps, length, p) - v) / eps
-        jac = 1.0 - h * dv
+    lo, hi = -np.inf, np.inf  # g < 0 at lo, g >= 0 at hi
+    lce, dv_dlce, dv_dlength = lce0, 0.0, 0.0
+    for _ in range(80):
+        v, dv_dlce, dv_dlength = fiber_velocity(a, lce, length, p)
+        g = lce - lce0 - h * v
+        if g < 0.0:
+            lo = max(lo, lce)
+        else:
+            hi = min(hi, lce)
+        jac = 1.0 - h * dv_dlce
         if jac < 1e-3:  # a locally rising speed curve: keep the step bounded
             jac = 1e-3
-        new = max(lce - (lce - lce0 - h * v) / jac, lmin)
+        new = max(lce - g / jac, lmin)
         if abs(new - lce) < 1e-12 * p[OPTIMAL_LENGTH]:
-            return new, dv
+            return new, dv_dlce, dv_dlength
+        if not lo < new < hi and lo > -np.inf and hi < np.inf:
+            new = 0.5 * (lo + hi)
         lce = new
-    return lce, dv
+    return lce, dv_dlce, dv_dlength
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -201,20 +241,18 @@ def advance(params: np.ndarray, activation: np.ndarray, fiber: np.ndarray, excit
     h = dt / substeps
     for i in range(params.shape[0]):
         p = params[i]
-        a, lce, dv = activation[i], fiber[i], 0.0
+        a, lce, dv_dlce, dv_dlength = activation[i], fiber[i], 0.0, 0.0
         end = length[i]
         for k in range(1, substeps + 1):
             a = activation_step(a, excitation[i], h, p)
             end = length[i] + speed[i] * h * k
-            lce, dv = _fiber_step(lce, a, end, h, p)
+            lce, dv_dlce, dv_dlength = _fiber_step(lce, a, end, h, p)
         activation[i], fiber[i] = a, lce
-        f = tendon_force(lce, end, p)
+        f, df_dlength, df_dlce = _tendon(lce, end, p)
         force[i] = f
         # how the last sub-step's fibre, and so the force, answers a change of the end length
-        eps = 1e-7
-        dv_dl = (fiber_velocity(a, lce, end + eps, p) - fiber_velocity(a, lce, end, p)) / eps
-        dlce = h * dv_dl / max(1.0 - h * dv, 1e-3) * eps
-        stiffness[i] = (tendon_force(lce + dlce, end + eps, p) - f) / eps
+        dlce_dlength = h * dv_dlength / max(1.0 - h * dv_dlce, 1e-3)
+        stiffness[i] = df_dlength + df_dlce * dlce_dlength
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -227,8 +265,8 @@ def equilibrium_fiber_length(a: float, length: float, p: np.ndarray) -> float:
         mid = 0.5 * (lo + hi)
         cos = _cos_pennation(mid, p)
         ln = mid / p[OPTIMAL_LENGTH]
-        fibre = (a * _active_length(ln) + _passive_length(ln, p)) * cos
-        tendon = _tendon_force((length - mid * cos) / p[SLACK_LENGTH] - 1.0, p)
+        fibre = (a * _active_length(ln) + _passive_curve(ln, p)[0]) * cos
+        tendon = _tendon_curve((length - mid * cos) / p[SLACK_LENGTH] - 1.0, p)[0]
         if fibre < tendon:
             lo = mid
         else:
