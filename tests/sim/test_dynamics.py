@@ -11,6 +11,7 @@ from l2r.sim import dynamics, thelen
 from l2r.sim import model as body
 from l2r.sim.model import MUSCLES, OSIM_PATH
 from l2r.sim.opensim import read_osim
+from l2r.sim.physics import FIBER_SUBSTEPS
 from l2r.sim.paths import MovingPoints, PathSwitches
 from tests.sim.knee_torques import knee_torque
 from l2r.sim.validate import cli
@@ -75,7 +76,7 @@ def test_muscles_follow_opensims_in_a_held_pose(kind):
     ours = [np.stack([activation.copy(), fiber.copy(), force.copy()], axis=1)]
     for u in excitations:
         for _ in range(4):
-            thelen.advance(table, activation, fiber, u, length, np.zeros(18), 0.0025, 2, force, stiffness)
+            thelen.advance(table, activation, fiber, u, length, np.zeros(18), 0.0025, FIBER_SUBSTEPS, force, stiffness)
         ours.append(np.stack([activation.copy(), fiber.copy(), force.copy()], axis=1))
     ours = np.array(ours)
     assert np.abs(ours[..., 0] - theirs[..., 0]).max() < 1e-3
