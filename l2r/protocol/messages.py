@@ -24,6 +24,8 @@ MAX_ARRAY_DIMS = 4
 
 # Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
 # msgpack-native), "arrays" (str -> float array), or an array of one dtype such as "float32[]".
+# A trailing "?" marks a field added to version 1 later: a sender may leave it out (it is then
+# None), so messages of earlier senders still decode.
 _SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)}
 # the dtypes arrays may have, by their little-endian wire name ("<f4", "|b1", ...)
 _DTYPES = {d.str: d for d in map(np.dtype, ("float16", "float32", "float64", "int32", "int64", "uint8", "bool"))}
@@ -72,7 +74,7 @@ class ExperienceChunk(Message):
     SCHEMA: ClassVar[dict[str, str]] = {
         "actor_id": "int", "env_id": "int", "epoch": "int", "seq": "int", "policy_version": "int",
         "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]",
-        "terminated": "bool[]", "truncated": "bool[]", "final_obs": "float32[]",
+        "terminated": "bool[]", "truncated": "bool[]", "final_obs": "float32[]", "log_probs": "float32[]?",
     }
     actor_id: int
     env_id: int
@@ -85,6 +87,9 @@ class ExperienceChunk(Message):
     terminated: np.ndarray
     truncated: np.ndarray
     final_obs: np.ndarray
+    log_probs: np.ndarray | None = None
+    """log pi(action | obs) of each step under the policy that acted, in the policy's (-1, 1)
+    action space (None from actors older than the queue table)."""
 
     @property
     def size(self) -> int:
@@ -106,6 +111,10 @@ class ExperienceChunk(Message):
             raise ProtocolError(f"experience: final_obs has {len(self.final_obs)} rows, but {inner_ends} episodes "
                                 "end before the last step", "shape_mismatch")
         _finite(self, "obs", "actions", "rewards", "final_obs")
+        if self.log_probs is not None:
+            _ndim(self, log_probs=1)
+            _rows(self, t, "log_probs")
+            _finite(self, "log_probs")
 
     def next_obs(self) -> np.ndarray:
         """The true next observation of every step, (T, obs_dim) (a copy; for tests and tools)."""
@@ -131,11 +140,14 @@ class SampleRequest(Message):
     """A learner asks one replay shard for a batch (query payload)."""
 
     KIND: ClassVar[str] = "sample_request"
-    SCHEMA: ClassVar[dict[str, str]] = {"batch_size": "int", "count": "int", "prioritized": "bool", "learner_version": "int"}
+    SCHEMA: ClassVar[dict[str, str]] = {"batch_size": "int", "count": "int", "prioritized": "bool",
+                                        "learner_version": "int", "table": "str?"}
     batch_size: int = 256
     count: int = 1  # batches in one reply, each a separate reply sample
     prioritized: bool = False
     learner_version: int = -1  # newest version the learner has published; for policy lag
+    table: str | None = None
+    """Which table of the shard to take from: "replay" (None means it too) or "queue"."""
 
 
 @dataclass
@@ -149,6 +161,7 @@ class SampleBatch(Message):
         "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]",
         "terminated": "bool[]", "truncated": "bool[]", "indices": "int64[]", "generations": "int64[]",
         "probabilities": "float64[]", "policy_versions": "int64[]",
+        "log_probs": "float32[]?", "segment_ends": "bool[]?",
     }
     shard: int
     size: int
@@ -163,6 +176,11 @@ class SampleBatch(Message):
     generations: np.ndarray
     probabilities: np.ndarray
     policy_versions: np.ndarray
+    log_probs: np.ndarray | None = None
+    """Queue batches: the acting policy's log pi(action | obs) of each transition."""
+    segment_ends: np.ndarray | None = None
+    """Queue batches: True where the next row does not continue this transition's trajectory
+    (the end of a chunk, or of the batch)."""
 
     def validate(self) -> None:
         _ndim(self, obs=2, actions=2, next_obs=2, rewards=1, terminated=1, truncated=1,
@@ -170,6 +188,11 @@ class SampleBatch(Message):
         b = len(self.obs)
         _rows(self, b, "actions", "rewards", "next_obs", "terminated", "truncated",
               "indices", "generations", "probabilities", "policy_versions")
+        if (self.log_probs is None) != (self.segment_ends is None):
+            raise ProtocolError("sample_batch: log_probs and segment_ends come together", "missing_field")
+        if self.log_probs is not None:
+            _ndim(self, log_probs=1, segment_ends=1)
+            _rows(self, b, "log_probs", "segment_ends")
         if self.next_obs.shape != self.obs.shape:
             raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}",
                                 "shape_mismatch")
@@ -205,7 +228,7 @@ class ReplayAck(Message):
     KIND: ClassVar[str] = "replay_ack"
     SCHEMA: ClassVar[dict[str, str]] = {
         "shard": "int", "actor_ids": "int64[]", "epochs": "int64[]", "highest": "int64[]",
-        "missing_counts": "int64[]", "missing": "int64[]",
+        "missing_counts": "int64[]", "missing": "int64[]", "hold": "bool?",
     }
     shard: int
     actor_ids: np.ndarray
@@ -213,6 +236,8 @@ class ReplayAck(Message):
     highest: np.ndarray
     missing_counts: np.ndarray
     missing: np.ndarray
+    hold: bool | None = None
+    """True while the shard's queue is full and asks its actors to wait before stepping on."""
 
     def validate(self) -> None:
         _ndim(self, actor_ids=1, epochs=1, highest=1, missing_counts=1, missing=1)
@@ -348,6 +373,9 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         payload = payload.to_bytes()
+        kind = kind.removesuffix("?")
+        if value is None and kind != message.SCHEMA[name]:
+            continue  # an optional field left out
     if len(payload) > MAX_MESSAGE_BYTES:
         raise ProtocolError(f"oversized message: {len(payload)} bytes > {MAX_MESSAGE_BYTES}", "oversized")
     try:
@@ -409,6 +437,10 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
         return value
     if spec == "arrays":
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+    if spec.endswith("?"):
+        if value is _MISSING:
+            return None
+        spec = spec[:-1]
             raise ProtocolError(f"{where}: expected a map of names to arrays", "wrong_type")
         return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
     return _unpack_array(where, value, spec[:-2])

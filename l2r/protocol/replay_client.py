@@ -4,6 +4,7 @@
     batch = client.sample()                   # blocks until a batch is there
     client.update_priorities(batch, td_errors)
     client.learner_version = 12               # reported back as policy lag
+    queue = ReplayClient(session, run="exp1", batch_size=2048, in_flight=1, table="queue")  # on-policy
 
 Up to ``in_flight`` queries are kept outstanding, spread round-robin over the replay shards
 that hold a liveliness token; each batch taken sends the next query, so while the learner
@@ -41,10 +42,12 @@ class ReplayClient:
         prioritized: bool = False,
         in_flight: int = 4,
         timeout: float = 10.0,
+        table: str | None = None,
     ):
         self.keys = Keys(run)
         self.batch_size = batch_size
         self.prioritized = prioritized
+        self.table = table  # None: the replay table, as for servers older than the queue
         self.learner_version = -1
         self.rejections = Rejections(log)
         self.waits = 0  # "not ready" replies seen
@@ -135,7 +138,7 @@ class ReplayClient:
                 self._not_before[shard] = time.monotonic() + retry_after
 
     def _request(self, shard: int) -> None:
-        request = SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version))
+        request = SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version), self.table)
         query = {"answered": False}
 
         def on_reply(reply: zenoh.Reply) -> None:
