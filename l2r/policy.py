@@ -28,6 +28,9 @@ from torch import nn
 from l2r.sim import layout
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+# Stored actions are float32 excitations, so +-1 comes back exactly; the log-probability of a
+# given action is taken at most this close to the edge, by actors and learner alike.
+EDGE = 1e-6
 ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
 SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
 # Observation options; a spec from before they existed means "off".
@@ -165,16 +168,33 @@ class Policy(nn.Module):
         noise = torch.randn_like(mean)
         pre_tanh = mean + std * noise
         action = torch.tanh(pre_tanh)
-        # log N(pre_tanh; mean, std) minus the log-determinant of tanh, in a stable form:
-        # log(1 - tanh(x)^2) = 2 * (log 2 - x - softplus(-2x)).
-        gauss = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-        squash = 2.0 * (math.log(2.0) - pre_tanh - nn.functional.softplus(-2.0 * pre_tanh))
-        return action, (gauss - squash).sum(-1)
+        return action, _log_density(noise, pre_tanh, log_std)
+
+    def evaluate(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """log pi(action | obs) of given actions in (-1, 1) (summed over dims), and the entropy
+        of the Gaussian before the tanh (the squashed one has no closed form)."""
+        mean, log_std = self(obs)
+        entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1)
+        return tanh_gaussian_log_prob(mean, log_std, action), entropy
 
     @torch.no_grad()
     def act(self, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """Excitations in [0, 1] for a batch of observations, shape (n, obs_dim) -> (n, act_dim)."""
         return act(self, obs_batch, deterministic)
+
+
+def tanh_gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """log-density of actions in (-1, 1) under the tanh-squashed Gaussian (mean, log_std)."""
+    pre_tanh = torch.atanh(action.clamp(-1.0 + EDGE, 1.0 - EDGE))
+    return _log_density((pre_tanh - mean) / log_std.exp(), pre_tanh, log_std)
+
+
+def _log_density(noise: torch.Tensor, pre_tanh: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    # log N(pre_tanh; mean, std) minus the log-determinant of tanh, in a stable form:
+    # log(1 - tanh(x)^2) = 2 * (log 2 - x - softplus(-2x)).
+    gauss = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    squash = 2.0 * (math.log(2.0) - pre_tanh - nn.functional.softplus(-2.0 * pre_tanh))
+    return (gauss - squash).sum(-1)
 
 
 def build_policy(spec: Mapping) -> Policy:
@@ -193,6 +213,23 @@ def act(policy: Policy, obs_batch: np.ndarray, deterministic: bool = False) -> n
     else:
         action, _ = policy.sample(obs)
     return to_excitation(action).cpu().numpy()
+
+
+@torch.no_grad()
+def act_with_log_prob(policy: Policy, obs_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stochastic excitations in [0, 1] and the log-probability of each, float32. The
+    log-probability is of the excitations as sent (float32, mapped back with `to_tanh_space`),
+    so the learner, computing it from the stored action, gets the same number."""
+    device = next(policy.parameters()).device
+    mean, log_std = policy(torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device))
+    excitation = to_excitation(torch.tanh(mean + log_std.exp() * torch.randn_like(mean)))
+    log_prob = tanh_gaussian_log_prob(mean, log_std, to_tanh_space(excitation))
+    return excitation.cpu().numpy(), log_prob.cpu().numpy()
+
+
+def uniform_log_prob(act_dim: int) -> float:
+    """log-density of uniform random excitations (the actors' warm-up) in the policy's (-1, 1) space."""
+    return -act_dim * math.log(2.0)
 
 
 def to_excitation(tanh_action: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.weights import WeightFollower
 from l2r.episodes.live import LiveFrames
-from l2r.policy import act
+from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ProtocolError, Rejections, ReplayAck, Stats,
     decode, encode, shard_of,
@@ -37,6 +37,7 @@ log = logging.getLogger("l2r.actor")
 
 STEP_SECONDS = 0.01  # one inner step of the runner
 MAX_RESEND_DELAY = 30.0  # a chunk's resend wait doubles up to this while no shard acknowledges it
+HOLD_FOR = 2.0  # seconds an ack's hold lasts unless renewed (a shard repeats it every ack interval)
 
 
 def blew_up(reward: float, info: dict, max_speed: float) -> bool:
@@ -150,6 +151,7 @@ class Actor:
         self.episodes = 0
         self.chunks_sent = 0
         self.blowups = 0
+        self.held_s = 0.0  # seconds spent waiting because the shard's queue was full
         self.waiting_for_replay = False
         self.first_version: int | None = None  # version of the first weights received
         self.random_phase = not config.evaluate and config.random_steps > 0
@@ -186,18 +188,21 @@ class Actor:
     def acting_randomly(self) -> bool:
         return self.random_phase or self.weights.policy is None
 
-    def actions(self) -> np.ndarray:
+    def actions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Excitations for every env, and the log-probability of each under what chose it."""
         obs = np.stack([s.obs for s in self.slots])
         act_dim = self.slots[0].env.action_space.shape[0]
+        uniform = np.full(len(self.slots), uniform_log_prob(act_dim), np.float32)
         if self.acting_randomly:
-            return self.rng.random((len(self.slots), act_dim), dtype=np.float32)
-        actions = act(self.weights.policy, obs, deterministic=self.config.evaluate)
-        bad = ~np.isfinite(actions).all(axis=1)
+            return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
+        actions, log_probs = act_with_log_prob(self.weights.policy, obs)
+        bad = ~(np.isfinite(actions).all(axis=1) & np.isfinite(log_probs))
         if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
             log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
                         self.weights.version, int(bad.sum()))
             actions[bad] = self.rng.random((int(bad.sum()), act_dim), dtype=np.float32)
-        return actions
+            log_probs[bad] = uniform[bad]
+        return actions, log_probs
 
     # -- one iteration ---------------------------------------------------------------------
 
@@ -211,7 +216,7 @@ class Actor:
             # A first policy past version 0 means the run was already training: no warm-up.
             self.random_phase = False
             log.info("warm-up over after %d random steps; acting with the policy", self.steps)
-        actions = self.actions()
+        actions, log_probs = self.actions()
         now = time.time()
         for i, (slot, action) in enumerate(zip(self.slots, actions)):
             obs, reward, terminated, truncated, info = slot.env.step(action)
@@ -235,7 +240,7 @@ class Actor:
             else:
                 slot.obs = obs
             if not self.config.evaluate:
-                self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now)
+                self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now, log_probs[i])
         self.steps += len(self.slots)
         self.flush()
 
@@ -326,7 +331,7 @@ class Actor:
             "newest_version": self.weights.newest_seen, "staleness": self.weights.staleness,
             "weight_swaps": self.weights.swaps, "rejected_weights": self.weights.rejections.total,
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
-            "num_envs": len(self.slots), "blowups": self.blowups,
+            "num_envs": len(self.slots), "blowups": self.blowups, "held_s": self.held_s,
         }
         if self.resend is not None:
             values |= {"chunks_acked": self.resend.acked, "chunks_resent": self.resend.resent,
@@ -347,6 +352,11 @@ class Actor:
         for slot in self.slots:
             slot.env.close()
 
+
+    def held(self) -> bool:
+        """Whether the shard's last acks ask this actor to wait: its queue table is full, the
+        learner behind. An ack's hold lapses unless renewed, so a lost release costs little."""
+        return self.resender is not None and time.monotonic() < self.resender.held_until
 
     def await_last_acks(self) -> None:
         """Wait (bounded) until the shard has acknowledged every chunk sent, so that closing the
@@ -372,6 +382,7 @@ class Resender:
         self.actor = actor
         self.rejections = Rejections(log)
         self.heard_ack = False  # whether the shard ever acknowledged a chunk of this actor
+        self.held_until = 0.0  # monotonic time until which the shard's last ack asks to wait
         self._acks = session.declare_subscriber(actor.keys.replay_ack(actor.replay.shard), self._on_ack)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="resend", daemon=True)
@@ -383,6 +394,7 @@ class Resender:
         except ProtocolError as e:
             self.rejections.add(e, str(sample.key_expr))
             return
+        self.held_until = time.monotonic() + HOLD_FOR if ack.hold else 0.0
         mine = ack.of(self.actor.config.actor_id, self.actor.epoch)
         if mine is not None:
             self.heard_ack = True
@@ -496,6 +508,11 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
                     log.info("replay server alive again after %.1f s; going on", time.monotonic() - waited_since)
                     waited_since = None
                     actor.waiting_for_replay = False
+                if actor.held():  # no weights swapped in here: step() does that, flushing first
+                    started = time.monotonic()
+                    stop.wait(0.02)
+                    actor.held_s += time.monotonic() - started
+                    continue
                 actor.step()
         finally:
             actor.close()

@@ -30,6 +30,7 @@ class ChunkBuilder:
         self._rewards: list[float] = []
         self._terminated: list[bool] = []
         self._truncated: list[bool] = []
+        self._log_probs: list[float] = []
         self._final_obs: list[np.ndarray] = []
         self.started_at = 0.0  # wall-clock time of the chunk's first step
 
@@ -45,15 +46,17 @@ class ChunkBuilder:
         self._obs = [np.asarray(obs, np.float32)]
 
     def add(self, action: np.ndarray, reward: float, terminated: bool, truncated: bool,
-            next_obs: np.ndarray, start_obs: np.ndarray | None, now: float) -> None:
+            next_obs: np.ndarray, start_obs: np.ndarray | None, now: float, log_prob: float) -> None:
         """One step. ``start_obs`` is the first observation of the next episode when this step
-        ended one (the env was reset), else None."""
+        ended one (the env was reset), else None; ``log_prob`` is the acting policy's
+        log-probability of ``action``."""
         if not self._actions:
             self.started_at = now
         self._actions.append(np.asarray(action, np.float32))
         self._rewards.append(float(reward))
         self._terminated.append(bool(terminated))
         self._truncated.append(bool(truncated))
+        self._log_probs.append(float(log_prob))
         if start_obs is None:
             self._obs.append(np.asarray(next_obs, np.float32))
         else:
@@ -81,9 +84,11 @@ class ChunkBuilder:
             terminated=np.asarray(self._terminated, bool),
             truncated=np.asarray(self._truncated, bool),
             final_obs=np.stack(final_obs) if final_obs else np.zeros((0, width), np.float32),
+            log_probs=np.asarray(self._log_probs, np.float32),
         )
         current = self._obs[-1]
         self._actions, self._rewards, self._terminated, self._truncated, self._final_obs = [], [], [], [], []
+        self._log_probs = []
         self._obs = [current]
         return chunk
 

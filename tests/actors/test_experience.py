@@ -18,8 +18,9 @@ def run(builder: ChunkBuilder, ends: dict[int, str], steps: int, rng: np.random.
         next_obs = rng.normal(size=4).astype(np.float32)
         kind = ends.get(t)
         start = rng.normal(size=4).astype(np.float32) if kind else None
-        builder.add(action, float(t), kind == "terminated", kind == "truncated", next_obs, start, now=float(t))
-        truth.append((obs, action, float(t), kind == "terminated", kind == "truncated", next_obs))
+        builder.add(action, float(t), kind == "terminated", kind == "truncated", next_obs, start, now=float(t),
+                    log_prob=-0.5 * t)
+        truth.append((obs, action, float(t), kind == "terminated", kind == "truncated", next_obs, -0.5 * t))
         obs = start if kind else next_obs
         if builder.full:
             chunks.append(builder.take(seq=len(chunks), policy_version=7))
@@ -38,12 +39,13 @@ def test_chunks_round_trip_to_the_transitions_added(ends):
         assert (back.actor_id, back.env_id, back.epoch, back.policy_version) == (2, 1, 5, 7)
         nxt = back.next_obs()
         for t in range(back.size):
-            got.append((back.obs[t], back.actions[t], back.rewards[t], back.terminated[t], back.truncated[t], nxt[t]))
+            got.append((back.obs[t], back.actions[t], back.rewards[t], back.terminated[t], back.truncated[t], nxt[t],
+                        back.log_probs[t]))
     assert len(got) == len(truth)
     for g, w in zip(got, truth):
         np.testing.assert_array_equal(g[0], w[0])
         np.testing.assert_array_equal(g[1], w[1])
-        assert (g[2], g[3], g[4]) == (w[2], w[3], w[4])
+        assert (g[2], g[3], g[4], g[6]) == (w[2], w[3], w[4], w[6])
         np.testing.assert_array_equal(g[5], w[5])
 
 
@@ -52,7 +54,7 @@ def test_take_of_an_empty_builder_is_none_and_a_partial_chunk_is_sent():
     builder = ChunkBuilder(0, 0, 0, capacity=64)
     builder.begin(rng.normal(size=4))
     assert builder.take(0, 0) is None
-    builder.add(np.zeros(2), 1.0, False, False, np.ones(4), None, now=3.0)
+    builder.add(np.zeros(2), 1.0, False, False, np.ones(4), None, now=3.0, log_prob=0.0)
     assert builder.started_at == 3.0 and len(builder) == 1
     chunk = builder.take(0, 0)
     assert chunk.size == 1 and len(builder) == 0
