@@ -5,11 +5,15 @@ threads, one process, measured in interleaved rounds so a busy machine slows bot
 Every gradient step runs on a freshly sampled batch, sampling included, on both sides.
 
 Prints one JSON line. Figures:
-  updates_per_s_bB            l2r as it trains by default (ELU + LayerNorm, precision 'auto')
-  fp32_updates_per_s_bB       the same network with float32 matmuls
-  same_net_updates_per_s_bB   SB3's network exactly (ReLU, no LayerNorm), precision 'auto'
+  updates_per_s_bB            l2r as it trains by default (ELU + LayerNorm, --precision)
+  fp32_updates_per_s_bB       the same network with float32 matmuls (left out under --precision float32)
+  same_net_updates_per_s_bB   SB3's network exactly (ReLU, no LayerNorm), --precision
   baseline_updates_per_s_bB   SB3 2.x SAC.train(), net_arch 3 x 512, float32
   *ratio_bB                   each of the above over the baseline
+  *gflops_bB                  matmul GFLOP/s achieved: updates/s times the matmul FLOPs of one step
+  *gflop_per_update_bB        those FLOPs, counted by torch's FlopCounterMode from the shapes of the
+                              matmuls one step runs (forward and backward, actor, critics, target)
+  peak_gflops, peak_basis     the CPU's float32 peak on the cores the threads can use (see cpu_peak)
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 OBS_DIM, ACT_DIM, HIDDEN, BUFFER = 41, 18, (512, 512, 512), 20_000
 
@@ -86,6 +91,44 @@ class SB3Stepper:
         self.model.train(gradient_steps=n, batch_size=self.batch_size)
 
 
+def cpu_peak(threads: int, cpuinfo: str = "/proc/cpuinfo") -> dict:
+    """The CPU's model, its vector-math flags and its float32 peak on min(threads, cores) cores.
+
+    Peak = cores x clock x FLOPs per cycle per core, where FLOPs per cycle = 2 FMA units x float32
+    lanes (16 with avx512f, 8 with avx2 + fma) x 2 (an FMA is a multiply and an add). The number of
+    FMA units is not in /proc/cpuinfo: two is what server cores since Skylake-SP Gold and AMD Zen 2
+    have, but some Xeon Silver/Bronze have one 512-bit unit and Zen 4 runs 512-bit FMAs as two
+    256-bit halves (half the peak given here). The clock is /proc/cpuinfo's "cpu MHz", the nominal
+    clock in a VM; turbo may run above it.
+    """
+    fields: dict[str, str] = {}
+    cores = set()  # (physical id, core id): hyperthreads share their core's FMA units
+    for block in open(cpuinfo).read().split("\n\n"):
+        cpu = dict((k.strip(), v.strip()) for k, _, v in (line.partition(":") for line in block.splitlines()))
+        fields = fields or cpu
+        if "core id" in cpu:
+            cores.add((cpu.get("physical id"), cpu["core id"]))
+    flags = fields.get("flags", "").split()
+    lanes = 16 if "avx512f" in flags else 8 if {"avx2", "fma"} <= set(flags) else 0
+    n_cores = min(threads, len(cores) or os.cpu_count() or 1)
+    mhz = float(fields.get("cpu MHz", 0))
+    info = {"cpu": fields.get("model name", "unknown"),
+            "cpu_flags": [f for f in flags if f.startswith(("avx", "amx", "fma"))]}
+    if not lanes or not mhz:
+        return info | {"peak_gflops": None, "peak_basis": "no avx2+fma or no clock in /proc/cpuinfo"}
+    per_cycle = 2 * lanes * 2
+    return info | {"peak_gflops": round(n_cores * mhz / 1000 * per_cycle, 1),
+                   "peak_basis": f"{n_cores} cores x {mhz:.0f} MHz x {per_cycle} FLOP/cycle "
+                                 f"(2 FMA units x {lanes} float32 lanes x 2)"}
+
+
+def step_flops(stepper) -> int:
+    """Matmul FLOPs of one gradient step, counted while it runs (elementwise work not included)."""
+    with FlopCounterMode(display=False) as counter:
+        stepper.steps(1)
+    return counter.get_total_flops()
+
+
 def rate(stepper, n: int) -> float:
     started = time.perf_counter()
     stepper.steps(n)
@@ -98,6 +141,8 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds; the median counts (default: %(default)s)")
     p.add_argument("--steps", type=int, default=12, help="gradient steps per round at batch 640, more at 256 (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="one round of few steps (a smoke run)")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
+                   help="l2r's matmul precision (SACConfig.precision; default: %(default)s)")
     args = p.parse_args()
     if args.quick:
         args.rounds, args.steps = 1, 4
@@ -105,26 +150,30 @@ def main() -> None:
     started = time.perf_counter()
     result: dict = {"bench": "learner_speed", "device": "cpu", "threads": args.threads, "obs_dim": OBS_DIM,
                     "act_dim": ACT_DIM, "hidden": list(HIDDEN),
-                    "omp_wait_policy": os.environ["OMP_WAIT_POLICY"]}
+                    "omp_wait_policy": os.environ["OMP_WAIT_POLICY"], **cpu_peak(args.threads)}
     for batch_size in (256, 640):
-        steppers = {
-            "": L2RStepper(batch_size),
-            "fp32_": L2RStepper(batch_size, precision="float32"),
-            "same_net_": L2RStepper(batch_size, activation="relu", layer_norm=False),
-            "baseline_": SB3Stepper(batch_size),
-        }
+        steppers = {"": L2RStepper(batch_size, precision=args.precision)}
+        if args.precision != "float32":
+            steppers["fp32_"] = L2RStepper(batch_size, precision="float32")
+        steppers["same_net_"] = L2RStepper(batch_size, precision=args.precision, activation="relu", layer_norm=False)
+        steppers["baseline_"] = SB3Stepper(batch_size)
         n = args.steps * (2 if batch_size == 256 else 1)
-        for stepper in steppers.values():
-            stepper.steps(2)  # warm-up: allocator, lazy imports, kernels
+        flops = {}
+        for name, stepper in steppers.items():
+            stepper.steps(1)  # warm-up: allocator, lazy imports, kernels
+            flops[name] = step_flops(stepper)
         rates: dict[str, list[float]] = {name: [] for name in steppers}
         for _ in range(args.rounds):
             for name, stepper in steppers.items():
                 rates[name].append(rate(stepper, n))
         for name, values in rates.items():
             result[f"{name}updates_per_s_b{batch_size}"] = round(statistics.median(values), 2)
+            result[f"{name}gflop_per_update_b{batch_size}"] = round(flops[name] / 1e9, 3)
+            result[f"{name}gflops_b{batch_size}"] = round(statistics.median(values) * flops[name] / 1e9, 1)
         baseline = result[f"baseline_updates_per_s_b{batch_size}"]
-        for name in ("", "fp32_", "same_net_"):
-            result[f"{name}ratio_b{batch_size}"] = round(result[f"{name}updates_per_s_b{batch_size}"] / baseline, 2)
+        for name in steppers:
+            if name != "baseline_":
+                result[f"{name}ratio_b{batch_size}"] = round(result[f"{name}updates_per_s_b{batch_size}"] / baseline, 2)
         result["precision"] = "bfloat16" if steppers[""].state.bfloat16 else "float32"
     result["seconds"] = round(time.perf_counter() - started, 1)
     print(json.dumps(result))

@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Sequence
+from typing import Literal, Sequence
 
 from l2r.config import (
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
 from l2r.protocol import DaemonSettings, configure_logging
+from l2r.replay.queue import QueueConfig
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS
 from l2r.replay.server import ServerConfig, main
 from l2r.replay.storage import StorageConfig, storage_bytes
 
 SHARD, STORAGE, LIMITER, PERSISTENCE = "shard", "storage", "rate limiter", "persistence and reporting"
+QUEUE = "queue table (on-policy learners: first in, first out, each transition given once)"
+QUEUE_DEFAULTS = QueueConfig()
 
 
 class ReplaySettings(DaemonSettings):
@@ -24,7 +27,8 @@ class ReplaySettings(DaemonSettings):
     max_actors: int = setting(MAX_ACTORS, "actor ids this shard keeps sequence records of; chunks of further "
                               "ids are rejected (too_many_actors), so a peer inventing ids cannot exhaust "
                               "its memory", group=SHARD, ge=1)
-    capacity: int = setting(1_000_000, "transitions kept, oldest evicted first", group=STORAGE, ge=2)
+    capacity: int = setting(1_000_000, "transitions the replay table keeps, oldest evicted first; 0: no replay "
+                            "table (a shard with the queue alone)", group=STORAGE, ge=0)
     obs_dim: int = setting(41, "observation width; other widths are rejected", group=STORAGE, ge=1)
     act_dim: int = setting(18, "action width; other widths are rejected", group=STORAGE, ge=1)
     side_fraction: float = setting(0.125, "rows for next observations at chunk and episode ends, as a fraction "
@@ -35,6 +39,14 @@ class ReplaySettings(DaemonSettings):
     samples_per_insert: float = setting(0.0, "sampled transitions allowed per inserted one; 0 = no ratio limit",
                                         group=LIMITER, ge=0)
     error_buffer: float = setting(10_000.0, "slack around the ratio, in sampled transitions", group=LIMITER, ge=0)
+    queue_capacity: int = setting(QUEUE_DEFAULTS.capacity, "transitions the queue table holds before it holds "
+                                  "the actors back or drops (see --queue-when-full); 0: no queue table",
+                                  group=QUEUE, ge=0)
+    queue_max_lag: int = setting(QUEUE_DEFAULTS.max_lag, "transitions acted by a policy more than this many "
+                                 "versions behind the learner's newest are dropped (and counted)", group=QUEUE, ge=0)
+    queue_when_full: Literal["hold", "drop"] = setting(
+        QUEUE_DEFAULTS.when_full, "hold: ask the actors to wait until the learner takes a batch (what still arrives "
+        "is kept up to twice the capacity); drop: the oldest chunks make room", group=QUEUE)
     snapshot_dir: FilePath | None = setting(None, "directory for snapshots (default: none, memory only)",
                                             group=PERSISTENCE)
     snapshot_interval: float = setting(120.0, "seconds between snapshots = the most experience a crash can lose",
@@ -47,6 +59,9 @@ class ReplaySettings(DaemonSettings):
     def check(self) -> None:
         if self.shard >= self.num_shards:
             raise UsageError(f"--shard {self.shard} must be below --num-shards {self.num_shards}")
+        if self.capacity == 1 or not (self.capacity or self.queue_capacity):
+            raise UsageError(f"--capacity {self.capacity}: the replay table needs at least 2 transitions, and a "
+                             f"shard with --capacity 0 needs a queue (--queue-capacity)")
 
 
 def build_parser() -> CommandParser:
@@ -89,7 +104,8 @@ def serve(s: ReplaySettings) -> int:
     server = ServerConfig(s.run, s.shard, s.num_shards, s.snapshot_dir, s.snapshot_interval, not s.no_restore,
                           s.stats_interval, write_ahead_log=not s.no_wal, max_actors=s.max_actors)
     limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer)
-    return main(server, storage, limiter, s.zenoh_session_config())
+    queue = QueueConfig(s.queue_capacity, s.queue_max_lag, s.queue_when_full)
+    return main(server, storage, limiter, s.zenoh_session_config(), queue_config=queue)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """The ``l2r-replay`` daemon: stores actors' experience and serves learners' sample queries.
 
-One shard of a run: it subscribes to ``experience/<shard>/*``, answers
-``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``, tells its actors
-what it has stored on ``replay/<shard>/ack`` (they resend the rest), publishes its stats and
-answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
+One shard of a run: it subscribes to ``experience/<shard>/*``, keeps what arrives in its tables
+(the replay table, sampled at random, and the queue table, given out once in order; either may
+be left out), answers ``replay/<shard>/sample`` queries, applies ``replay/<shard>/priorities``,
+tells its actors what it has stored on ``replay/<shard>/ack`` (they resend the rest; a full
+queue also asks them to wait there), publishes its stats and answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
 joins and leaves. With a snapshot directory (and without --no-wal), every chunk stored goes to a
 write-ahead log that is fsynced before an ack names it, so what is acknowledged survives a crash.
 Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
@@ -28,6 +29,7 @@ from l2r.protocol import (
     PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
 )
 from l2r.replay import snapshot
+from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
 from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig
@@ -38,10 +40,11 @@ log = logging.getLogger("l2r.replay")
 REPLY_OVERHEAD = 4096  # bytes of a sample_batch reply beyond its arrays' data (msgpack framing, names)
 
 
-def reply_bytes_per_transition(config: StorageConfig) -> int:
+def reply_bytes_per_transition(obs_dim: int, act_dim: int, queue: bool = False) -> int:
     """What one transition adds to a sample_batch: obs and next_obs, action and reward (float32),
-    two flags, index, generation, probability and policy version (8 bytes each)."""
-    return 4 * (2 * config.obs_dim + config.act_dim + 1) + 2 + 4 * 8
+    two flags, index, generation, probability and policy version (8 bytes each); from the queue
+    also a log-probability (float32) and a flag."""
+    return 4 * (2 * obs_dim + act_dim + 1) + 2 + 4 * 8 + (5 if queue else 0)
 
 
 @dataclass
@@ -69,12 +72,15 @@ class ServerConfig:
 class ReplayServer:
     """The shard's state and its message handlers (see the module docstring)."""
 
-    def __init__(self, config: ServerConfig, storage: Storage, limiter: RateLimiter,
-                 wal: WriteAheadLog | None = None):
+    def __init__(self, config: ServerConfig, storage: Storage | None, limiter: RateLimiter,
+                 wal: WriteAheadLog | None = None, queue: QueueTable | None = None):
+        if storage is None and queue is None:
+            raise ValueError("a replay shard needs a table: the replay table, the queue, or both")
         self.config = config
         self.wal = wal
         self.keys = Keys(config.run)
         self.storage = storage
+        self.queue = queue
         self.limiter = limiter
         self.sequences = SequenceTracker(config.max_actors)
         self.rejections = Rejections(log)
@@ -87,6 +93,8 @@ class ReplayServer:
         self.lag_batches = 0
         self.snapshot_pause = 0.0
         self._acked_received = 0  # chunks received when the last ack was built
+        self._hold_sent: bool | None = None  # the hold flag of the last ack
+        self._queue_skipped = 0  # chunks without log-probabilities the replay table took and the queue could not
         self._last = (time.monotonic(), 0, 0)  # time, inserted, sampled batches at the last report
 
     # -- handlers -----------------------------------------------------------------------
@@ -104,7 +112,10 @@ class ReplayServer:
 
     def _check(self, payload: bytes) -> ExperienceChunk:
         chunk = decode(payload, ExperienceChunk)
-        self.storage.check(chunk)
+        if self.storage is not None:
+            self.storage.check(chunk)
+        if self.queue is not None and (self.storage is None or chunk.log_probs is not None):
+            self.queue.check(chunk)  # without a replay table, a chunk the queue cannot take is rejected
         return chunk
 
     def _store(self, chunk: ExperienceChunk, payload: bytes | None) -> None:
@@ -113,14 +124,25 @@ class ReplayServer:
         with self.lock:
             if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
                 return
-            stored = self.storage.insert(chunk)
-            self.sequences.stored(chunk.actor_id, stored)
-            self.limiter.inserted += stored
+            if self.storage is not None:
+                self.storage.insert(chunk)
+            if self.queue is not None and chunk.log_probs is not None:
+                self.queue.insert(chunk, self.learner_version)  # a stale chunk is dropped and counted there
+            elif self.queue is not None:
+                self._skip_in_queue(chunk)
+            self.sequences.stored(chunk.actor_id, chunk.size)
+            self.limiter.inserted += chunk.size
             if self.wal is not None and payload is not None and not self.wal.failed:
                 try:
                     self.wal.append(payload)
                 except OSError as e:
                     self._wal_failed(e)
+
+    def _skip_in_queue(self, chunk: ExperienceChunk) -> None:
+        self._queue_skipped += 1
+        if self._queue_skipped == 1:
+            log.warning("actor %d sends experience without log-probabilities (an older l2r-actor): the replay "
+                        "table stores it, the queue cannot (counted as queue.no_log_probs)", chunk.actor_id)
 
     def replay_log(self, wal: WriteAheadLog, first_segment: int) -> tuple[int, int]:
         """Store the chunks of ``wal``'s segments from ``first_segment`` on (at start, after the
@@ -145,40 +167,75 @@ class ReplayServer:
     def on_sample_query(self, query: zenoh.Query) -> None:
         try:
             request = decode(query.payload if query.payload is not None else b"", SampleRequest)
-            if request.batch_size > self.max_batch_size:
-                raise ProtocolError(f"sample_request: a batch of {request.batch_size} would exceed the "
-                                    f"{MAX_MESSAGE_BYTES}-byte message limit; at most {self.max_batch_size}",
-                                    "too_large")
+            from_queue = self._from_queue(request)
         except ProtocolError as e:
             self.rejections.add(e, "sample query")
             query.reply_err(f"{e.reason}: {e}")
             return
         with self.lock:
             self.learner_version = max(self.learner_version, request.learner_version)
-            size = self.storage.live
-            ok, reason = self.limiter.can_sample(size, request.batch_size * request.count)
-            if ok:
-                batches = [self.storage.sample(request.batch_size, request.prioritized, self.config.shard)
-                           for _ in range(request.count)]
-                self.limiter.sampled += request.batch_size * request.count
-                self.sampled_batches += request.count
+            batches, reason, size, delay = (self._take_from_queue if from_queue else self._sample_replay)(request)
+            if batches:
+                self.sampled_batches += len(batches)
                 if self.learner_version >= 0:
                     self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b in batches)
                     self.lag_batches += len(batches)
             else:
                 self.not_ready_replies += 1
-                delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(
-                    request.batch_size * request.count, self._insert_rate())
-        if not ok:
+        if not batches:
             query.reply(query.key_expr, encode(NotReady(self.config.shard, reason, size, delay)))
             return
         for batch in batches:
             query.reply(query.key_expr, encode(batch))
 
-    @property
-    def max_batch_size(self) -> int:
-        """The largest batch whose reply fits in one message."""
-        return (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(self.storage.config)
+    def _from_queue(self, request: SampleRequest) -> bool:
+        """Whether ``request`` asks for the queue table (else the replay table); ProtocolError if
+        this shard lacks the table or cannot send such a batch."""
+        table = request.table or "replay"
+        if table not in ("replay", "queue"):
+            raise ProtocolError(f"sample_request: unknown table {table!r}; l2r-replay keeps 'replay' and 'queue'",
+                                "no_table")
+        queue = table == "queue"
+        if (self.queue if queue else self.storage) is None:
+            raise ProtocolError(f"sample_request: shard {self.config.shard} keeps no {table} table "
+                                f"({'--queue-capacity' if queue else '--capacity'} 0)", "no_table")
+        obs_dim, act_dim = (self.queue.obs_dim, self.queue.act_dim) if queue else (
+            self.storage.config.obs_dim, self.storage.config.act_dim)
+        largest = (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(obs_dim, act_dim, queue)
+        if queue and self.queue.capacity < largest:
+            largest = self.queue.capacity
+        if request.batch_size > largest:
+            raise ProtocolError(f"sample_request: a batch of {request.batch_size} from the {table} table; at most "
+                                f"{largest} (the {MAX_MESSAGE_BYTES}-byte message limit, or the queue's capacity)",
+                                "too_large")
+        return queue
+
+    def _sample_replay(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
+        """Batches drawn from the replay table, or none and why (reason, size, retry after)."""
+        size, wanted = self.storage.live, request.batch_size * request.count
+        ok, reason = self.limiter.can_sample(size, wanted)
+        if not ok:
+            delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(wanted, self._insert_rate())
+            return [], reason, size, delay
+        self.limiter.sampled += wanted
+        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard)
+                for _ in range(request.count)], "", size, 0.0
+
+    def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
+        """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""
+        batches = []
+        for _ in range(request.count):
+            batch = self.queue.take(request.batch_size, self.learner_version, self.config.shard)
+            if batch is None:
+                break
+            batches.append(batch)
+        if batches:
+            return batches, "", self.queue.size, 0.0
+        rate = self._insert_rate()
+        missing = request.batch_size - self.queue.size
+        delay = min(0.5, max(0.005, missing / rate)) if rate > 0 else 0.05
+        return [], f"the queue holds {self.queue.size} of the {request.batch_size} transitions asked for", \
+            self.queue.size, delay
 
     def on_stats_query(self, query: zenoh.Query) -> None:
         query.reply(query.key_expr, encode(self.report(reset=False)))
@@ -188,6 +245,10 @@ class ReplayServer:
             update = decode(sample.payload, PriorityUpdate)
         except ProtocolError as e:
             self.rejections.add(e, str(sample.key_expr))
+            return
+        if self.storage is None:
+            self.rejections.add(ProtocolError("priority_update: this shard keeps no replay table", "no_table"),
+                                str(sample.key_expr))
             return
         with self.lock:
             applied = self.storage.update_priorities(update.indices, update.generations, update.priorities)
@@ -209,11 +270,14 @@ class ReplayServer:
         log.info("%s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
 
     def ack(self) -> ReplayAck | None:
-        """What is stored of each actor's current epoch, durably when there is a write-ahead log;
-        None when no chunk came since the last ack (a resent duplicate counts: its sender has not
-        heard an ack yet), or when the log has failed."""
+        """What is stored of each actor's current epoch, durably when there is a write-ahead log, and
+        whether a full queue asks the actors to wait; None when there is nothing new to say (no chunk
+        came since the last ack, a resent duplicate counting as one since its sender has not heard an
+        ack yet; no hold to renew or lift), or when the log has failed."""
         with self.lock:
-            if self.sequences.received == self._acked_received or (self.wal is not None and self.wal.failed):
+            hold = self.queue.holding if self.queue is not None else None  # None: the field is left out
+            news = self.sequences.received != self._acked_received or hold or hold != self._hold_sent
+            if not news or (self.wal is not None and self.wal.failed):
                 return None
             received = self.sequences.received
             rows = self.sequences.acks()
@@ -228,10 +292,10 @@ class ReplayServer:
             except OSError as e:
                 self._wal_failed(e)
                 return None
-        self._acked_received = received
+        self._acked_received, self._hold_sent = received, hold
         actors, epochs, highest, missing = zip(*rows) if rows else ((), (), (), ())
         return ReplayAck(self.config.shard, _int64(actors), _int64(epochs), _int64(highest),
-                         _int64([len(m) for m in missing]), _int64([s for m in missing for s in m]))
+                         _int64([len(m) for m in missing]), _int64([s for m in missing for s in m]), hold)
 
     # -- reporting ------------------------------------------------------------------------
     def _insert_rate(self) -> float:
@@ -249,9 +313,10 @@ class ReplayServer:
             now = time.monotonic()
             t, inserted, sampled = self._last
             dt = max(1e-6, now - t)
+            main_table = self.storage if self.storage is not None else self.queue
             values = {
-                "size": self.storage.live,
-                "capacity": self.storage.capacity,
+                "size": self.storage.live if self.storage is not None else self.queue.size,
+                "capacity": main_table.capacity,
                 "inserted": self.limiter.inserted,
                 "inserts_per_s": (self.limiter.inserted - inserted) / dt,
                 "sampled_batches": self.sampled_batches,
@@ -270,6 +335,12 @@ class ReplayServer:
                 "policy_lag": self.lag_sum / self.lag_batches if self.lag_batches else float("nan"),
                 "snapshot_pause_s": self.snapshot_pause,
             }
+            if self.queue is not None:
+                q = self.queue
+                values |= {"queue.size": q.size, "queue.capacity": q.capacity, "queue.inserted": q.arrived,
+                           "queue.given": q.given, "queue.dropped_stale": q.dropped_stale,
+                           "queue.dropped_full": q.dropped_full, "queue.holding": int(q.holding),
+                           "queue.no_log_probs": self._queue_skipped}
             for actor, record in self.sequences.actors.items():
                 values[f"actor.{actor}.transitions"] = record.transitions
                 values[f"actor.{actor}.gaps"] = record.gaps
@@ -281,16 +352,20 @@ class ReplayServer:
     # -- persistence ----------------------------------------------------------------------
     def capture(self) -> tuple[dict[str, np.ndarray], dict]:
         """A consistent copy of the state, taken in blocks so inserts and samples go on
-        between them; ``snapshot_pause`` is the longest time they were held up."""
+        between them; ``snapshot_pause`` is the longest time they were held up. The queue table is
+        not kept: after a restart its data would be stale."""
         pauses = []
         with self.lock, _timed(pauses):
-            copy = StateCopy(self.storage)
+            copy = StateCopy(self.storage) if self.storage is not None else None
             meta = self._meta()
             if self.wal is not None and not self.wal.failed:  # what comes from now on goes to a new segment
                 try:
                     meta["wal_segment"] = self.wal.rotate()
                 except OSError as e:
                     self._wal_failed(e)
+        if copy is None:
+            self.snapshot_pause = pauses[0]
+            return {}, meta
         copy.touch()
         try:
             done = False
@@ -311,13 +386,17 @@ class ReplayServer:
     def _capture_at_once(self) -> tuple[dict[str, np.ndarray], dict]:
         pauses = []
         with self.lock, _timed(pauses):
-            arrays = self.storage.state()
+            arrays = self.storage.state() if self.storage is not None else {}
             meta = self._meta() | ({"wal_segment": self.wal.segment} if self.wal is not None else {})
         self.snapshot_pause = pauses[0]
         return arrays, meta
 
     def restore(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
-        self.storage.restore(arrays)
+        if ("counters" in arrays) != (self.storage is not None):
+            raise ValueError(f"the snapshot {'holds' if 'counters' in arrays else 'has no'} replay table, this "
+                             f"server {'keeps none (--capacity 0)' if self.storage is None else 'keeps one'}")
+        if self.storage is not None:
+            self.storage.restore(arrays)
         self.sequences.restore(meta["sequences"])
         self.limiter.inserted, self.limiter.sampled = meta["inserted"], meta["sampled"]
         self.learner_version = meta["learner_version"]
@@ -363,7 +442,7 @@ def _save(server: ReplayServer, path: Path) -> None:
     if "wal_segment" in meta:  # the snapshot is durable: the log before it is not needed any more
         server.wal.delete_before(meta["wal_segment"])
     log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",
-             int(arrays["counters"][2]), size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
+             int(arrays["counters"][2]) if arrays else 0, size / 2**20, path, time.perf_counter() - start, server.snapshot_pause * 1e3)
 
 
 def _restore(server: ReplayServer, path: Path, log_on_disk: WriteAheadLog) -> bool:
@@ -390,22 +469,30 @@ def _restore(server: ReplayServer, path: Path, log_on_disk: WriteAheadLog) -> bo
 
 
 def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimiter,
-         zenoh_config: zenoh.Config, stop: threading.Event | None = None) -> int:
-    """Run one replay shard until ``stop`` is set or SIGINT/SIGTERM arrives."""
+         zenoh_config: zenoh.Config, stop: threading.Event | None = None, queue_config: QueueConfig | None = None) -> int:
+    """Run one replay shard until ``stop`` is set or SIGINT/SIGTERM arrives. A storage capacity of 0
+    leaves the replay table out; a queue config with a capacity adds the queue table."""
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
 
-    storage = Storage(storage_config)
+    storage = Storage(storage_config) if storage_config.capacity else None
+    queue = QueueTable(queue_config, storage_config.obs_dim, storage_config.act_dim) if (
+        queue_config and queue_config.capacity) else None
     path = snapshot.snapshot_path(config.snapshot_dir, config.shard) if config.snapshot_dir else None
     # Read even when this shard writes no log: an earlier session's holds chunks it acknowledged as durable.
     log_on_disk = WriteAheadLog(config.snapshot_dir, config.shard) if path else None
     wal = log_on_disk if config.write_ahead_log else None
-    server = ReplayServer(config, storage, limiter, wal)
-    log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/transition)",
-             config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
-             storage.nbytes / storage.capacity)
+    server = ReplayServer(config, storage, limiter, wal, queue)
+    if storage is not None:
+        log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/"
+                 "transition)", config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
+                 storage.nbytes / storage.capacity)
+    if queue is not None:
+        log.info("replay shard %d/%d of run %r: a queue table of %d transitions (%s when full), dropping data more "
+                 "than %d versions behind the learner", config.shard, config.num_shards, config.run, queue.capacity,
+                 queue.config.when_full, queue.config.max_lag)
     if path and config.restore:
         if not _restore(server, path, log_on_disk):
             return 2
@@ -454,6 +541,10 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
                 log.info("size %d | %.0f inserts/s | %.1f batches/s | lag %.1f | rejected %d | dup %d | gaps %d",
                          values["size"], values["inserts_per_s"], values["samples_per_s"], values["policy_lag"],
                          values["rejected"], values["duplicates"], values["gaps"])
+                if "queue.size" in values:
+                    log.info("queue %d | given %d | dropped stale %d, full %d | %s", values["queue.size"],
+                             values["queue.given"], values["queue.dropped_stale"], values["queue.dropped_full"],
+                             "holding the actors" if values["queue.holding"] else "open")
             if path and now >= next_snapshot and not (writer and writer.is_alive()):
                 next_snapshot = now + config.snapshot_interval
                 writer = threading.Thread(target=_save, args=(server, path), name="snapshot")
