@@ -4,13 +4,16 @@
 
 Opens a session with the role's own Zenoh config (so it passes the router's TLS, password and
 access control like the daemon does) and asks for the role's liveliness tokens. Exits 0 when
-one answers, 1 otherwise. A token only exists while the daemon is up and connected.
+one answers, 1 otherwise. A token only exists while the daemon is up and connected. Without
+--run, the run is $L2R_RUN, as the daemons read it (Kubernetes probes cannot expand variables).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from typing import Mapping
 
 import zenoh
 
@@ -30,13 +33,18 @@ def alive(config_file: str, run: str, role: str, timeout_s: float) -> bool:
         return False
 
 
-def cli(argv: list[str] | None = None) -> int:
+def build_parser(environ: Mapping[str, str] = os.environ) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--zenoh-config", required=True, metavar="FILE")
-    p.add_argument("--run", required=True)
+    p.add_argument("--run", default=environ.get("L2R_RUN"), required="L2R_RUN" not in environ,
+                   help="run name (default: $L2R_RUN)")
     p.add_argument("--role", required=True, choices=("replay", "learner", "actor"))
     p.add_argument("--timeout", type=float, default=3.0, help="seconds (default: %(default)s)")
-    args = p.parse_args(argv)
+    return p
+
+
+def cli(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     return 0 if alive(args.zenoh_config, args.run, args.role, args.timeout) else 1
 
 

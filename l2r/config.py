@@ -128,10 +128,11 @@ def _flag(name: str) -> str:
 
 
 def _kind(annotation: Any) -> Any:
-    """The type a field holds, without ``| None``."""
+    """The type a field holds, without ``| None`` (a union of several types stays what it is)."""
     if isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union:
-        (inner,) = [a for a in typing.get_args(annotation) if a is not type(None)]
-        return inner
+        inner = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(inner) == 1:
+            return inner[0]
     return annotation
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from typing import Sequence
+from typing import Annotated, Literal, Sequence
+
+from pydantic import Field
 
 from l2r.actors.actor import ActorConfig, main
 from l2r.config import CommandParser, FilePath, load, run_command, setting, settings_parser
@@ -16,8 +18,11 @@ ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role"
 
 
 class ActorSettings(DaemonSettings):
-    actor_id: int = setting(DEFAULTS.actor_id, "this actor's number; unique within the run (it names its keys "
-                            "and picks its replay shard)", group=ACTING, ge=0)
+    actor_id: Annotated[int, Field(ge=0)] | Literal["auto"] = setting(
+        DEFAULTS.actor_id, "this actor's number; unique within the run (it names its keys and picks its replay "
+        "shard). auto: ask replay shard 0, which gives every actor process of the run an id of its own and a "
+        "restarted container its id again (shard 0 needs --snapshot-dir to remember them)", group=ACTING,
+        metavar="{N,auto}")
     num_envs: int = setting(DEFAULTS.num_envs, "environments stepped together, their observations batched into "
                             "one policy call", group=ACTING, ge=1)
     env_id: str = setting(DEFAULTS.env_id, "gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or "
@@ -66,8 +71,9 @@ class ActorSettings(DaemonSettings):
         if self.episode_log_dir is not None:
             episode_log = {"directory": self.episode_log_dir, "every": self.log_every,
                            "disk_budget_bytes": int(self.log_budget_mb * 2**20)}
+        actor_id = None if self.actor_id == "auto" else self.actor_id  # None: asked of replay shard 0
         return ActorConfig(
-            run=self.run, actor_id=self.actor_id, num_envs=self.num_envs, env_id=self.env_id,
+            run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
             chunk_size=self.chunk_size, chunk_delay=self.chunk_delay, seed=self.seed, num_shards=self.num_shards,
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,

@@ -12,6 +12,7 @@ not lost, and on shutdown the actor waits a little for the acks of its last chun
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -23,6 +24,7 @@ import torch
 import zenoh
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
+from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.weights import WeightFollower
 from l2r.episodes.live import LiveFrames
@@ -51,7 +53,8 @@ class ActorConfig:
     """What one actor process does. Run and network settings travel in the Zenoh config."""
 
     run: str = "default"
-    actor_id: int = 0
+    actor_id: int | None = 0
+    """None: ask replay shard 0 for an id no other actor process of the run has (--actor-id auto)."""
     num_envs: int = 4
     """Environments stepped in lock-step, their observations batched into one policy call."""
     env_id: str = "l2r/Run-v0"
@@ -474,6 +477,11 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
     torch.set_num_threads(config.torch_threads)
     with zenoh.open(zenoh_config) as session:
         keys = Keys(config.run)
+        if config.actor_id is None:
+            actor_id = ask_actor_id(session, keys, stop)
+            if actor_id is None:  # stopped while waiting for replay shard 0
+                return 0
+            config = dataclasses.replace(config, actor_id=actor_id)
         token = session.liveliness().declare_token(keys.alive(config.role, config.actor_id))
         actor = Actor(config, session)
         log.info("%s %d up: %d x %s (difficulty %d, action repeat %d), run %r", config.role,

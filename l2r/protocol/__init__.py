@@ -5,9 +5,9 @@ from l2r.protocol.keys import (
     WEIGHTS_QOS, Keys, QoS, check_name, parse_alive, shard_of,
 )
 from l2r.protocol.messages import (
-    MAX_MESSAGE_BYTES, PROTOCOL_VERSION, EpisodeSummary, ExperienceChunk, Frame, LearnerVersion,
-    Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
-    decode, encode,
+    MAX_MESSAGE_BYTES, PROTOCOL_VERSION, ActorId, ActorIdRequest, EpisodeSummary, ExperienceChunk, Frame,
+    LearnerVersion, Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch, SampleRequest, Stats,
+    Weights, decode, encode,
 )
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
@@ -17,8 +17,8 @@ from l2r.protocol.session import (
 __all__ = [
     "ACK_QOS", "EPISODE_QOS", "EXPERIENCE_QOS", "FRAMES_QOS", "PRIORITY_QOS", "SAMPLE_QOS", "STATS_QOS",
     "VERSION_QOS", "WEIGHTS_QOS", "Keys", "QoS", "check_name", "parse_alive", "shard_of",
-    "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "EpisodeSummary", "ExperienceChunk", "Frame",
-    "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck", "SampleBatch",
-    "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
+    "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "ActorId", "ActorIdRequest", "EpisodeSummary", "ExperienceChunk",
+    "Frame", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck",
+    "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
     "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive", "watched",
 ]

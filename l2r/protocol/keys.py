@@ -8,6 +8,7 @@ Read top to bottom, this module is the system's data-flow graph:
     replay  --replay/<shard>/ack-->          actors            (what is stored; actors resend the rest)
     learner --weights-->                     actors            (new policy, versioned)
     actor   --weights/latest?-->             learner           (query on join)
+    actor   --actor_ids?-->                  replay shard 0    (query at start, for --actor-id auto)
     learner --learner/version-->             everyone          (small version beacon)
     actor   --episodes/<actor>-->            launcher, viewers (episode summaries)
     actor   --frames/<actor>/<env>-->        viewer            (only while alive/viewer/* exists)
@@ -120,6 +121,11 @@ class Keys:
     @property
     def weights_query(self) -> str:
         return f"{self.root}/weights/latest"
+
+    # -- actor ids: actor -> replay shard 0, query/reply, once per actor process -----------
+    @property
+    def actor_ids(self) -> str:
+        return f"{self.root}/actor_ids"
 
     # -- learner version beacon (VERSION_QOS) ----------------------------------------------
     @property

@@ -10,8 +10,7 @@ from __future__ import annotations
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 ID = (0, 2**32 - 1)
-"""Actors, environments, shards: non-negative numbers, also written into key expressions. Up to
-2^32 - 1 because deploy/docker-compose.yml numbers each actor by the CRC-32 of its hostname."""
+"""Actors, environments, shards: non-negative numbers, also written into key expressions."""
 COUNT = (0, INT64_MAX)
 """Counters and nanosecond times."""
 VERSION = (-1, INT64_MAX)
@@ -36,5 +35,7 @@ INTEGER_LIMITS: dict[str, dict[str, tuple[int, int]]] = {
     "stats": {},
     "learner_version": {"version": VERSION, "updates": COUNT},
     "frame": {"actor_id": ID, "env_id": ID, "episode": COUNT, "step": COUNT},
+    "actor_id_request": {},
+    "actor_id": {"actor_id": ID},
 }
 """kind -> field -> (lowest, highest) accepted, both included."""

@@ -319,6 +319,34 @@ class LearnerVersion(Message):
     time: float = 0.0
 
 
+MAX_ACTOR_NAME = 300  # a host name (at most 253 characters), a colon and a process id
+
+
+@dataclass
+class ActorIdRequest(Message):
+    """An actor asking replay shard 0 for its id (query payload): the same ``name`` always gets
+    the same id, and no other name gets it."""
+
+    KIND: ClassVar[str] = "actor_id_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"name": "str"}
+    name: str
+
+    def validate(self) -> None:
+        if not 0 < len(self.name) <= MAX_ACTOR_NAME:
+            raise ProtocolError(f"actor_id_request: a name of {len(self.name)} characters, expected 1 to "
+                                f"{MAX_ACTOR_NAME}", "invalid")
+
+
+@dataclass
+class ActorId(Message):
+    """Replay shard 0's reply to an ``ActorIdRequest``: the id of that name in this run."""
+
+    KIND: ClassVar[str] = "actor_id"
+    SCHEMA: ClassVar[dict[str, str]] = {"name": "str", "actor_id": "int"}
+    name: str
+    actor_id: int
+
+
 @dataclass
 class Frame(Message):
     """One step of a running episode for a live viewer: named arrays and numbers."""

@@ -29,6 +29,7 @@ from l2r.protocol import (
     PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
 )
 from l2r.replay import snapshot
+from l2r.replay.actor_ids import ActorIds
 from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
@@ -485,6 +486,7 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
     log_on_disk = WriteAheadLog(config.snapshot_dir, config.shard) if path else None
     wal = log_on_disk if config.write_ahead_log else None
     server = ReplayServer(config, storage, limiter, wal, queue)
+    actor_ids = ActorIds(config.snapshot_dir, server.rejections) if config.shard == 0 else None
     if storage is not None:
         log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/"
                  "transition)", config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
@@ -515,6 +517,8 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
             session.declare_subscriber(keys.priorities(config.shard), _guarded(server.on_priorities)),
             session.declare_subscriber(keys.learner_version, _guarded(server.on_learner_version)),
         ]
+        if actor_ids is not None:  # shard 0 hands out the ids of actors started with --actor-id auto
+            entities.append(session.declare_queryable(keys.actor_ids, _guarded(actor_ids.on_query)))
         watcher = session.liveliness().declare_subscriber(keys.alive_all, _guarded(server.on_alive), history=True)
         # declared last, so a peer that sees the token finds the handlers above in place
         token = session.liveliness().declare_token(keys.alive("replay", config.shard))

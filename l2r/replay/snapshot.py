@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from l2r.durable import fsync_directory
+from l2r.durable import write_durably
 
 log = logging.getLogger("l2r.replay.snapshot")
 
@@ -22,17 +22,7 @@ def snapshot_path(directory: Path, shard: int) -> Path:
 
 def write(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> int:
     """Write ``arrays`` and ``meta`` to ``path`` atomically; return the bytes written."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    fsync_directory(path.parent)  # make the rename itself durable
+    write_durably(path, lambda f: np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays))
     return path.stat().st_size
 
 

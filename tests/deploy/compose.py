@@ -16,6 +16,14 @@ COMPOSE_FILE = Path(__file__).resolve().parents[2] / "deploy" / "docker-compose.
 _VARIABLE = re.compile(r"\$\$|\$\{(\w+)(?::-([^}]*))?\}")
 
 
+def seconds(duration: str) -> float:
+    """A Compose duration such as ``1m30s`` in seconds."""
+    units = {"h": 3600, "m": 60, "s": 1, "ms": 1e-3}
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", duration)
+    assert parts, f"not a duration: {duration}"
+    return sum(float(n) * units[u] for n, u in parts)
+
+
 def load(path: Path = COMPOSE_FILE) -> dict:
     """The compose document as YAML data (merge keys resolved, variables not yet)."""
     return YAML(typ="safe").load(path.read_text())

@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import copy
-import importlib
 import importlib.metadata
 import importlib.resources
 import json
-import os
-import re
 import subprocess
 import sys
 import time
@@ -20,28 +17,22 @@ import pytest
 import zenoh
 
 from l2r.protocol.keys import Keys
+from l2r.router import parser as router_parser
 
 from . import compose
 from tests.conftest import free_port, wait_for
 
+from .daemons import SECRETS, WRITES_TO, daemon_settings, healthcheck_args
 from .zenoh_helpers import DEPLOY, make_secrets, start_router, stop
 
-DAEMONS = {"replay": "l2r.replay", "learner": "l2r.learner", "learner-gpu": "l2r.learner", "actor": "l2r.actors"}
 ROLE = {"replay": "replay", "learner": "learner", "learner-gpu": "learner", "actor": "actor"}
+"""daemon service -> its role"""
 
 
 def compose_validator() -> jsonschema.Draft202012Validator:
     schema_file = importlib.resources.files("check_jsonschema.builtin_schemas.vendor") / "compose-spec.json"
     schema = json.loads(schema_file.read_text())
     return jsonschema.Draft202012Validator(schema, format_checker=jsonschema.FormatChecker())
-
-
-def seconds(duration: str) -> float:
-    """A Compose duration such as ``1m30s`` in seconds."""
-    units = {"h": 3600, "m": 60, "s": 1, "ms": 1e-3}
-    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", duration)
-    assert parts, f"not a duration: {duration}"
-    return sum(float(n) * units[u] for n, u in parts)
 
 
 def test_compose_file_follows_the_compose_specification():
@@ -58,7 +49,17 @@ def test_router_runs_the_zenoh_release_of_the_python_package():
     assert image == f"eclipse/zenoh:{importlib.metadata.version('eclipse-zenoh')}"
 
 
-@pytest.mark.parametrize("name", DAEMONS)
+def test_the_router_override_runs_l2r_router_from_the_l2r_image_with_the_same_flags():
+    """deploy/docker-compose.l2r-router.yml, for hosts that cannot pull eclipse/zenoh."""
+    override = compose.load(DEPLOY / "docker-compose.l2r-router.yml")
+    assert [e.message for e in compose_validator().iter_errors(override)] == []
+    router, services = override["services"]["router"], compose.load()["services"]
+    assert router["image"] == services["replay"]["image"] and router["build"] == services["replay"]["build"]
+    assert router["command"] == ["l2r", "router", *services["router"]["command"]]
+    router_parser().parse_args(router["command"][2:])
+
+
+@pytest.mark.parametrize("name", ROLE)
 def test_daemons_are_supervised_and_stop_gracefully(name):
     spec = compose.load()["services"][name]
     assert spec["init"] is True
@@ -66,7 +67,7 @@ def test_daemons_are_supervised_and_stop_gracefully(name):
     assert spec["depends_on"]
     assert all(dep["condition"] == "service_healthy" for dep in spec["depends_on"].values())
     # Longer than a final replay snapshot or checkpoint takes (seconds for a million transitions).
-    assert seconds(spec["stop_grace_period"]) >= (60 if ROLE[name] != "actor" else 20)
+    assert compose.seconds(spec["stop_grace_period"]) >= (60 if ROLE[name] != "actor" else 20)
 
 
 def test_gpu_learner_reserves_gpus():
@@ -75,45 +76,29 @@ def test_gpu_learner_reserves_gpus():
     assert device["capabilities"] == ["gpu"] and spec["build"]["dockerfile"] == "deploy/Dockerfile.cuda"
 
 
-@pytest.fixture
-def argv_recorder(tmp_path):
-    """A PATH on which l2r-replay, l2r-learner and l2r-actor only record the argv they got."""
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    for script in ("l2r-replay", "l2r-learner", "l2r-actor"):
-        path = bin_dir / script
-        path.write_text(f"#!{sys.executable}\nimport json, sys\nprint(json.dumps(sys.argv[1:]))\n")
-        path.chmod(0o755)
-    return {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}"}
-
-
-@pytest.mark.parametrize("name", DAEMONS)
-def test_each_daemon_accepts_its_compose_command(name, argv_recorder):
-    """Run the service's command as Compose would (sh and all) and parse what reaches the daemon."""
+@pytest.mark.parametrize("name", ROLE)
+def test_each_daemon_accepts_its_compose_command(name, rendered_secrets):
+    """The service's command and health check, read by the daemon's and the health check's own parsers."""
     service = compose.services({"L2R_RUN": "exp7"})[name]
-    out = subprocess.run(service.command, env=argv_recorder, capture_output=True, text=True, check=True, timeout=30)
-    argv = json.loads(out.stdout)
-    args = importlib.import_module(f"{DAEMONS[name]}.__main__").build_parser().parse_args(argv)
-    assert args.run == "exp7"
     # Its Zenoh config is its role's, from the secrets directory mounted for this service alone.
-    config = Path(args.zenoh_config)
-    assert config.name == "zenoh.json5" and service.binds[str(config.parent)] == DEPLOY / "secrets" / ROLE[name]
+    assert service.binds[SECRETS] == DEPLOY / "secrets" / ROLE[name]
+    mounts = {SECRETS: rendered_secrets / ROLE[name]}
+    settings = daemon_settings(service.command, {}, mounts)
+    assert settings.run == "exp7" and settings.zenoh_config == rendered_secrets / ROLE[name] / "zenoh.json5"
     # What it writes goes to the run volume.
-    written = {"replay": "snapshot_dir", "learner": "run_dir", "actor": "episode_log_dir"}[ROLE[name]]
-    assert service.volumes.get("/srv/l2r/run") == "run" and str(getattr(args, written)).startswith("/srv/l2r/run")
+    written = getattr(settings, WRITES_TO[ROLE[name]])
+    assert service.volumes.get("/srv/l2r/run") == "run" and str(written).startswith("/srv/l2r/run")
+    check = healthcheck_args(service.healthcheck, {}, mounts)
+    assert (check.run, check.role, Path(check.zenoh_config)) == ("exp7", ROLE[name], settings.zenoh_config)
 
 
-def test_actor_replicas_get_different_ids(argv_recorder):
-    """--scale actor=N runs one command N times; the id comes from each container's hostname."""
-    service = compose.services({})["actor"]
-    ids = set()
-    for hostname in ("0b5e6f1c2d3a", "9f00c1d2e3b4", "0b5e6f2c2d3a"):
-        cmd = ["unshare", "--uts", "sh", "-c", f'hostname {hostname} && exec "$@"', "sh", *service.command]
-        if os.geteuid() != 0:
-            pytest.skip("needs root for a UTS namespace per replica")
-        argv = json.loads(subprocess.run(cmd, env=argv_recorder, capture_output=True, text=True, check=True).stdout)
-        ids.add(argv[argv.index("--actor-id") + 1])
-    assert len(ids) == 3
+def test_actor_replicas_ask_replay_shard_0_for_ids_of_their_own(rendered_secrets):
+    """--scale actor=N runs one command N times: each replica asks replay shard 0 for its id, which
+    never gives one twice (tests/replay/test_actor_ids.py) when it keeps a snapshot directory."""
+    services = compose.services({})
+    actor = daemon_settings(services["actor"].command, {}, {SECRETS: rendered_secrets / "actor"})
+    replay = daemon_settings(services["replay"].command, {}, {SECRETS: rendered_secrets / "replay"})
+    assert actor.actor_id == "auto" and replay.shard == 0 and replay.snapshot_dir is not None
 
 
 def test_healthcheck_sees_a_live_daemon_and_only_it(tmp_path):

@@ -150,7 +150,8 @@ def replay_daemon(secure_router, keys, tmp_path):
     secrets, endpoint, _ = secure_router
     log = tmp_path / "replay.log"
     cmd = [sys.executable, "-m", "l2r.replay", "--run", keys.run, "--zenoh-config", str(secrets / "replay" / "zenoh.json5"),
-           "--connect", endpoint, "--capacity", "1000", "--min-size", "1", "--stats-interval", "0.3"]
+           "--connect", endpoint, "--capacity", "1000", "--min-size", "1", "--stats-interval", "0.3",
+           "--snapshot-dir", str(tmp_path / "snapshots")]  # with which shard 0 gives actors their ids
     with open(log, "w") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
     yield log
@@ -205,6 +206,20 @@ def test_learners_and_actors_may_ask_a_replay_server_for_its_stats_and_only_it_a
     time.sleep(SETTLE_S)
     assert answers(open_as("actor"), 1) == []
     queryable.undeclare()
+
+
+def test_only_actors_may_ask_replay_shard_0_for_an_id(open_as, keys, replay_daemon):
+    request = messages.encode(messages.ActorIdRequest("actor-7f3a:7"))
+
+    def ids(session: zenoh.Session) -> list[int]:
+        replies = session.get(keys.actor_ids, payload=request, timeout=3.0)
+        return [messages.decode(r.ok.payload.to_bytes(), messages.ActorId).actor_id for r in replies if r.ok is not None]
+
+    actor = open_as("actor")
+    assert wait_for(lambda: ids(actor) == [0], timeout=20), replay_daemon.read_text()[-2000:]
+    askers = {"learner": open_as("learner"), "replay": open_as("replay"),
+              "actor-cert-with-learner-password": open_as("actor", password_of="learner")}
+    assert {name: ids(session) for name, session in askers.items()} == {name: [] for name in askers}
 
 
 def test_experience_of_another_protocol_version_or_run_is_dropped(open_as, keys, replay_daemon):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from l2r.protocol import (
-    EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate, ReplayAck, SampleBatch,
-    SampleRequest, Stats, Weights,
+    ActorId, ActorIdRequest, EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate,
+    ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
 )
 
 
@@ -47,4 +47,6 @@ def every_message() -> list:
         Stats("replay", "0", 123.0, {"size": 10, "inserts_per_s": 2.5}),
         LearnerVersion(11, 2200, 5.0),
         Frame(1, 0, 3, 17, {"xpos": rng.random((12, 3))}, {"reward": 0.5}),
+        ActorIdRequest("actor-7f3a:7"),
+        ActorId("actor-7f3a:7", 12),
     ]
