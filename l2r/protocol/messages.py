@@ -373,6 +373,9 @@ def encode(message: Message) -> bytes:
     out: dict[str, Any] = {"v": PROTOCOL_VERSION, "kind": message.KIND}
     for name, kind in message.SCHEMA.items():
         value = getattr(message, name)
+        kind = kind.removesuffix("?")
+        if value is None and kind != message.SCHEMA[name]:
+            continue  # an optional field left out
         if kind == "arrays":
             out[name] = {k: _pack_array(np.asarray(a)) for k, a in value.items()}
         elif kind.endswith("[]"):
@@ -401,9 +404,6 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         payload = payload.to_bytes()
-        kind = kind.removesuffix("?")
-        if value is None and kind != message.SCHEMA[name]:
-            continue  # an optional field left out
     if len(payload) > MAX_MESSAGE_BYTES:
         raise ProtocolError(f"oversized message: {len(payload)} bytes > {MAX_MESSAGE_BYTES}", "oversized")
     try:
@@ -437,6 +437,10 @@ _MISSING = object()
 
 def _field(kind: str, name: str, spec: str, value: Any) -> Any:
     where = f"{kind}.{name}"
+    if spec.endswith("?"):
+        if value is _MISSING:
+            return None
+        spec = spec[:-1]
     if value is _MISSING:
         raise ProtocolError(f"{where}: missing", "missing_field")
     if spec in _SCALARS:
@@ -465,10 +469,6 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
         return value
     if spec == "arrays":
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-    if spec.endswith("?"):
-        if value is _MISSING:
-            return None
-        spec = spec[:-1]
             raise ProtocolError(f"{where}: expected a map of names to arrays", "wrong_type")
         return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
     return _unpack_array(where, value, spec[:-2])
