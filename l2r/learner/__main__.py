@@ -1,4 +1,4 @@
-"""``l2r-learner``: command line of the SAC learner (see ``l2r.learner.daemon``)."""
+"""``l2r-learner``: command line of the learner, SAC or PPO (see ``l2r.learner.daemon``)."""
 
 from __future__ import annotations
 
@@ -19,11 +19,20 @@ from l2r.config import (  # noqa: E402
 )
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
+from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
 
-SAC_DEFAULTS = SACConfig()
-PROCESS, PARALLEL, SAC = "learner process", "data parallel (torch.distributed; gloo on CPU, NCCL on CUDA)", "SAC"
+SAC_DEFAULTS, PPO_DEFAULTS = SACConfig(), PPOConfig()
+PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; gloo on CPU, NCCL on CUDA)"
+BOTH, SAC, PPO = "algorithm (SAC and PPO)", "SAC (with --algo sac)", "PPO (with --algo ppo)"
+
+
+def _either(sac_value, ppo_value) -> str:
+    """Help text for a setting whose default is the algorithm's."""
+    def shown(value) -> str:
+        return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+    return f"(default: SAC {shown(sac_value)}, PPO {shown(ppo_value)})"
 
 
 class LearnerSettings(DaemonSettings):
@@ -35,10 +44,12 @@ class LearnerSettings(DaemonSettings):
     threads: int = setting(0, "torch CPU threads; 0 = torch's default", group=PROCESS, ge=0)
     obs_dim: int = setting(41, "observation width", group=PROCESS, ge=1)
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)
-    in_flight: int = setting(4, "sample requests kept in flight", group=PROCESS, ge=1)
-    prioritized: bool = setting(False, "prioritized sampling, |TD error| sent back as priority", group=PROCESS)
+    in_flight: int = setting(4, "sample requests kept in flight (PPO: a batch fetched ahead comes from an older "
+                             "policy; l2r up --algo ppo keeps 1)", group=PROCESS, ge=1)
+    prioritized: bool = setting(False, "prioritized sampling, |TD error| sent back as priority (SAC)", group=PROCESS)
     priority_beta: float = setting(0.4, "importance-weight exponent under prioritized sampling", group=PROCESS, ge=0)
-    publish_every: int = setting(50, "updates between weight publications", group=PROCESS, ge=1)
+    publish_every: int = setting(50, "updates between weight publications (SAC; PPO publishes after every batch)",
+                                 group=PROCESS, ge=1)
     checkpoint_interval: float = setting(60.0, "seconds between checkpoints", group=PROCESS, gt=0)
     keep_checkpoints: int = setting(3, "checkpoints kept: checkpoint.pt is the newest, checkpoint-<updates>.pt "
                                     "the newest N", group=PROCESS, ge=1)
@@ -57,49 +68,100 @@ class LearnerSettings(DaemonSettings):
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 
-    batch_size: int = setting(SAC_DEFAULTS.batch_size, "transitions per batch", group=SAC, ge=1)
+    algo: Literal["sac", "ppo"] = setting("sac", "sac: off-policy, from the replay table; ppo: on-policy, from the "
+                                          "replay server's queue table (l2r-replay --queue-capacity)", group=BOTH)
+    batch_size: int | None = setting(None, "transitions per batch; for PPO, per update (its rollout) "
+                                     + _either(SAC_DEFAULTS.batch_size, PPO_DEFAULTS.batch_size), group=BOTH, ge=1)
+    gamma: float = setting(SAC_DEFAULTS.gamma, "discount", group=BOTH, ge=0, le=1)
+    lr: float = setting(SAC_DEFAULTS.actor_lr, "Adam learning rate of every network (and of SAC's alpha)",
+                        group=BOTH, gt=0)
+    hidden: str | None = setting(None, "hidden layer widths of every network, comma-separated "
+                                 + _either(SAC_DEFAULTS.hidden, PPO_DEFAULTS.hidden), group=BOTH)
+    activation: Literal["elu", "relu", "tanh"] | None = setting(
+        None, "hidden activation " + _either(SAC_DEFAULTS.activation, PPO_DEFAULTS.activation), group=BOTH)
+    no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers (SAC's default has it)", group=BOTH)
+    layer_norm: bool = setting(False, "LayerNorm in hidden layers (PPO's default has none)", group=BOTH)
+    reward_scale: float | None = setting(None, "reward multiplier " + _either(SAC_DEFAULTS.reward_scale,
+                                                                                PPO_DEFAULTS.reward_scale), group=BOTH)
+    relative_x: bool = setting(False, "networks see world x coordinates as distances from the pelvis", group=BOTH)
+    normalize_obs: bool = setting(False, "networks see observations standardised by running statistics (shipped "
+                                  "with the weights)", group=BOTH)
+
     update_repeat: int = setting(SAC_DEFAULTS.update_repeat, "gradient steps per sampled batch", group=SAC, ge=1)
-    gamma: float = setting(SAC_DEFAULTS.gamma, "discount", group=SAC, ge=0, le=1)
     tau: float = setting(SAC_DEFAULTS.tau, "Polyak rate of the target critics", group=SAC, gt=0, le=1)
-    lr: float = setting(SAC_DEFAULTS.actor_lr, "Adam learning rate of actor, critics and alpha", group=SAC, gt=0)
-    hidden: str = setting(",".join(map(str, SAC_DEFAULTS.hidden)), "hidden layer widths, comma-separated",
-                          group=SAC)
-    activation: Literal["elu", "relu", "tanh"] = setting(SAC_DEFAULTS.activation, "hidden activation", group=SAC)
-    no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers", group=SAC)
-    reward_scale: float = setting(SAC_DEFAULTS.reward_scale, "reward multiplier", group=SAC)
     target_entropy: float | None = setting(None, "entropy target of alpha tuning (default: -act-dim)", group=SAC)
     initial_alpha: float = setting(SAC_DEFAULTS.initial_alpha, "starting temperature", group=SAC, gt=0)
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
-    relative_x: bool = setting(False, "networks see world x coordinates as distances from the pelvis", group=SAC)
-    normalize_obs: bool = setting(False, "networks see observations standardised by running statistics (shipped "
-                                  "with the weights)", group=SAC)
     mirror: bool = setting(False, "swap the legs of a random half of each batch (left-right symmetry as "
                            "augmentation)", group=SAC)
     precision: Literal["auto", "float32", "bfloat16"] = setting(
-        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 where the hardware has it", group=SAC)
+        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 where the hardware has it (PPO "
+        "runs float32: its ratios compare the learner's log-probabilities with the actors')", group=SAC)
+
+    epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)
+    minibatches: int = setting(PPO_DEFAULTS.minibatches, "minibatches per pass, one gradient step each", group=PPO,
+                               ge=1)
+    clip: float = setting(PPO_DEFAULTS.clip, "clip range of the probability ratio (1 +- clip)", group=PPO, gt=0)
+    gae_lambda: float = setting(PPO_DEFAULTS.gae_lambda, "lambda of GAE and of V-trace's traces", group=PPO, ge=0,
+                                le=1)
+    value_coef: float = setting(PPO_DEFAULTS.value_coef, "weight of the value loss", group=PPO, ge=0)
+    entropy_coef: float = setting(PPO_DEFAULTS.entropy_coef, "weight of the entropy bonus", group=PPO, ge=0)
+    max_grad_norm: float = setting(PPO_DEFAULTS.max_grad_norm, "gradient norm clip", group=PPO, gt=0)
+    no_normalize_advantages: bool = setting(False, "advantages as computed, not standardised per minibatch",
+                                            group=PPO)
+    lag_correction: Literal[LAG_CORRECTIONS] = setting(
+        PPO_DEFAULTS.lag_correction, "the actors' policy lag: none (data taken as on-policy), ratio (the acting "
+        "policy's log-probabilities in PPO's clipped ratio) or vtrace (V-trace advantages and targets)", group=PPO)
+    is_clip: float = setting(PPO_DEFAULTS.is_clip, "V-trace's truncation of importance ratios", group=PPO, gt=0)
 
     @field_validator("hidden")
     @classmethod
-    def _widths(cls, hidden: str) -> str:
-        if not HIDDEN_WIDTHS.fullmatch(hidden):
+    def _widths(cls, hidden: str | None) -> str | None:
+        if hidden is not None and not HIDDEN_WIDTHS.fullmatch(hidden):
             raise ValueError("should be layer widths separated by commas, e.g. 512,512,512")
         return hidden
 
     def check(self) -> None:
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
+        if self.layer_norm and self.no_layer_norm:
+            raise UsageError("--layer-norm and --no-layer-norm contradict each other")
+        if self.algo == "ppo" and (self.mirror or self.prioritized):
+            raise UsageError("--mirror and --prioritized are SAC's: PPO learns from the actors' own actions, in "
+                             "order (their log-probabilities are of the actions as taken)")
+
+    def _network(self, defaults: SACConfig | PPOConfig) -> dict:
+        """The settings both algorithms have, each unset one at the algorithm's default."""
+        return {"batch_size": self.batch_size or defaults.batch_size, "gamma": self.gamma,
+                "hidden": tuple(int(h) for h in self.hidden.split(",")) if self.hidden else defaults.hidden,
+                "activation": self.activation or defaults.activation,
+                "layer_norm": self.layer_norm or (defaults.layer_norm and not self.no_layer_norm),
+                "reward_scale": defaults.reward_scale if self.reward_scale is None else self.reward_scale,
+                "relative_x": self.relative_x, "normalize_obs": self.normalize_obs}
 
     def sac(self) -> SACConfig:
         try:
             return SACConfig(
-                gamma=self.gamma, tau=self.tau, actor_lr=self.lr, critic_lr=self.lr, alpha_lr=self.lr,
-                batch_size=self.batch_size, hidden=tuple(int(h) for h in self.hidden.split(",")),
-                activation=self.activation, layer_norm=not self.no_layer_norm, reward_scale=self.reward_scale,
+                **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self.lr, critic_lr=self.lr, alpha_lr=self.lr,
                 update_repeat=self.update_repeat, target_entropy=self.target_entropy,
-                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, relative_x=self.relative_x,
-                normalize_obs=self.normalize_obs, mirror=self.mirror, precision=self.precision)
+                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
+                precision=self.precision)
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None
+
+    def ppo(self) -> PPOConfig:
+        try:
+            return PPOConfig(
+                **self._network(PPO_DEFAULTS), lr=self.lr, epochs=self.epochs, minibatches=self.minibatches,
+                clip=self.clip, gae_lambda=self.gae_lambda, value_coef=self.value_coef,
+                entropy_coef=self.entropy_coef, max_grad_norm=self.max_grad_norm,
+                normalize_advantages=not self.no_normalize_advantages, lag_correction=self.lag_correction,
+                is_clip=self.is_clip)
+        except ValueError as e:  # a combination PPOConfig refuses
+            raise UsageError(str(e)) from None
+
+    def algorithm(self) -> SACConfig | PPOConfig:
+        return self.ppo() if self.algo == "ppo" else self.sac()
 
     def learner(self) -> LearnerConfig:
         return LearnerConfig(
@@ -115,10 +177,12 @@ class LearnerSettings(DaemonSettings):
 def build_parser() -> CommandParser:
     return settings_parser(
         LearnerSettings, "l2r-learner",
-        "SAC learner of an l2r run: samples batches from the replay server(s) with several requests in flight, "
-        "trains twin critics, a tanh-Gaussian policy and the entropy temperature, publishes versioned policy "
-        "weights for actors, and checkpoints atomically.",
+        "Learner of an l2r run. SAC (the default) samples batches from the replay server(s) with several requests "
+        "in flight and trains twin critics, a tanh-Gaussian policy and the entropy temperature; PPO (--algo ppo) "
+        "takes batches from the replay servers' queue table, each transition once, and trains the same policy with "
+        "a value network. Both publish versioned policy weights for actors and checkpoint atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
+        "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192\n"
         "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500")
 
 
@@ -131,10 +195,10 @@ def cli(argv: Sequence[str] | None = None) -> int:
 
 
 def train(s: LearnerSettings) -> int:
-    sac = s.sac()
+    algo = s.algorithm()
     configure_logging(s.log_level)
     try:
-        return main(s.learner(), sac, s.zenoh_session_config())
+        return main(s.learner(), algo, s.zenoh_session_config())
     except DeviceUnavailable as e:
         raise StartupFailure(str(e)) from None
 

@@ -4,13 +4,18 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
 
     format          "l2r-learner-checkpoint"
     format_version  1
+    algo            "sac" or "ppo", the algorithm that trained it (absent: "sac", a file from
+                    before PPO)
     sac_config      SACConfig as a dict (algorithm settings the state was trained with);
-                    None in a policy checkpoint
+                    None in a policy checkpoint and in a PPO checkpoint, so that readers from
+                    before PPO take a PPO checkpoint for a policy checkpoint
+    ppo_config      PPOConfig as a dict, in a PPO checkpoint
     obs_dim, act_dim
     policy_spec     the architecture spec of the policy (see l2r.policy)
-    train_state     TrainState.state_dict(): actor, critic, target_critic and their Adam
-                    states, log_alpha, updates, version, extra counters; a policy checkpoint
-                    holds only actor, updates and version
+    train_state     the algorithm's TrainState.state_dict(): for SAC actor, critic, target_critic
+                    and their Adam states, log_alpha, updates, version, extra counters; for PPO
+                    actor, value, optimizer, updates, version, extra; a policy checkpoint holds
+                    only actor, updates and version
     action_repeat   0.01 s steps per action the actors trained with (None: not known, as in
                     files from before it was stored)
     evaluation      policy checkpoints: how the policy did ({"mean_distance", "episodes", ...})
@@ -43,7 +48,9 @@ from typing import Any, Mapping
 import torch
 
 from l2r.durable import fsync_directory
-from l2r.learner.sac import SACConfig, TrainState, init_state
+from l2r.learner import ppo, sac
+from l2r.learner.ppo import PPOConfig
+from l2r.learner.sac import SACConfig
 from l2r.policy import Policy, build_policy
 
 FORMAT = "l2r-learner-checkpoint"
@@ -51,6 +58,15 @@ FORMAT_VERSION = 1
 RELATIVE_PATH = Path("learner") / "checkpoint.pt"
 BEST_RELATIVE_PATH = Path("learner") / "best.pt"
 UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of their updates
+
+
+# What a checkpoint's "algo" names: the algorithm's config class and its module (init_state, TrainState, ...).
+ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo)}
+
+
+def algorithm_of(config: SACConfig | PPOConfig) -> str:
+    """The name of the algorithm a config is for ("sac", "ppo")."""
+    return next(name for name, (cls, _) in ALGORITHMS.items() if isinstance(config, cls))
 
 
 class CheckpointError(RuntimeError):
@@ -80,13 +96,16 @@ def find_checkpoint(path_or_run_dir: str | Path) -> Path:
     return path
 
 
-def save_checkpoint(path: str | Path, state: TrainState, config: SACConfig, obs_dim: int, act_dim: int,
-                    action_repeat: int | None = None, keep: int = 1) -> Path:
+def save_checkpoint(path: str | Path, state: sac.TrainState | ppo.TrainState, config: SACConfig | PPOConfig,
+                    obs_dim: int, act_dim: int, action_repeat: int | None = None, keep: int = 1) -> Path:
     """Write the training state to `path` atomically. With `keep` > 1 the checkpoint is also
     kept as `checkpoint-<updates>.pt` beside it, and all but the newest `keep` such files go."""
     path = Path(path)
+    algo = algorithm_of(config)
     _write(path, {
-        "format": FORMAT, "format_version": FORMAT_VERSION, "sac_config": config.to_dict(),
+        # sac_config stays None unless SAC trained it: readers from before PPO see a policy checkpoint
+        "format": FORMAT, "format_version": FORMAT_VERSION, "algo": algo, "sac_config": None,
+        f"{algo}_config": config.to_dict(),
         "obs_dim": obs_dim, "act_dim": act_dim, "policy_spec": dict(state.actor.spec),
         "train_state": state.state_dict(), "action_repeat": action_repeat, "saved_at": time.time(),
     })
@@ -138,7 +157,7 @@ class Checkpoint:
     """A loaded checkpoint: settings, shapes and the saved training state."""
 
     path: Path
-    config: SACConfig | None
+    config: SACConfig | PPOConfig | None
     """None in a policy checkpoint."""
     obs_dim: int
     act_dim: int
@@ -149,6 +168,8 @@ class Checkpoint:
     """0.01 s steps per action in training; None when the file does not say."""
     evaluation: dict | None = None
     """How a policy checkpoint's policy did in evaluation."""
+    algo: str = "sac"
+    """The algorithm that trained it."""
 
     @property
     def version(self) -> int:
@@ -164,11 +185,11 @@ class Checkpoint:
         policy.load_state_dict(self.train_state["actor"])
         return policy.to(device).eval()
 
-    def restore(self, device: str | torch.device = "cpu") -> TrainState:
-        """The full training state (networks, optimizers, alpha, counters) on `device`."""
+    def restore(self, device: str | torch.device = "cpu") -> sac.TrainState | ppo.TrainState:
+        """The full training state (networks, optimizers, counters) on `device`."""
         if self.config is None:
             raise CheckpointError(f"{self.path} holds a policy alone, not a training state to resume")
-        state = init_state(self.config, self.obs_dim, self.act_dim, device)
+        state = ALGORITHMS[self.algo][1].init_state(self.config, self.obs_dim, self.act_dim, device)
         state.load_state_dict(self.train_state)
         return state
 
@@ -185,11 +206,15 @@ def load_checkpoint(path_or_run_dir: str | Path, map_location: str | torch.devic
     if raw.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path} has checkpoint format version {raw.get('format_version')!r}, "
                               f"this l2r reads {FORMAT_VERSION}")
+    algo = raw.get("algo", "sac")
+    if algo not in ALGORITHMS:
+        raise CheckpointError(f"{path} was trained by {algo!r}; this l2r knows {', '.join(ALGORITHMS)}")
     try:
-        config = None if raw["sac_config"] is None else SACConfig(**raw["sac_config"])
+        settings = raw[f"{algo}_config"]
+        config = None if settings is None else ALGORITHMS[algo][0](**settings)
         repeat = raw.get("action_repeat")
         return Checkpoint(path, config, int(raw["obs_dim"]), int(raw["act_dim"]), dict(raw["policy_spec"]),
                           raw["train_state"], float(raw["saved_at"]), None if repeat is None else int(repeat),
-                          raw.get("evaluation"))
+                          raw.get("evaluation"), algo)
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path} is incomplete or inconsistent: {type(e).__name__}: {e}") from None

@@ -1,10 +1,13 @@
-"""The learner process: batches in from replay, SAC updates, weights, metrics and checkpoints out.
+"""The learner process: batches in from replay, updates, weights, metrics and checkpoints out.
 
-The algorithm lives in `l2r.learner.sac`; this module only hosts it. Steady state:
+The algorithms live in `l2r.learner.sac` and `l2r.learner.ppo`; this module only hosts them.
+Steady state:
 
-    replay client (several sample queries in flight) -> batch -> update x update_repeat
-        -> priorities back to replay (prioritized sampling only)
-        -> every K updates: weights (new version) published, and kept for queries
+    replay client (sample queries in flight) -> batch -> the algorithm's step:
+        SAC: update x update_repeat on a batch from the replay table, priorities back (prioritized only)
+        PPO: one update (epochs x minibatches) on a batch from the queue table
+        -> weights (new version) published and kept for queries: SAC every K updates, PPO after
+           every batch (its data must come from the newest policy)
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
 
 SIGTERM and SIGINT stop the loop; the checkpoint is written last.
@@ -25,9 +28,13 @@ import numpy as np
 import torch
 import zenoh
 
-from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner import ppo, sac
+from l2r.learner.checkpoint import (
+    ALGORITHMS, CheckpointError, algorithm_of, checkpoint_path, load_checkpoint, save_checkpoint,
+)
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
-from l2r.learner.sac import SACConfig, TrainState, batch_from_numpy, broadcast_state, init_state, prepare, update
+from l2r.learner.ppo import PPOConfig
+from l2r.learner.sac import SACConfig
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
     STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, ReplayClient, SampleBatch, Stats,
@@ -39,7 +46,7 @@ log = logging.getLogger("l2r.learner")
 
 @dataclass
 class LearnerConfig:
-    """Run and infrastructure settings of one learner process (the algorithm's are in SACConfig)."""
+    """Run and infrastructure settings of one learner process (the algorithm's are in SACConfig or PPOConfig)."""
 
     run: str = "default"
     run_dir: Path | None = None
@@ -76,9 +83,12 @@ class Diverged(RuntimeError):
     """Training produced NaN or infinite weights."""
 
 
+TrainState = sac.TrainState | ppo.TrainState
+AlgorithmConfig = SACConfig | PPOConfig
+
+
 def _finite(state: TrainState) -> bool:
-    tensors = [*state.actor.parameters(), *state.critic.parameters(), state.log_alpha]
-    return all(bool(torch.isfinite(t).all()) for t in tensors)
+    return all(bool(torch.isfinite(t).all()) for t in state.parameters())
 
 
 class WeightsOutlet:
@@ -138,7 +148,7 @@ class Meter:
         return values
 
 
-def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
+def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> int:
     """Run a learner until SIGTERM/SIGINT or `max_updates`; returns the exit status."""
     if config.threads > 0:
         torch.set_num_threads(config.threads)
@@ -152,12 +162,13 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     init_distributed(config.world_size, config.rank, config.dist_url, device)
     try:
-        state = _initial_state(config, sac, device)
-        broadcast_state(state)
-        log.info("rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", config.rank, device,
-                 "bfloat16" if state.bfloat16 else "float32", torch.get_num_threads(), state.version,
+        state = _initial_state(config, algo, device)
+        ALGORITHMS[algorithm_of(algo)][1].broadcast_state(state)
+        bfloat16 = getattr(state, "bfloat16", False)  # PPO's state has no such option: it runs float32
+        log.info("%s rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", algorithm_of(algo).upper(),
+                 config.rank, device, "bfloat16" if bfloat16 else "float32", torch.get_num_threads(), state.version,
                  state.updates)
-        _serve(config, sac, state, conf, device, stop)
+        _serve(config, algo, state, conf, device, stop)
         return 0
     except CheckpointError as e:
         log.error("%s", e)
@@ -171,8 +182,8 @@ def main(config: LearnerConfig, sac: SACConfig, conf: zenoh.Config) -> int:
             signal.signal(sig, handler)
 
 
-def _serve(config: LearnerConfig, sac: SACConfig, state: TrainState, conf: zenoh.Config, device: torch.device,
-           stop: threading.Event) -> None:
+def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf: zenoh.Config,
+           device: torch.device, stop: threading.Event) -> None:
     """The Zenoh side: liveliness, publishers, replay client and training; the checkpoint comes last."""
     keys = Keys(config.run)
     leader = config.rank == 0
@@ -181,43 +192,69 @@ def _serve(config: LearnerConfig, sac: SACConfig, state: TrainState, conf: zenoh
             token = session.liveliness().declare_token(keys.alive("learner", config.rank))
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
-            with ReplayClient(session, config.run, sac.batch_size, config.prioritized, config.in_flight) as replay:
+            table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
+            with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
+                              table=table) as replay:
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version
-                _train(config, sac, state, replay, outlet, metrics_out, device, stop)
+                _train(config, algo, state, replay, outlet, metrics_out, device, stop)
             token.undeclare()
     finally:
         if leader:
-            _checkpoint(config, sac, state)
+            _checkpoint(config, algo, state)
 
 
-def _initial_state(config: LearnerConfig, sac: SACConfig, device: torch.device) -> TrainState:
+def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.device) -> TrainState:
     if config.seed is not None:
         torch.manual_seed(config.seed + config.rank)
-    state = init_state(sac, config.obs_dim, config.act_dim, device)
+    name = algorithm_of(algo)
+    state = ALGORITHMS[name][1].init_state(algo, config.obs_dim, config.act_dim, device)
     if not config.resume:
         return state
     if not config.checkpoint.is_file():
         log.info("--resume: no checkpoint at %s yet, starting fresh", config.checkpoint)
         return state
     saved = load_checkpoint(config.checkpoint, map_location=device)
-    if (check_spec(saved.policy_spec) != state.actor.spec or saved.config.hidden != sac.hidden
-            or saved.config.layer_norm != sac.layer_norm or saved.config.activation != sac.activation):
+    if saved.algo != name or saved.config is None:
+        raise CheckpointError(f"{saved.path} holds {'a policy alone' if saved.config is None else saved.algo.upper()}"
+                              f", not a {name.upper()} training state: use --algo {saved.algo}, or a new run directory")
+    if (check_spec(saved.policy_spec) != state.actor.spec or saved.config.hidden != algo.hidden
+            or saved.config.layer_norm != algo.layer_norm or saved.config.activation != algo.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
                               f"{state.actor.spec}: use the same architecture flags, or a new run directory")
     state.load_state_dict(saved.train_state)
-    # The command line's learning rates apply to a resumed run, not the saved ones.
-    for opt, lr in ((state.actor_opt, sac.actor_lr), (state.critic_opt, sac.critic_lr), (state.alpha_opt, sac.alpha_lr)):
-        for group in opt.param_groups:
-            group["lr"] = lr
+    state.set_learning_rates(algo)  # the command line's, not the saved ones
     log.info("resumed from %s: version %d, %d updates", saved.path, state.version, state.updates)
     return state
 
 
-def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: ReplayClient,
+def _sac_step(state: sac.TrainState, batch: SampleBatch, algo: SACConfig, config: LearnerConfig,
+              replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
+    tensors = sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
+                                   batch.importance_weights(config.priority_beta) if batch.prioritized else None,
+                                   device)
+    tensors = sac.prepare(state, tensors, algo)
+    for _ in range(algo.update_repeat):
+        metrics = sac.update(state, tensors, algo)
+    if batch.prioritized:
+        replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
+    return metrics
+
+
+def _ppo_step(state: ppo.TrainState, batch: SampleBatch, algo: PPOConfig, config: LearnerConfig,
+              replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
+    return ppo.update(state, ppo.batch_from_sample(batch, device), algo)
+
+
+# One batch's training, and whether weights go out after every batch (else every --publish-every updates).
+STEPS = {"sac": (_sac_step, False), "ppo": (_ppo_step, True)}
+
+
+def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, replay: ReplayClient,
            outlet: WeightsOutlet | None, metrics_out: zenoh.Publisher, device: torch.device,
            stop: threading.Event) -> None:
+    step, publish_each_batch = STEPS[algorithm_of(algo)]
     meter = Meter()
     last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None
     while True:
@@ -237,21 +274,15 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
         done = config.max_updates and state.updates >= config.max_updates
         if any_rank(stop.is_set() or bool(done), device):
             return
-        tensors = batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
-                                   batch.importance_weights(config.priority_beta) if batch.prioritized else None,
-                                   device)
-        tensors = prepare(state, tensors, sac)
-        for _ in range(sac.update_repeat):
-            metrics = update(state, tensors, sac)
-        if batch.prioritized:
-            replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
+        updates_before = state.updates
+        metrics = step(state, batch, algo, config, replay, device)
         lag = float(state.version - np.mean(batch.policy_versions))
-        meter.add(metrics, sac.update_repeat, len(batch.obs), lag)
+        meter.add(metrics, state.updates - updates_before, len(batch.obs), lag)
 
         state.extra["samples"] = state.extra.get("samples", 0) + len(batch.obs)
 
         now = time.monotonic()
-        if state.updates - last_publish >= config.publish_every:
+        if publish_each_batch or state.updates - last_publish >= config.publish_every:
             # Every rank checks (their weights are identical), so all stop together.
             if not _finite(state):
                 raise Diverged(f"weights hold NaN or infinity after {state.updates} updates")
@@ -262,7 +293,7 @@ def _train(config: LearnerConfig, sac: SACConfig, state: TrainState, replay: Rep
         if now - meter.since >= config.metrics_interval:
             _report(config, state, meter.report(now), metrics_out)
         if outlet and now - last_checkpoint >= config.checkpoint_interval:
-            _checkpoint(config, sac, state)
+            _checkpoint(config, algo, state)
             last_checkpoint = now
 
 
@@ -279,27 +310,40 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
                                             f"learner trains on {config.obs_dim} / {config.act_dim}", "wrong_width"),
                               f"shard {batch.shard}")
         return None
+    if replay.table == "queue" and batch.log_probs is None:
+        replay.rejections.add(ProtocolError("a replay-table batch in answer to a queue request: is the shard an "
+                                            "l2r-replay from before the queue table?", "not_from_queue"),
+                              f"shard {batch.shard}")
+        return None
     return batch
+
+
+# What the log line shows of each algorithm's metrics: (label, metric).
+LOGGED = {
+    sac.TrainState: (("critic", "critic_loss"), ("actor", "actor_loss"), ("alpha", "alpha"), ("q", "q_mean"),
+                     ("entropy", "entropy")),
+    ppo.TrainState: (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
+                     ("kl", "approx_kl"), ("clipped", "clip_fraction")),
+}
 
 
 def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
     values |= {"updates": state.updates, "version": state.version, "samples": state.extra.get("samples", 0)}
-    losses = {name: values.get(name, math.nan) for name in ("critic_loss", "actor_loss", "alpha", "q_mean", "entropy")}
-    log.info("updates %d (%.1f/s), samples %.0f/s, waiting %.0f%%, version %d, lag %.1f, critic %.4g, "
-             "actor %.4g, alpha %.4g, q %.4g, entropy %.3g", state.updates, values["updates_per_s"],
-             values["samples_per_s"], 100 * values["wait_fraction"], state.version, values["policy_lag"],
-             *losses.values())
+    losses = ", ".join(f"{label} {values.get(name, math.nan):.4g}" for label, name in LOGGED[type(state)])
+    log.info("updates %d (%.1f/s), samples %.0f/s, waiting %.0f%%, version %d, lag %.1f, %s", state.updates,
+             values["updates_per_s"], values["samples_per_s"], 100 * values["wait_fraction"], state.version,
+             values["policy_lag"], losses)
     out.put(encode(Stats("learner", str(config.rank), time.time(), values)))
 
 
-def _checkpoint(config: LearnerConfig, sac: SACConfig, state: TrainState) -> None:
+def _checkpoint(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState) -> None:
     """Save, unless training has diverged: a NaN state never replaces a good checkpoint."""
     if not _finite(state):
         log.error("training state holds NaN or infinity: checkpoint NOT written, %s keeps the last good one",
                   config.checkpoint)
         return
     started = time.monotonic()
-    path = save_checkpoint(config.checkpoint, state, sac, config.obs_dim, config.act_dim, config.action_repeat,
+    path = save_checkpoint(config.checkpoint, state, algo, config.obs_dim, config.act_dim, config.action_repeat,
                            config.keep_checkpoints)
     log.info("checkpoint %s (version %d, %d updates) in %.2f s", path, state.version, state.updates,
              time.monotonic() - started)

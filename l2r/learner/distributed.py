@@ -1,7 +1,7 @@
 """Device choice and data-parallel set-up for learners (`torch.distributed`).
 
-Every rank samples its own batches; `sac.update` averages gradients over ranks before each
-optimizer step, so ranks that start identical stay identical. Rank 0 publishes weights and
+Every rank samples its own batches; the algorithms' updates average gradients over ranks before
+each optimizer step, so ranks that start identical stay identical. Rank 0 publishes weights and
 writes checkpoints. Backend: gloo on CPU, NCCL on CUDA.
 """
 
@@ -52,6 +52,41 @@ def any_rank(flag: bool, device: torch.device) -> bool:
     t = torch.tensor([1.0 if flag else 0.0], device=device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
     return bool(t.item())
+
+
+def sum_over_ranks(tensor: torch.Tensor) -> None:
+    """Sum a tensor over data-parallel ranks, in place (a no-op when training alone)."""
+    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        dist.all_reduce(tensor)
+
+
+def average_gradients(params) -> None:
+    """Average gradients over data-parallel ranks (a no-op when training alone).
+
+    All gradients travel in one flat buffer: one all-reduce per optimizer step.
+    """
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return
+    grads = [p.grad for p in params if p.grad is not None]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= dist.get_world_size()
+    offset = 0
+    for g in grads:
+        g.copy_(flat[offset:offset + g.numel()].view_as(g))
+        offset += g.numel()
+
+
+def broadcast(modules, tensors=()) -> None:
+    """Give every data-parallel rank rank 0's module states and tensors, so all start identical."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    with torch.no_grad():
+        for module in modules:
+            for tensor in module.state_dict().values():
+                dist.broadcast(tensor, 0)
+        for tensor in tensors:
+            dist.broadcast(tensor.data, 0)
 
 
 def close_distributed() -> None:

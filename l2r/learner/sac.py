@@ -21,11 +21,12 @@ from typing import Mapping
 
 import numpy as np
 import torch
-import torch.distributed as dist
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.policy import ACTIVATIONS, Policy, check_spec, to_tanh_space
+from l2r.learner.common import adam, float_tensor, native_bfloat16, policy_spec
+from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
+from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
 from l2r.sim import layout
 
 # `hidden` as command lines write it: widths separated by commas, e.g. 256,256.
@@ -91,13 +92,6 @@ class SACConfig:
         return {**asdict(self), "hidden": list(self.hidden)}
 
 
-def policy_spec(config: SACConfig, obs_dim: int, act_dim: int) -> dict:
-    """The architecture spec of the policy this config trains (sent with the weights)."""
-    return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
-                       "activation": config.activation, "layer_norm": config.layer_norm,
-                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs})
-
-
 class TwinCritic(nn.Module):
     """`n` Q networks evaluated as one: every layer stacks the critics' weights as (n, in, out).
 
@@ -158,6 +152,17 @@ class TrainState:
     bfloat16: bool = False
     """Whether hidden-layer matmuls run in bfloat16 (resolved from config.precision, not saved)."""
 
+    def parameters(self) -> list[torch.Tensor]:
+        """What training changes, to check for divergence."""
+        return [*self.actor.parameters(), *self.critic.parameters(), self.log_alpha]
+
+    def set_learning_rates(self, config: SACConfig) -> None:
+        """Apply the config's learning rates (a resumed run takes the command line's, not the saved ones)."""
+        for opt, lr in ((self.actor_opt, config.actor_lr), (self.critic_opt, config.critic_lr),
+                        (self.alpha_opt, config.alpha_lr)):
+            for group in opt.param_groups:
+                group["lr"] = lr
+
     def autocast(self) -> torch.autocast:
         return torch.autocast(self.log_alpha.device.type, dtype=torch.bfloat16, enabled=self.bfloat16)
 
@@ -178,18 +183,6 @@ class TrainState:
 _MODULES = ("actor", "critic", "target_critic", "actor_opt", "critic_opt", "alpha_opt")
 
 
-def _adam(params, lr: float, device: torch.device) -> torch.optim.Adam:
-    # The fused kernel exists on CPU and CUDA; it is the fastest Adam on both.
-    return torch.optim.Adam(params, lr=lr, fused=device.type in ("cpu", "cuda"))
-
-
-def native_bfloat16(device: torch.device) -> bool:
-    """Whether `device` runs bfloat16 matmuls natively (else they are emulated and slow)."""
-    if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
-    return device.type == "cpu" and torch.ops.mkldnn._is_mkldnn_bf16_supported()
-
-
 def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
                seed: int | None = None) -> TrainState:
     """Freshly initialised networks and optimizers on `device`."""
@@ -206,9 +199,9 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
     target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
     bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and native_bfloat16(device))
     return TrainState(actor, critic, target_critic, log_alpha,
-                      _adam(actor.parameters(), config.actor_lr, device),
-                      _adam(critic.parameters(), config.critic_lr, device),
-                      _adam([log_alpha], config.alpha_lr, device), target_entropy,
+                      adam(actor.parameters(), config.actor_lr, device),
+                      adam(critic.parameters(), config.critic_lr, device),
+                      adam([log_alpha], config.alpha_lr, device), target_entropy,
                       bfloat16=bfloat16)
 
 
@@ -230,14 +223,10 @@ def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, ne
                      terminated: np.ndarray, weights: np.ndarray | None = None,
                      device: str | torch.device = "cpu") -> Batch:
     """A Batch from replay arrays; actions arrive as [0, 1] excitations."""
-
-    def tensor(a: np.ndarray) -> torch.Tensor:
-        # Decoded messages are read-only views; torch wants memory it may write.
-        return torch.from_numpy(np.require(a, np.float32, "W")).to(device, non_blocking=True)
-
-    return Batch(tensor(obs), to_tanh_space(tensor(action)), tensor(reward).reshape(-1),
-                 tensor(next_obs), tensor(terminated).reshape(-1),
-                 None if weights is None else tensor(weights).reshape(-1))
+    return Batch(float_tensor(obs, device), to_tanh_space(float_tensor(action, device)),
+                 float_tensor(reward, device).reshape(-1), float_tensor(next_obs, device),
+                 float_tensor(terminated, device).reshape(-1),
+                 None if weights is None else float_tensor(weights, device).reshape(-1))
 
 
 def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
@@ -251,7 +240,7 @@ def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
                       torch.where(swap, batch.action[:, action_mirror], batch.action), batch.reward,
                       torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs), batch.terminated,
                       batch.weights)
-    state.actor.observation_filter.update(batch.obs, _sum_over_ranks)
+    state.actor.observation_filter.update(batch.obs, sum_over_ranks)
     return batch
 
 
@@ -278,7 +267,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     critic_loss = squared.mean(-1).sum()
     state.critic_opt.zero_grad(set_to_none=True)
     critic_loss.backward()
-    _average_gradients(state.critic.parameters())
+    average_gradients(state.critic.parameters())
     state.critic_opt.step()
 
     # 3. Actor loss against the updated critics; their weights are detached (only dQ/da is needed).
@@ -288,7 +277,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     actor_loss = (alpha * log_prob - q_pi).mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()
-    _average_gradients(state.actor.parameters())
+    average_gradients(state.actor.parameters())
     state.actor_opt.step()
 
     # 4. Temperature: raise alpha when entropy is below target, lower it when above.
@@ -297,7 +286,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     if config.autotune_alpha:
         state.alpha_opt.zero_grad(set_to_none=True)
         alpha_loss.backward()
-        _average_gradients([state.log_alpha])
+        average_gradients([state.log_alpha])
         state.alpha_opt.step()
 
     # 5. Polyak copy of the target critics.
@@ -314,35 +303,6 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     }
 
 
-def _sum_over_ranks(tensor: torch.Tensor) -> None:
-    """Sum a tensor over data-parallel ranks, in place (a no-op when training alone)."""
-    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
-        dist.all_reduce(tensor)
-
-
-def _average_gradients(params) -> None:
-    """Average gradients over data-parallel ranks (a no-op when training alone).
-
-    All gradients travel in one flat buffer: one all-reduce per optimizer step.
-    """
-    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
-        return
-    grads = [p.grad for p in params if p.grad is not None]
-    flat = torch.cat([g.reshape(-1) for g in grads])
-    dist.all_reduce(flat)
-    flat /= dist.get_world_size()
-    offset = 0
-    for g in grads:
-        g.copy_(flat[offset:offset + g.numel()].view_as(g))
-        offset += g.numel()
-
-
-def broadcast_state(state: TrainState, src: int = 0) -> None:
-    """Give every data-parallel rank the weights of rank `src`, so all start identical."""
-    if not (dist.is_available() and dist.is_initialized()):
-        return
-    with torch.no_grad():
-        for module in (state.actor, state.critic, state.target_critic):
-            for tensor in module.state_dict().values():
-                dist.broadcast(tensor, src)
-        dist.broadcast(state.log_alpha.data, src)
+def broadcast_state(state: TrainState) -> None:
+    """Give every data-parallel rank the weights of rank 0, so all start identical."""
+    broadcast([state.actor, state.critic, state.target_critic], [state.log_alpha])

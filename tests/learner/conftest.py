@@ -15,7 +15,7 @@ import pytest
 import torch
 import zenoh
 
-from l2r.protocol import EXPERIENCE_QOS, ExperienceChunk, Keys, encode, session_config
+from l2r.protocol import EXPERIENCE_QOS, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
 from l2r.protocol.session import wait_alive
 from tests.conftest import free_port
 
@@ -83,9 +83,47 @@ class Feeder:
         self._thread.join(5)
 
 
+class WeightsWatcher:
+    """Collects every published weights version, and checks the weights build a policy."""
+
+    def __init__(self, session, run: str):
+        self.versions: list[int] = []
+        self.metrics: list[dict] = []
+        self.last: Weights | None = None
+        self._lock = threading.Lock()
+        keys = Keys(run)
+        self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
+                      session.declare_subscriber(keys.all_metrics, self._on_metrics)]
+
+    def _on_weights(self, sample) -> None:
+        weights = decode(sample.payload, Weights)
+        with self._lock:
+            self.versions.append(weights.version)
+            self.last = weights
+
+    def _on_metrics(self, sample) -> None:
+        self.metrics.append(decode(sample.payload, Stats).values)
+
+    def wait(self, predicate, timeout: float, what: str, daemon) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if predicate(list(self.versions)):
+                    return
+            assert daemon.proc.poll() is None, f"learner exited early:\n{daemon.log()}"
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}; versions {self.versions}\n{daemon.log()}")
+
+
+def learner_args(network, run_dir, *extra: str) -> list[str]:
+    return ["--run", network.run, "--connect", network.endpoint, "--run-dir", str(run_dir), "--device", "cpu",
+            "--publish-every", "20", *SMALL_LEARNER, *extra]
+
+
 @pytest.fixture
-def network(tmp_path):
-    """A replay server on a free loopback port, a test session connected to it, and cleanup."""
+def network(tmp_path, request):
+    """A replay server on a free loopback port, a test session connected to it, and cleanup. Indirect
+    parametrisation gives the server's extra arguments (a queue table, say)."""
     run = f"test-{uuid.uuid4().hex[:10]}"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     started: list[Daemon] = []
@@ -97,7 +135,7 @@ def network(tmp_path):
 
     def start_replay() -> Daemon:
         return start("l2r.replay", "--run", run, "--listen", endpoint, "--capacity", "20000", "--min-size", "200",
-                     "--stats-interval", "5", name=f"replay{len(started)}")
+                     "--stats-interval", "5", *getattr(request, "param", ()), name=f"replay{len(started)}")
 
     replay = start_replay()
     session = zenoh.open(session_config(connect=[endpoint]))

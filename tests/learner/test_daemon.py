@@ -1,7 +1,6 @@
 """The real l2r-learner process against a real l2r-replay process over loopback Zenoh."""
 
 import signal
-import threading
 import time
 
 import numpy as np
@@ -9,48 +8,11 @@ import pytest
 
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import act, build_policy, load_policy_state
-from l2r.protocol import Keys, Stats, Weights, decode
+from l2r.protocol import Keys, Weights, decode
 from l2r.protocol.session import wait_alive
 
 from tests.conftest import free_port
-from tests.learner.conftest import SMALL_LEARNER, Feeder
-
-
-class WeightsWatcher:
-    """Collects every published weights version, and checks the weights build a policy."""
-
-    def __init__(self, session, run: str):
-        self.versions: list[int] = []
-        self.metrics: list[dict] = []
-        self.last: Weights | None = None
-        self._lock = threading.Lock()
-        keys = Keys(run)
-        self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
-                      session.declare_subscriber(keys.all_metrics, self._on_metrics)]
-
-    def _on_weights(self, sample) -> None:
-        weights = decode(sample.payload, Weights)
-        with self._lock:
-            self.versions.append(weights.version)
-            self.last = weights
-
-    def _on_metrics(self, sample) -> None:
-        self.metrics.append(decode(sample.payload, Stats).values)
-
-    def wait(self, predicate, timeout: float, what: str, daemon) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self._lock:
-                if predicate(list(self.versions)):
-                    return
-            assert daemon.proc.poll() is None, f"learner exited early:\n{daemon.log()}"
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}; versions {self.versions}\n{daemon.log()}")
-
-
-def learner_args(network, run_dir, *extra: str) -> list[str]:
-    return ["--run", network.run, "--connect", network.endpoint, "--run-dir", str(run_dir), "--device", "cpu",
-            "--publish-every", "20", *SMALL_LEARNER, *extra]
+from tests.learner.conftest import Feeder, WeightsWatcher, learner_args
 
 
 @pytest.mark.slow

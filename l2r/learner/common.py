@@ -1,0 +1,34 @@
+"""What the learner's algorithms share: the policy spec a config trains, Adam, bfloat16 detection,
+and replay arrays as tensors."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from l2r.policy import check_spec
+
+
+def policy_spec(config, obs_dim: int, act_dim: int) -> dict:
+    """The architecture spec of the policy a config (SACConfig, PPOConfig) trains, sent with the weights."""
+    return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
+                       "activation": config.activation, "layer_norm": config.layer_norm,
+                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs})
+
+
+def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.optim.Adam:
+    # The fused kernel exists on CPU and CUDA; it is the fastest Adam on both.
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=device.type in ("cpu", "cuda"))
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether `device` runs bfloat16 matmuls natively (else they are emulated and slow)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return device.type == "cpu" and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+def float_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
+    """A float32 tensor of a replay array on `device`. Decoded messages are read-only views;
+    torch wants memory it may write, so those are copied once."""
+    return torch.from_numpy(np.require(a, np.float32, "W")).to(device, non_blocking=True)
