@@ -44,15 +44,18 @@ from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
 from l2r.learner.checkpoint import checkpoint_path
+from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
+from l2r.replay.queue import QueueConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID
 from l2r.supervise import Child, ProcessGroup, last_lines
 from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
+PPO_DEFAULTS = PPOConfig()
 
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
 # the --config file, whose values launch.json keeps as the flags they set.
@@ -62,8 +65,19 @@ NOT_REUSED = {"resume", "name", "runs_dir", "config"}
 LEARNER_OPTIONS = {
     "relative-x": "networks see world x coordinates as distances from the pelvis",
     "normalize-obs": "networks see observations standardised by running statistics",
-    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation)",
+    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC)",
 }
+# What the recipe sets for SAC alone; a PPO job leaves it to the learner (its batch and widths) or
+# sets its own (no random warm-up: PPO learns from the policy's own actions).
+SAC_RECIPE = {"batch_size": 256, "hidden": "256,256", "random_steps": 10_000}
+PPO_RECIPE = {"random_steps": 0}
+
+
+class _HelpDefaults(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults shown in the help, except None: such a flag's help says what unset means."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        return action.help if action.default is None else super()._get_help_string(action)
 
 
 def loopback(port: int) -> str:
@@ -88,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "training.",
         epilog="Exit codes: 0 the budget was spent (or Ctrl-C); 1 the job gave up on a process, or the "
                "learner made no update; 2 bad usage.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpDefaults,
     )
     p.add_argument("--config", type=Path, metavar="FILE.toml",
                    help="TOML file of flags, keys being the long flag names (seconds = 7200, eval-env-id = "
@@ -115,8 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--action-repeat", type=int, default=3,
                    help="0.01 s environment steps per action (stored in checkpoints for `l2r eval`)")
-    a.add_argument("--random-steps", type=int, default=10_000,
-                   help="uniform random steps of each actor before it uses the policy (warm-up)")
+    a.add_argument("--random-steps", type=int,
+                   help=f"uniform random steps of each actor before it uses the policy (warm-up; unset: "
+                        f"{SAC_RECIPE['random_steps']:,} for SAC, {PPO_RECIPE['random_steps']} for PPO, which learns "
+                        f"from the policy's own actions)")
     a.add_argument("--evaluators", type=int, default=1,
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
     a.add_argument("--eval-episodes", type=int, default=2, help="episodes per evaluation round")
@@ -142,17 +158,31 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--learner-threads", type=int, default=0,
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
-    le.add_argument("--batch-size", type=int, default=256, help="learner batch size")
+    le.add_argument("--algo", choices=("sac", "ppo"), default="sac",
+                    help="the learner's algorithm: sac learns off-policy from the replay table; ppo on-policy from the "
+                         "replay server's queue table, each transition once and none older than --queue-max-lag "
+                         "policy versions")
     # The learning recipe for a small CPU machine (docs/training.md, "The recipe"); the learner's
     # own defaults are the 2017 reference solution's, sized for a GPU.
-    le.add_argument("--hidden", default="256,256", help="hidden layer widths of policy and critics, comma-separated")
-    le.add_argument("--update-repeat", type=int, default=1, help="gradient steps per sampled batch")
+    le.add_argument("--batch-size", type=int,
+                    help=f"learner batch size (unset: {SAC_RECIPE['batch_size']} for SAC; for PPO, transitions per "
+                         f"update, the learner's {PPO_DEFAULTS.batch_size})")
+    le.add_argument("--hidden", help=f"hidden layer widths of every network, comma-separated (unset: "
+                                     f"{SAC_RECIPE['hidden']} for SAC; the learner's "
+                                     f"{','.join(map(str, PPO_DEFAULTS.hidden))} for PPO)")
+    le.add_argument("--update-repeat", type=int, default=1, help="gradient steps per sampled batch (SAC)")
     for flag, text in LEARNER_OPTIONS.items():
         le.add_argument(f"--{flag}", action=argparse.BooleanOptionalAction, default=True, help=text)
-    le.add_argument("--min-replay", type=int, default=10_000, help="transitions stored before the learner starts")
+    le.add_argument("--min-replay", type=int, default=10_000,
+                    help="transitions stored before the learner starts (SAC)")
     le.add_argument("--samples-per-insert", type=float, default=0.0,
-                    help="replay rate limit: sampled transitions per inserted one (0: no limit)")
-    le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions")
+                    help="replay rate limit: sampled transitions per inserted one (0: no limit; SAC)")
+    le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions (SAC)")
+    le.add_argument("--queue-capacity", type=int,
+                    help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
+    le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,
+                    help="the queue drops transitions acted by a policy more than this many versions behind the "
+                         "learner's newest, and counts them (PPO)")
     le.add_argument("--keep-checkpoints", type=int, default=3,
                     help="learner checkpoints kept (learner/checkpoint-<updates>.pt; checkpoint.pt is the newest)")
     le.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
@@ -286,7 +316,7 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error("--actors and --envs-per-actor must be at least 1")
     if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
-    if not HIDDEN_WIDTHS.fullmatch(args.hidden) or args.update_repeat < 1:
+    if (args.hidden is not None and not HIDDEN_WIDTHS.fullmatch(args.hidden)) or args.update_repeat < 1:
         parser.error(f"--hidden takes widths such as 256,256 (got {args.hidden!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
@@ -335,16 +365,28 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     # Everyone also listens on an ephemeral loopback port, so Zenoh's gossip meshes the peers.
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
+    recipe = {**(PPO_RECIPE if args.algo == "ppo" else SAC_RECIPE),
+              **{name: value for name, value in vars(args).items() if name in SAC_RECIPE and value is not None}}
+    if args.algo == "ppo":  # the queue table alone; a learner asking for one batch at a time, the freshest
+        batch = recipe.get("batch_size", PPO_DEFAULTS.batch_size)
+        tables = ["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * batch),
+                  "--queue-max-lag", str(args.queue_max_lag)]
+        algorithm = ["--algo", "ppo", "--in-flight", "1"]
+        options = [flag for flag in LEARNER_OPTIONS if flag != "mirror"]
+    else:
+        tables = ["--capacity", str(args.capacity), "--min-size", str(args.min_replay),
+                  "--samples-per-insert", str(args.samples_per_insert)]
+        algorithm = ["--update-repeat", str(args.update_repeat)]
+        options = list(LEARNER_OPTIONS)
+    network = [arg for flag in ("batch_size", "hidden") if flag in recipe
+               for arg in (f"--{flag.replace('_', '-')}", str(recipe[flag]))]
     children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
-                      argv=py + ["l2r.replay", *common, "--listen", replay_ep,
-                                 "--capacity", str(args.capacity), "--min-size", str(args.min_replay),
-                                 "--samples-per-insert", str(args.samples_per_insert),
+                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables,
                                  "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
-                                     "--device", args.device, "--batch-size", str(args.batch_size),
-                                     "--hidden", args.hidden, "--update-repeat", str(args.update_repeat),
-                                     *[f"--{flag}" for flag in LEARNER_OPTIONS if getattr(args, flag.replace("-", "_"))],
+                                     "--device", args.device, *algorithm, *network,
+                                     *[f"--{flag}" for flag in options if getattr(args, flag.replace("-", "_"))],
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(args.action_repeat),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
@@ -358,7 +400,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
-                                         "--random-steps", str(args.random_steps), *logs, *args.actor_arg,
+                                         "--random-steps", str(recipe["random_steps"]), *logs, *args.actor_arg,
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):
         eval_env = [] if env_id is None else ["--env-id", env_id]

@@ -8,6 +8,7 @@ import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
+from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
@@ -88,3 +89,19 @@ def test_the_learner_trains_with_up_s_recipe_and_a_learner_arg_wins():
     config = learner_config("--no-mirror", "--no-normalize-obs", "--hidden", "64,64", "--learner-arg=--update-repeat=2")
     assert (config.hidden, config.update_repeat, config.normalize_obs, config.mirror) == ((64, 64), 2, False, False)
     assert config.relative_x
+
+
+def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_a_time():
+    args, _ = parse_args(["--algo", "ppo"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
+    assert (replay.capacity, replay.queue_capacity, replay.queue_max_lag) == (0, 2 * 2048, 3)
+    config = learner.algorithm()  # the learner's own checks pass: no SAC-only option reaches it
+    assert (learner.algo, learner.in_flight, config.batch_size, config.hidden) == ("ppo", 1, 2048, (64, 64))
+    assert config.relative_x and config.normalize_obs
+    assert actor_settings(children["actor-0"]).random_steps == 0
+    args, _ = parse_args(["--algo", "ppo", "--batch-size", "512", "--random-steps", "100"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    assert replay_settings(children["replay"]).queue_capacity == 1024
+    assert learner_settings(children["learner"]).algorithm().batch_size == 512
+    assert actor_settings(children["actor-0"]).random_steps == 100
