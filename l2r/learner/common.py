@@ -3,6 +3,8 @@ and replay arrays as tensors."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -26,6 +28,19 @@ def native_bfloat16(device: torch.device) -> bool:
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported()
     return device.type == "cpu" and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+@dataclass
+class Transitions:
+    """Transitions as tensors, actions in the policy's (-1, 1) space; each algorithm's Batch adds its own."""
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_obs: torch.Tensor
+    """The true next observation of each step (the final one where an episode ended)."""
+    terminated: torch.Tensor
+    """1.0 where the episode ended for real (no bootstrap); time-limit ends stay 0."""
 
 
 def float_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from l2r.learner.common import adam, float_tensor, policy_spec
+from l2r.learner.common import Transitions, adam, float_tensor, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, LOG_STD_MAX, LOG_STD_MIN, Policy, mlp_trunk, to_tanh_space
 from l2r.protocol import SampleBatch
@@ -170,16 +170,9 @@ def init_state(config: PPOConfig, obs_dim: int, act_dim: int, device: str | torc
 
 
 @dataclass
-class Batch:
-    """Pieces of trajectories laid end to end, as tensors; actions in the policy's (-1, 1) space."""
+class Batch(Transitions):
+    """Pieces of trajectories laid end to end."""
 
-    obs: torch.Tensor
-    action: torch.Tensor
-    reward: torch.Tensor
-    next_obs: torch.Tensor
-    """The true next observation of each step (the final one where an episode ended)."""
-    terminated: torch.Tensor
-    """1.0 where the episode ended for real: no bootstrap."""
     ends: torch.Tensor
     """1.0 where the next row does not continue this trajectory: the episode ended (terminated or
     truncated), or the piece did (chunk or batch end)."""

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.learner.common import adam, float_tensor, native_bfloat16, policy_spec
+from l2r.learner.common import Transitions, adam, float_tensor, native_bfloat16, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
 from l2r.sim import layout
@@ -206,15 +206,9 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
 
 
 @dataclass
-class Batch:
-    """A batch of transitions as tensors; actions in the policy's (-1, 1) space."""
+class Batch(Transitions):
+    """A batch of sampled transitions."""
 
-    obs: torch.Tensor
-    action: torch.Tensor
-    reward: torch.Tensor
-    next_obs: torch.Tensor
-    terminated: torch.Tensor
-    """1.0 where the episode ended for real (no bootstrap); time-limit ends stay 0."""
     weights: torch.Tensor | None = None
     """Importance weights from prioritized replay, or None for uniform sampling."""
 
