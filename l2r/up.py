@@ -37,6 +37,7 @@ import zipfile
 from datetime import datetime, timezone
 from pathlib import Path
 
+import gymnasium
 import numpy as np
 import zenoh
 
@@ -50,7 +51,7 @@ from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
 from l2r.replay.queue import QueueConfig
 from l2r.run_metrics import RunCounters, RunMetrics
-from l2r.sim import OPENSIM_ID
+from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.supervise import Child, ProcessGroup, last_lines
 from l2r.view import find_episode, write_recording
 
@@ -124,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="restarts of one process in a row without progress (learner updates, env steps, "
                         "replay inserts) before the job gives up on it and exits with code 1")
     a = p.add_argument_group("actors")
+    a.add_argument("--env-id", default=PORT_ID,
+                   help="gymnasium id of the task: the runner, or another with Box observations and actions, such as "
+                        "Hopper-v5 (the replay server and learner then take its widths, and the runner's own options "
+                        "are off: --relative-x, --mirror, the actors' blow-up check)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
     a.add_argument("--envs-per-actor", type=int, default=4, help="environments per actor, batched in one policy call")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
@@ -355,6 +360,15 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
     return [ids[i % len(ids)] for i in range(max(args.evaluators, len(ids)))]
 
 
+def task_widths(env_id: str) -> tuple[int, int]:
+    """The observation and action widths of a gymnasium task."""
+    env = gymnasium.make(env_id)
+    try:
+        return int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
+    finally:
+        env.close()
+
+
 def learner_threads(args: argparse.Namespace) -> int:
     return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args)) - 1)
 
@@ -378,23 +392,31 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                   "--samples-per-insert", str(args.samples_per_insert)]
         algorithm = ["--update-repeat", str(args.update_repeat)]
         options = list(LEARNER_OPTIONS)
+    task = []  # another task than the runner: its widths, and none of the runner's own options
+    if not args.env_id.startswith("l2r/"):
+        obs_dim, act_dim = task_widths(args.env_id)
+        task = ["--obs-dim", str(obs_dim), "--act-dim", str(act_dim)]
+        options = [flag for flag in options if flag not in ("relative-x", "mirror")]
     network = [arg for flag in ("batch_size", "hidden") if flag in recipe
                for arg in (f"--{flag.replace('_', '-')}", str(recipe[flag]))]
     children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
-                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables,
+                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables, *task,
                                  "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
-                                     "--device", args.device, *algorithm, *network,
+                                     "--device", args.device, *algorithm, *network, *task,
                                      *[f"--{flag}" for flag in options if getattr(args, flag.replace("-", "_"))],
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(args.action_repeat),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
                                      "--run-dir", str(run_dir), *args.learner_arg]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
-    acting = ["--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
-              "--action-repeat", str(args.action_repeat), "--seed", str(args.seed)]
-    logs = [] if args.no_episode_logs else ["--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
+    acting = ["--env-id", args.env_id, "--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
+              "--action-repeat", str(args.action_repeat), "--seed", str(args.seed),
+              *([] if args.env_id.startswith("l2r/") else ["--max-speed", "0"])]  # a runner's speed limit
+    # MCAP episode logs record the runner's body: none for another task
+    logs = [] if args.no_episode_logs or not args.env_id.startswith("l2r/") else [
+        "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []

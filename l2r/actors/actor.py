@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import gymnasium
 import numpy as np
+from gymnasium.wrappers import RescaleAction
 import torch
 import zenoh
 
@@ -98,7 +99,14 @@ class ActorConfig:
 
 
 def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
-    env = gymnasium.make(config.env_id, difficulty=config.difficulty, seed=seed)
+    """The runner (l2r/...) with its difficulty and seed, or any other gymnasium env with Box actions,
+    rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
+    if config.env_id.startswith("l2r/"):
+        env = gymnasium.make(config.env_id, difficulty=config.difficulty, seed=seed)
+    else:
+        env = gymnasium.make(config.env_id)
+        if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
+            env = RescaleAction(env, 0.0, 1.0)
     return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
 
 

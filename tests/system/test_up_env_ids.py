@@ -105,3 +105,15 @@ def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_
     assert replay_settings(children["replay"]).queue_capacity == 1024
     assert learner_settings(children["learner"]).algorithm().batch_size == 512
     assert actor_settings(children["actor-0"]).random_steps == 100
+
+
+def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_options_off():
+    args, _ = parse_args(["--env-id", "Hopper-v5", "--action-repeat", "1"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
+    assert (replay.obs_dim, replay.act_dim, learner.obs_dim, learner.act_dim) == (11, 3, 11, 3)
+    config = learner.algorithm()
+    assert not config.relative_x and not config.mirror and config.normalize_obs
+    for name in ("actor-0", "evaluator-0"):
+        actor = actor_settings(children[name])
+        assert (actor.env_id, actor.max_speed, actor.episode_log_dir) == ("Hopper-v5", 0, None)

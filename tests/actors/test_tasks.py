@@ -1,0 +1,21 @@
+"""An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds."""
+
+import numpy as np
+from gymnasium.wrappers import RescaleAction
+
+from l2r.actors.actor import ActorConfig, make_env
+
+
+def test_another_task_takes_the_policy_s_excitations_rescaled_to_its_action_bounds():
+    env = make_env(ActorConfig(env_id="Hopper-v5", action_repeat=1), seed=0)
+    assert (env.action_space.low.tolist(), env.action_space.high.tolist()) == ([0.0] * 3, [1.0] * 3)
+    np.testing.assert_allclose(env.action(np.array([0.0, 0.5, 1.0], np.float32)), [-1.0, 0.0, 1.0])
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (11,) and env.step(np.full(3, 0.5, np.float32))[0].shape == (11,)
+
+
+def test_the_runner_takes_its_difficulty_and_seed_and_keeps_its_excitations():
+    env = make_env(ActorConfig(env_id="l2r/Run-v0", action_repeat=1, difficulty=2), seed=5)
+    assert env.unwrapped.difficulty == 2
+    assert (env.action_space.low.min(), env.action_space.high.max()) == (0.0, 1.0)
+    assert not isinstance(env, RescaleAction)
