@@ -37,9 +37,10 @@ from l2r.sim.mujoco_numba import mj_forward, mj_step1, mj_step2, mj_transmission
 from l2r.sim.opensim import Muscle, Osim
 from l2r.sim.paths import MovingPoints, PathSwitches, add_point_speeds, place_points, point_rates, point_torques, select_tendons
 
-# Backward-Euler sub-steps of the fibre lengths per physics step: at 1 ms, held-pose tendon
-# forces stay within 0.3 % of max force (RMS) of OpenSim's (docs/model.md).
-FIBER_SUBSTEPS = 2
+# Backward-Euler sub-steps of the fibre lengths per physics step. One (2.5 ms) keeps held-pose
+# tendon forces within 0.6-1 % of max force (RMS) of OpenSim's and every validator target as two
+# did, at 12 % more env steps/s (docs/model.md, docs/performance.md).
+FIBER_SUBSTEPS = 1
 
 
 class Physics:
