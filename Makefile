@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test test-containers bench clean
 
 setup: $(STAMP)
 
@@ -21,6 +21,11 @@ run: setup
 
 test: setup
 	$(BIN)/python -m pytest
+
+# The images built and the compose stack run on this machine's container engine (minutes): part of
+# `make test` too, which skips them, saying why, where no engine answers (docs/deploy.md).
+test-containers: setup
+	$(BIN)/python -m pytest -m containers -v
 
 bench: setup
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done

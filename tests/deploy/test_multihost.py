@@ -20,6 +20,7 @@ import pytest
 
 from . import compose
 from .netns import Hosts, namespaces_available
+from .probe import Watch, read_lines
 from tests.conftest import wait_for
 
 from .zenoh_helpers import DEPLOY, make_secrets
@@ -96,12 +97,6 @@ def cluster(tmp_path):
         yield Cluster(hosts, secrets, hosts_file, tmp_path, run=f"mh-{uuid.uuid4().hex[:8]}")
 
 
-def read_lines(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 def test_hosts_talk_only_through_the_router(cluster):
     """Plain publications from C reach B through the router on A, over TLS with the role keys."""
     router, router_log = cluster.start("router", "a")
@@ -123,34 +118,6 @@ LEARNER_TEST_SIZE = ("--batch-size", "64", "--hidden", "64,64", "--update-repeat
                      "--threads", "1", "--metrics-interval", "1", "--checkpoint-interval", "10")
 ACTOR_TEST_SIZE = ("--num-envs", "2", "--random-steps", "300", "--chunk-size", "32", "--chunk-delay", "0.5",
                    "--torch-threads", "1")
-
-
-class Watch:
-    """The run's stats, metrics and version beacons as the watch probe on host B saw them."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def records(self) -> list[dict]:
-        return read_lines(self.path)
-
-    def replay(self) -> list[dict]:
-        return [r["values"] | {"t": r["t"]} for r in self.records() if "/stats/replay/" in r.get("key", "")]
-
-    def actors(self) -> dict[str, list[dict]]:
-        out: dict[str, list[dict]] = {}
-        for r in self.records():
-            if "/stats/actor/" in r.get("key", ""):
-                out.setdefault(r["key"].rsplit("/", 1)[1], []).append(r["values"] | {"t": r["t"]})
-        return out
-
-    def versions(self) -> list[tuple[float, int]]:
-        return [(r["t"], r["version"]) for r in self.records() if "version" in r]
-
-    def stored(self, actor: str) -> float:
-        """Transitions of ``actor`` the replay server holds, by its latest stats."""
-        replay = self.replay()
-        return replay[-1].get(f"actor.{actor}.transitions", 0) if replay else 0
 
 
 def logged_at(log: Path, text: str) -> list[float]:
