@@ -44,7 +44,7 @@ LAG_CORRECTIONS = ("none", "ratio", "vtrace")
 
 @dataclass
 class PPOConfig:
-    """Algorithm settings (defaults: CleanRL's and Stable-Baselines3's for MuJoCo tasks)."""
+    """Algorithm settings (defaults: CleanRL's and Stable-Baselines3's for MuJoCo tasks, but for the lag)."""
 
     batch_size: int = 2048
     """Transitions taken from the queue for one update (the rollout of synchronous PPO)."""
@@ -70,8 +70,11 @@ class PPOConfig:
     """Advantages standardised within each minibatch."""
     reward_scale: float = 1.0
     """Multiplier on rewards before anything else."""
-    lag_correction: str = "none"
-    """What to do about the actors' policy lag: 'none', 'ratio' or 'vtrace' (module docstring)."""
+    lag_correction: str = "ratio"
+    """What to do about the actors' policy lag: 'none', 'ratio' or 'vtrace' (module docstring).
+    'ratio', not CleanRL's on-policy 'none': actors act two or three versions behind, and taking
+    their data as on-policy let the policy's spread run away until its ratios overflowed (Hopper
+    through the daemons, docs/training.md)."""
     is_clip: float = 1.0
     """V-trace: the importance ratios' truncation (rho-bar and c-bar)."""
     hidden: tuple[int, ...] = (64, 64)
