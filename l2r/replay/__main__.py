@@ -39,6 +39,9 @@ class ReplaySettings(DaemonSettings):
     samples_per_insert: float = setting(0.0, "sampled transitions allowed per inserted one; 0 = no ratio limit",
                                         group=LIMITER, ge=0)
     error_buffer: float = setting(10_000.0, "slack around the ratio, in sampled transitions", group=LIMITER, ge=0)
+    hold_actors: bool = setting(False, "with --samples-per-insert: ask the actors to wait while they are more "
+                                "than twice the error buffer ahead of the learner, so the ratio holds both ways",
+                                group=LIMITER)
     queue_capacity: int = setting(QUEUE_DEFAULTS.capacity, "transitions the queue table holds before it holds "
                                   "the actors back or drops (see --queue-when-full); 0: no queue table",
                                   group=QUEUE, ge=0)
@@ -103,7 +106,7 @@ def serve(s: ReplaySettings) -> int:
                              f"{available / 2**30:.1f} GiB is available")
     server = ServerConfig(s.run, s.shard, s.num_shards, s.snapshot_dir, s.snapshot_interval, not s.no_restore,
                           s.stats_interval, write_ahead_log=not s.no_wal, max_actors=s.max_actors)
-    limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer)
+    limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer, s.hold_actors)
     queue = QueueConfig(s.queue_capacity, s.queue_max_lag, s.queue_when_full)
     return main(server, storage, limiter, s.zenoh_session_config(), queue_config=queue)
 

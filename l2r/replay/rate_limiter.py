@@ -3,7 +3,10 @@
 Sampling waits until ``min_size`` transitions are stored. With ``samples_per_insert`` set,
 a learner may then have sampled at most ``samples_per_insert * (inserted - min_size) +
 error_buffer`` transitions in total, so a fast learner waits for new data instead of
-overfitting the old. Inserts are never blocked: actors must not stall the environments.
+overfitting the old. Inserts are not blocked unless ``hold_inserts`` asks for it: then, while the
+actors are more than twice ``error_buffer`` sampled transitions ahead, the shard asks
+them to wait (``ReplayAck.hold``), as Reverb blocks inserts, so that the ratio holds both ways
+(one gradient step per env step, as Stable-Baselines3 trains, however slow the learner).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ class RateLimiter:
     """Sampled transitions allowed per inserted transition; 0 turns the ratio limit off."""
     error_buffer: float = 10_000.0
     """Slack around the ratio, in sampled transitions."""
+    hold_inserts: bool = False
+    """Ask actors to wait while they are more than twice ``error_buffer`` ahead of the ratio."""
     inserted: int = 0
     sampled: int = 0
 
@@ -30,6 +35,11 @@ class RateLimiter:
             return False, (f"samples per insert {self.samples_per_insert}: {self.sampled} sampled, "
                            f"{self.inserted} inserted; waiting for data")
         return True, ""
+
+    def inserts_ahead(self) -> bool:
+        """Whether the actors should wait for the learner (``hold_inserts`` and a ratio set)."""
+        return (self.hold_inserts and self.samples_per_insert > 0
+                and self.allowance() - self.sampled > 2 * self.error_buffer)
 
     def allowance(self) -> float:
         return self.samples_per_insert * (self.inserted - self.min_size) + self.error_buffer

@@ -137,6 +137,22 @@ def test_rate_limiter_reverb_semantics():
     assert RateLimiter(min_size=10).can_sample(10, 10**6)[0]  # ratio off: only the minimum size
 
 
+def test_a_limiter_that_holds_inserts_asks_the_actors_to_wait_while_they_are_ahead_and_releases_them():
+    limiter = RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64, hold_inserts=True)
+    server = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)), limiter)
+    for seq in range(2):  # 200 stored: the learner may sample 264, so the actors are 264 ahead (> 2 x 64)
+        server._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    assert server.ack().hold is True
+    limiter.sampled = 200  # the learner caught up to 64 ahead
+    assert server.ack().hold is False
+    assert server.ack() is None  # nothing new: no chunk came and the hold is lifted already
+    quiet = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)),
+                         RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64))
+    for seq in range(2):
+        quiet._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    assert quiet.ack().hold is None  # inserts are not held unless asked: the field is left out
+
+
 @pytest.mark.parametrize("prefill", [3, 12])  # a ring partly filled, and one that has wrapped
 def test_block_copy_is_the_state_at_its_start_while_inserts_go_on(prefill):
     storage = Storage(StorageConfig(capacity=100, side_fraction=0.5))
