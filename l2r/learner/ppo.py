@@ -40,6 +40,7 @@ from l2r.policy import ACTIVATIONS, LOG_STD_MAX, LOG_STD_MIN, Policy, mlp_trunk,
 from l2r.protocol import SampleBatch
 
 LAG_CORRECTIONS = ("none", "ratio", "vtrace")
+LOG_RATIO_BOUND = 20.0
 
 
 @dataclass
@@ -232,7 +233,10 @@ def clipped_surrogate(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advant
                       clip: float) -> tuple[torch.Tensor, torch.Tensor]:
     """PPO's policy loss mean(max(-A * r, -A * clip(r, 1 - clip, 1 + clip))), r = pi / pi_old,
     and the ratios r."""
-    ratio = (log_prob - old_log_prob).exp()
+    # Bounded before exp: an action at the edge of (-1, 1) far from the policy's mean has a
+    # log-probability of hundreds below zero, whose change in one step overflowed float32 (NaN
+    # weights on the runner after 26 minutes). Past the bound the ratio is clipped anyway.
+    ratio = (log_prob - old_log_prob).clamp(-LOG_RATIO_BOUND, LOG_RATIO_BOUND).exp()
     loss = torch.max(-advantages * ratio, -advantages * ratio.clamp(1.0 - clip, 1.0 + clip)).mean()
     return loss, ratio
 

@@ -58,6 +58,15 @@ def test_clipped_surrogate_takes_the_pessimistic_term_and_stops_gradients_past_t
     np.testing.assert_allclose(log_prob.grad, [0.0, -0.125, 0.275, 0.0], rtol=1e-5)
 
 
+def test_clipped_surrogate_stays_finite_where_a_log_probability_moved_by_hundreds():
+    # an action at the edge of (-1, 1), far from the policy's mean: its log-probability swings by hundreds
+    log_prob = torch.tensor([-300.0, 200.0, 0.1], requires_grad=True)
+    loss, ratio = clipped_surrogate(log_prob, torch.zeros(3), torch.tensor([-1.0, -1.0, 1.0]), clip=0.2)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(ratio).all() and torch.isfinite(log_prob.grad).all()
+    assert log_prob.grad[1] == 0.0  # past the bound the sample gives no gradient
+
+
 def sample_batch(n: int = 128, seed: int = 0, obs_dim: int = 5, act_dim: int = 3, rewards=None) -> SampleBatch:
     rng = np.random.default_rng(seed)
     return SampleBatch(
@@ -86,7 +95,8 @@ def test_update_makes_actions_with_high_advantage_likelier():
     rewards = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
     sample = sample_batch(n, rewards=rewards)
     sample.terminated[:] = True
-    config = PPOConfig(batch_size=n, epochs=4, minibatches=4, hidden=(32, 32), lr=1e-3)
+    # the batch's log-probabilities are placeholders: take the data as on-policy
+    config = PPOConfig(batch_size=n, epochs=4, minibatches=4, hidden=(32, 32), lr=1e-3, lag_correction="none")
     state = init_state(config, 5, 3, seed=1)
     batch = batch_from_sample(sample)
     with torch.no_grad():
