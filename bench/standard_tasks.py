@@ -38,7 +38,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from learning_curve import read_rows
+from learning_curve import read_rows, rolling
 
 ROOT = Path(__file__).resolve().parents[1]
 MILESTONES = (100_000, 300_000, 1_000_000)
@@ -125,8 +125,8 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
             steps = np.array([r["env_steps"] for r in episodes])
             returns = np.array([r["return"] for r in episodes])
             window = max(1, len(returns) // 50)  # a trailing mean: each point the episodes ended by then
-            ax.plot(steps[window - 1:], np.convolve(returns, np.ones(window) / window, mode="valid"), color=colour,
-                    lw=1, label=f"l2r {algo}, training episodes")
+            ax.plot(steps[window - 1:], rolling(returns, window), color=colour, lw=1,
+                    label=f"l2r {algo}, training episodes")
             evaluations = read_rows(d / "metrics" / "evaluation.csv")
             ax.scatter([r["env_steps"] for r in evaluations], [r["return"] for r in evaluations], s=6,
                        color=colour, alpha=0.5, label=f"l2r {algo}, evaluations")
@@ -161,6 +161,8 @@ def main() -> None:
     p.add_argument("--results", type=Path, help="with --plot: this script's earlier output, for the SB3 points")
     p.add_argument("run_dirs", nargs="*", type=Path, help="with --plot: the runs to draw")
     args = p.parse_args()
+    if args.quick and args.sb3:
+        p.error("--sb3 trains for --env-steps, not for 30 s: leave out --quick")
     if args.plot:
         results = [json.loads(line) for line in args.results.read_text().splitlines()
                    if line.startswith("{")] if args.results else []

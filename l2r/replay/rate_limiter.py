@@ -37,9 +37,8 @@ class RateLimiter:
         return True, ""
 
     def inserts_ahead(self) -> bool:
-        """Whether the actors should wait for the learner (``hold_inserts`` and a ratio set)."""
-        return (self.hold_inserts and self.samples_per_insert > 0
-                and self.allowance() - self.sampled > 2 * self.error_buffer)
+        """Whether the actors are more than twice ``error_buffer`` ahead of the ratio (a ratio set)."""
+        return self.samples_per_insert > 0 and self.allowance() - self.sampled > 2 * self.error_buffer
 
     def allowance(self) -> float:
         return self.samples_per_insert * (self.inserted - self.min_size) + self.error_buffer

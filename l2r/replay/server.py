@@ -272,13 +272,14 @@ class ReplayServer:
 
     def ack(self) -> ReplayAck | None:
         """What is stored of each actor's current epoch, durably when there is a write-ahead log, and
-        whether a full queue or the rate limiter asks the actors to wait; None when there is nothing new to say (no chunk
-        came since the last ack, a resent duplicate counting as one since its sender has not heard an
-        ack yet; no hold to renew or lift), or when the log has failed."""
+        whether a full queue or the rate limiter (``hold_inserts``) asks the actors to wait; None when
+        there is nothing new to say (no chunk came since the last ack, a resent duplicate counting as
+        one since its sender has not heard an ack yet; no hold to renew or lift), or when the log has
+        failed."""
         with self.lock:
-            # None: the field is left out (no queue, no insert limit)
-            hold = (self.queue.holding if self.queue is not None
-                    else self.limiter.inserts_ahead() if self.limiter.hold_inserts else None)
+            holds = ([self.queue.holding] if self.queue is not None else []) + \
+                    ([self.limiter.inserts_ahead()] if self.limiter.hold_inserts else [])
+            hold = any(holds) if holds else None  # None: the field is left out (nothing can hold)
             news = self.sequences.received != self._acked_received or hold or hold != self._hold_sent
             if not news or (self.wal is not None and self.wal.failed):
                 return None

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from l2r.protocol import decode, encode
+from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.server import ReplayServer, ServerConfig
 from l2r.replay.storage import ChunkRejected, Overtaken, StateCopy, Storage, StorageConfig
@@ -151,6 +152,12 @@ def test_a_limiter_that_holds_inserts_asks_the_actors_to_wait_while_they_are_ahe
     for seq in range(2):
         quiet._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
     assert quiet.ack().hold is None  # inserts are not held unless asked: the field is left out
+    both = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)),
+                        RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64, hold_inserts=True),
+                        queue=QueueTable(QueueConfig(capacity=1000), obs_dim=3, act_dim=2))
+    for seq in range(2):
+        both._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    assert both.ack().hold is True  # a queue with room does not lift the limiter's hold
 
 
 @pytest.mark.parametrize("prefill", [3, 12])  # a ring partly filled, and one that has wrapped
