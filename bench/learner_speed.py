@@ -38,11 +38,12 @@ OBS_DIM, ACT_DIM, HIDDEN, BUFFER = 41, 18, (512, 512, 512), 20_000
 class L2RStepper:
     """l2r's update on batches sampled from a numpy buffer (what the replay reply carries)."""
 
-    def __init__(self, batch_size: int, **config):
+    def __init__(self, batch_size: int, device: str, **config):
         from l2r.learner.sac import SACConfig, init_state
 
         self.config = SACConfig(hidden=HIDDEN, batch_size=batch_size, update_repeat=1, **config)
-        self.state = init_state(self.config, OBS_DIM, ACT_DIM, "cpu", seed=0)
+        self.state = init_state(self.config, OBS_DIM, ACT_DIM, device, seed=0)
+        self.device = device
         rng = np.random.default_rng(0)
         self.data = {"obs": rng.normal(size=(BUFFER, OBS_DIM)).astype(np.float32),
                      "action": rng.random((BUFFER, ACT_DIM), dtype=np.float32),
@@ -58,7 +59,7 @@ class L2RStepper:
             i = self.rng.integers(0, BUFFER, self.batch_size)
             d = self.data
             batch = batch_from_numpy(d["obs"][i], d["action"][i], d["reward"][i], d["next_obs"][i],
-                                     d["terminated"][i])
+                                     d["terminated"][i], device=self.device)
             metrics = update(self.state, batch, self.config)
         float(metrics["critic_loss"])  # wait for the last step (a no-op on CPU, a sync on CUDA)
 
@@ -66,7 +67,7 @@ class L2RStepper:
 class SB3Stepper:
     """Stable-Baselines3 SAC with a replay buffer of random data of the same shapes."""
 
-    def __init__(self, batch_size: int):
+    def __init__(self, batch_size: int, device: str):
         import gymnasium as gym
         from stable_baselines3 import SAC
         from stable_baselines3.common.logger import configure
@@ -76,7 +77,7 @@ class SB3Stepper:
             action_space = gym.spaces.Box(0.0, 1.0, (ACT_DIM,), np.float32)
 
         self.model = SAC("MlpPolicy", Shapes(), buffer_size=BUFFER, batch_size=batch_size, learning_starts=0,
-                         policy_kwargs={"net_arch": list(HIDDEN)}, device="cpu", seed=0)
+                         policy_kwargs={"net_arch": list(HIDDEN)}, device=device, seed=0)
         self.model.set_logger(configure(None, []))
         buffer, rng = self.model.replay_buffer, np.random.default_rng(0)
         buffer.observations[:] = rng.normal(size=buffer.observations.shape)
@@ -143,20 +144,29 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="one round of few steps (a smoke run)")
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
                    help="l2r's matmul precision (SACConfig.precision; default: %(default)s)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="where both sides train; the batch is sampled on the host and copied over, as the "
+                        "learner's replay reply is (default: %(default)s)")
+    p.add_argument("--batch-sizes", default="256,640", help="comma-separated (default: %(default)s)")
     args = p.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: torch sees no CUDA device")
     if args.quick:
         args.rounds, args.steps = 1, 4
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
-    result: dict = {"bench": "learner_speed", "device": "cpu", "threads": args.threads, "obs_dim": OBS_DIM,
+    result: dict = {"bench": "learner_speed", "device": args.device, "threads": args.threads, "obs_dim": OBS_DIM,
                     "act_dim": ACT_DIM, "hidden": list(HIDDEN),
                     "omp_wait_policy": os.environ["OMP_WAIT_POLICY"], **cpu_peak(args.threads)}
-    for batch_size in (256, 640):
-        steppers = {"": L2RStepper(batch_size, precision=args.precision)}
+    if args.device == "cuda":
+        result |= {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__}
+    for batch_size in (int(b) for b in args.batch_sizes.split(",")):
+        steppers = {"": L2RStepper(batch_size, args.device, precision=args.precision)}
         if args.precision != "float32":
-            steppers["fp32_"] = L2RStepper(batch_size, precision="float32")
-        steppers["same_net_"] = L2RStepper(batch_size, precision=args.precision, activation="relu", layer_norm=False)
-        steppers["baseline_"] = SB3Stepper(batch_size)
+            steppers["fp32_"] = L2RStepper(batch_size, args.device, precision="float32")
+        steppers["same_net_"] = L2RStepper(batch_size, args.device, precision=args.precision, activation="relu",
+                                           layer_norm=False)
+        steppers["baseline_"] = SB3Stepper(batch_size, args.device)
         n = args.steps * (2 if batch_size == 256 else 1)
         flops = {}
         for name, stepper in steppers.items():

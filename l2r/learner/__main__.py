@@ -24,7 +24,7 @@ from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
 
 SAC_DEFAULTS, PPO_DEFAULTS = SACConfig(), PPOConfig()
-PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; gloo on CPU, NCCL on CUDA)"
+PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
 BOTH, SAC, PPO = "algorithm (SAC and PPO)", "SAC (with --algo sac)", "PPO (with --algo ppo)"
 
 
@@ -95,7 +95,7 @@ class LearnerSettings(DaemonSettings):
     mirror: bool = setting(False, "swap the legs of a random half of each batch (left-right symmetry as "
                            "augmentation)", group=SAC)
     precision: Literal["auto", "float32", "bfloat16"] = setting(
-        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 where the hardware has it (PPO "
+        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 on a CPU with native bfloat16, else float32 (PPO "
         "runs float32: its ratios compare the learner's log-probabilities with the actors')", group=SAC)
 
     epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)

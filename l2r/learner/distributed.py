@@ -2,7 +2,8 @@
 
 Every rank samples its own batches; the algorithms' updates average gradients over ranks before
 each optimizer step, so ranks that start identical stay identical. Rank 0 publishes weights and
-writes checkpoints. Backend: gloo on CPU, NCCL on CUDA.
+writes checkpoints. Backend: NCCL where every rank has a GPU of its own, else gloo (CPU ranks,
+or several ranks sharing one GPU, which NCCL refuses).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def init_distributed(world_size: int, rank: int, dist_url: str | None, device: t
         return
     if not 0 <= rank < world_size:
         raise ValueError(f"rank {rank} not in [0, world size {world_size})")
-    backend = "nccl" if device.type == "cuda" else "gloo"
+    backend = "nccl" if device.type == "cuda" and torch.cuda.device_count() >= world_size else "gloo"
     log.info("rank %d/%d joining %s via %s", rank, world_size, backend, dist_url or "env://")
     dist.init_process_group(backend, init_method=dist_url or "env://", world_size=world_size, rank=rank,
                             timeout=datetime.timedelta(seconds=timeout_s))

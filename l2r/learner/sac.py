@@ -24,7 +24,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.learner.common import Transitions, adam, float_tensor, native_bfloat16, policy_spec
+from l2r.learner.common import Transitions, adam, bfloat16_pays, float_tensor, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
 from l2r.sim import layout
@@ -74,8 +74,8 @@ class SACConfig:
     mirrored data set as well, at no extra cost per update (the body is left-right symmetric)."""
     precision: str = "auto"
     """'bfloat16': hidden-layer matmuls in bfloat16 with float32 accumulation (weights, output
-    heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 where the device computes
-    it natively (CUDA with bf16, CPUs with AVX512-BF16 or AMX), else float32."""
+    heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 on CPUs that compute it
+    natively (AVX512-BF16 or AMX), float32 elsewhere, CUDA included (`common.bfloat16_pays`)."""
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -197,7 +197,7 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     log_alpha = torch.tensor(math.log(config.initial_alpha), device=device, requires_grad=True)
     target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
-    bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and native_bfloat16(device))
+    bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and bfloat16_pays(device))
     return TrainState(actor, critic, target_critic, log_alpha,
                       adam(actor.parameters(), config.actor_lr, device),
                       adam(critic.parameters(), config.critic_lr, device),

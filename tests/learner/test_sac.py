@@ -156,3 +156,12 @@ def test_log_prob_matches_the_change_of_variables():
     gauss = torch.distributions.Normal(mean, log_std.exp()).log_prob(pre_tanh)
     expected = (gauss - torch.log1p(-action.pow(2) + 1e-12)).sum(-1)
     torch.testing.assert_close(log_prob, expected, rtol=1e-3, atol=1e-3)
+
+
+def test_auto_precision_is_float32_on_cuda_even_where_it_has_bfloat16(monkeypatch):
+    """A GPU update of these networks waits on kernel launches; autocast's casts only add more."""
+    from l2r.learner.common import bfloat16_pays
+
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
+    assert not bfloat16_pays(torch.device("cuda"))
+    assert bfloat16_pays(torch.device("cpu")) == torch.ops.mkldnn._is_mkldnn_bf16_supported()
