@@ -15,6 +15,10 @@ from tests.conftest import free_port
 from tests.learner.conftest import Feeder, WeightsWatcher, learner_args
 
 
+def checkpointed_updates(run_dir) -> int:
+    return load_checkpoint(run_dir).updates if (run_dir / "learner/checkpoint.pt").exists() else 0
+
+
 @pytest.mark.slow
 def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp_path):
     run_dir = tmp_path / "run"
@@ -23,9 +27,10 @@ def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp
     try:
         first = network.start("l2r.learner", *learner_args(network, run_dir, "--checkpoint-interval", "0.5"),
                               name="learner1")
-        # Hundreds of updates: 20 per version, so version 15 means about 300 updates.
-        watcher.wait(lambda v: v and v[-1] >= 15 and (run_dir / "learner/checkpoint.pt").exists(),
-                     90, "version 15 and a checkpoint", first)
+        # Hundreds of updates (20 per version) and a periodic checkpoint holding 200 of them: a fast
+        # learner runs 0.5 s of updates past its newest checkpoint, so the version alone says too little.
+        watcher.wait(lambda v: v and v[-1] >= 15 and checkpointed_updates(run_dir) >= 200,
+                     90, "version 15 and a checkpoint of 200 updates", first)
         first.stop(signal.SIGKILL)  # no chance to checkpoint on exit: the periodic one must do
         versions_before = list(watcher.versions)
         assert versions_before == sorted(set(versions_before)), "versions must increase"
