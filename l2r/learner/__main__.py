@@ -95,8 +95,9 @@ class LearnerSettings(DaemonSettings):
     mirror: bool = setting(False, "swap the legs of a random half of each batch (left-right symmetry as "
                            "augmentation)", group=SAC)
     precision: Literal["auto", "float32", "bfloat16"] = setting(
-        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 on a CPU with native bfloat16, else float32 (PPO "
-        "runs float32: its ratios compare the learner's log-probabilities with the actors')", group=SAC)
+        SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 on a CPU with native bfloat16, "
+        "else float32 (PPO runs float32: its ratios compare the learner's log-probabilities with the actors')",
+        group=SAC)
 
     epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)
     minibatches: int = setting(PPO_DEFAULTS.minibatches, "minibatches per pass, one gradient step each", group=PPO,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime
 import logging
+import os
 
 import torch
 import torch.distributed as dist
@@ -40,7 +41,9 @@ def init_distributed(world_size: int, rank: int, dist_url: str | None, device: t
         return
     if not 0 <= rank < world_size:
         raise ValueError(f"rank {rank} not in [0, world size {world_size})")
-    backend = "nccl" if device.type == "cuda" and torch.cuda.device_count() >= world_size else "gloo"
+    # Ranks on this host: torchrun says; otherwise all of them (l2r up starts them on one host).
+    local_ranks = int(os.environ.get("LOCAL_WORLD_SIZE", world_size))
+    backend = "nccl" if device.type == "cuda" and torch.cuda.device_count() >= local_ranks else "gloo"
     log.info("rank %d/%d joining %s via %s", rank, world_size, backend, dist_url or "env://")
     dist.init_process_group(backend, init_method=dist_url or "env://", world_size=world_size, rank=rank,
                             timeout=datetime.timedelta(seconds=timeout_s))
