@@ -6,7 +6,8 @@ Every gradient step runs on a freshly sampled batch, sampling included, on both 
 
 Prints one JSON line. Figures:
   updates_per_s_bB            l2r as it trains by default (ELU + LayerNorm, --precision)
-  fp32_updates_per_s_bB       the same network with float32 matmuls (left out under --precision float32)
+  fp32_updates_per_s_bB       the same network with float32 matmuls (left out where l2r runs float32 already:
+                              --precision float32, or auto on CUDA or a CPU without native bfloat16)
   same_net_updates_per_s_bB   SB3's network exactly (ReLU, no LayerNorm), --precision
   baseline_updates_per_s_bB   SB3 2.x SAC.train(), net_arch 3 x 512, float32
   *ratio_bB                   each of the above over the baseline
@@ -162,7 +163,7 @@ def main() -> None:
         result |= {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__}
     for batch_size in (int(b) for b in args.batch_sizes.split(",")):
         steppers = {"": L2RStepper(batch_size, args.device, precision=args.precision)}
-        if args.precision != "float32":
+        if steppers[""].state.bfloat16:  # else the default stepper is the float32 one
             steppers["fp32_"] = L2RStepper(batch_size, args.device, precision="float32")
         steppers["same_net_"] = L2RStepper(batch_size, args.device, precision=args.precision, activation="relu",
                                            layer_norm=False)

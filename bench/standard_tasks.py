@@ -61,7 +61,6 @@ def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path
 def sb3_job(task: str, algo: str, milestones: list[int]) -> dict:
     """Stable-Baselines3's own algorithm, its defaults, for the same env steps, evaluated at each milestone."""
     import gymnasium as gym
-    import numpy as np
     import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
@@ -75,7 +74,7 @@ def sb3_job(task: str, algo: str, milestones: list[int]) -> dict:
         def _on_step(self) -> bool:
             if self.num_timesteps in milestones:
                 mean, _ = evaluate_policy(self.model, eval_env, n_eval_episodes=5, deterministic=True)
-                returns[self.num_timesteps] = {"eval_return": round(float(np.mean(mean)), 1)}
+                returns[self.num_timesteps] = {"eval_return": round(float(mean), 1)}
             return True
 
     started = time.time()

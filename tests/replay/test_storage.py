@@ -138,25 +138,25 @@ def test_rate_limiter_reverb_semantics():
     assert RateLimiter(min_size=10).can_sample(10, 10**6)[0]  # ratio off: only the minimum size
 
 
+def server_with_200_stored(limiter: RateLimiter, queue: QueueTable | None = None) -> ReplayServer:
+    server = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)), limiter,
+                          queue=queue)
+    for seq in range(2):
+        server._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    return server
+
+
 def test_a_limiter_that_holds_inserts_asks_the_actors_to_wait_while_they_are_ahead_and_releases_them():
     limiter = RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64, hold_inserts=True)
-    server = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)), limiter)
-    for seq in range(2):  # 200 stored: the learner may sample 264, so the actors are 264 ahead (> 2 x 64)
-        server._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    server = server_with_200_stored(limiter)  # the learner may sample 264, so the actors are 264 ahead (> 2 x 64)
     assert server.ack().hold is True
     limiter.sampled = 200  # the learner caught up to 64 ahead
     assert server.ack().hold is False
     assert server.ack() is None  # nothing new: no chunk came and the hold is lifted already
-    quiet = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)),
-                         RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64))
-    for seq in range(2):
-        quiet._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    quiet = server_with_200_stored(RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64))
     assert quiet.ack().hold is None  # inserts are not held unless asked: the field is left out
-    both = ReplayServer(ServerConfig(shard=0), Storage(StorageConfig(capacity=1000, obs_dim=3, act_dim=2)),
-                        RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64, hold_inserts=True),
-                        queue=QueueTable(QueueConfig(capacity=1000), obs_dim=3, act_dim=2))
-    for seq in range(2):
-        both._store(make_chunk(actor_id=1, seq=seq, steps=100, obs_dim=3, act_dim=2), None)
+    both = server_with_200_stored(RateLimiter(min_size=100, samples_per_insert=2.0, error_buffer=64, hold_inserts=True),
+                                  QueueTable(QueueConfig(capacity=1000), obs_dim=3, act_dim=2))
     assert both.ack().hold is True  # a queue with room does not lift the limiter's hold
 
 
