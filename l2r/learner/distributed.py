@@ -34,6 +34,17 @@ def select_device(name: str, local_rank: int = 0) -> torch.device:
     return torch.device("cuda", local_rank % torch.cuda.device_count())
 
 
+def ranks_on_this_host(world_size: int) -> int:
+    """$LOCAL_WORLD_SIZE, as torchrun sets it; else all ranks (l2r up starts them on one host)."""
+    value = os.environ.get("LOCAL_WORLD_SIZE", "")
+    if value.isdigit() and int(value) > 0:
+        return int(value)
+    if value:
+        log.warning("$LOCAL_WORLD_SIZE=%r is not a positive whole number: taking all %d ranks as on this host",
+                    value, world_size)
+    return world_size
+
+
 def init_distributed(world_size: int, rank: int, dist_url: str | None, device: torch.device,
                      timeout_s: float = 600.0) -> None:
     """Join the process group of `world_size` learners (a no-op when training alone)."""
@@ -41,9 +52,8 @@ def init_distributed(world_size: int, rank: int, dist_url: str | None, device: t
         return
     if not 0 <= rank < world_size:
         raise ValueError(f"rank {rank} not in [0, world size {world_size})")
-    # Ranks on this host: torchrun says; otherwise all of them (l2r up starts them on one host).
-    local_ranks = int(os.environ.get("LOCAL_WORLD_SIZE", world_size))
-    backend = "nccl" if device.type == "cuda" and torch.cuda.device_count() >= local_ranks else "gloo"
+    own_gpu_each = device.type == "cuda" and torch.cuda.device_count() >= ranks_on_this_host(world_size)
+    backend = "nccl" if own_gpu_each else "gloo"
     log.info("rank %d/%d joining %s via %s", rank, world_size, backend, dist_url or "env://")
     dist.init_process_group(backend, init_method=dist_url or "env://", world_size=world_size, rank=rank,
                             timeout=datetime.timedelta(seconds=timeout_s))

@@ -56,3 +56,15 @@ def test_two_learners_hold_identical_weights_after_every_step(tmp_path, device):
     assert rank0.shape[0] == STEPS + 1
     np.testing.assert_array_equal(rank0, rank1)  # bit for bit, after every step
     assert not np.array_equal(rank0[0], rank0[-1])  # and they did train
+
+
+def test_ranks_on_this_host_come_from_torchrun_and_a_bad_value_is_logged_not_fatal(monkeypatch, caplog):
+    from l2r.learner.distributed import ranks_on_this_host
+
+    monkeypatch.delenv("LOCAL_WORLD_SIZE", raising=False)
+    assert ranks_on_this_host(4) == 4  # l2r up: every rank on this host
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    assert ranks_on_this_host(4) == 2
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "two")
+    assert ranks_on_this_host(4) == 4
+    assert "LOCAL_WORLD_SIZE='two'" in caplog.text
