@@ -58,7 +58,7 @@ def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path
     return max(runs_dir.glob(f"{name}-*"))
 
 
-def sb3_job(task: str, algo: str, milestones: list[int]) -> dict:
+def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     """Stable-Baselines3's own algorithm, its defaults, for the same env steps, evaluated at each milestone."""
     import gymnasium as gym
     import stable_baselines3
@@ -67,7 +67,7 @@ def sb3_job(task: str, algo: str, milestones: list[int]) -> dict:
     from stable_baselines3.common.evaluation import evaluate_policy
 
     torch.set_num_threads(os.cpu_count() or 1)
-    model = getattr(stable_baselines3, algo.upper())("MlpPolicy", gym.make(task), seed=0, device="cpu")
+    model = getattr(stable_baselines3, algo.upper())("MlpPolicy", gym.make(task), seed=seed, device="cpu")
     eval_env, returns = gym.make(task), {}
 
     class AtMilestones(BaseCallback):
@@ -80,7 +80,7 @@ def sb3_job(task: str, algo: str, milestones: list[int]) -> dict:
     started = time.time()
     model.learn(total_timesteps=milestones[-1], callback=AtMilestones())
     seconds = time.time() - started
-    return {"library": f"stable-baselines3 {stable_baselines3.__version__}", "seconds": round(seconds, 1),
+    return {"library": f"stable-baselines3 {stable_baselines3.__version__}", "seed": seed, "seconds": round(seconds, 1),
             "env_steps": milestones[-1], "env_steps_per_s": round(milestones[-1] / seconds, 1), "returns": returns}
 
 
