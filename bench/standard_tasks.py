@@ -3,21 +3,23 @@
     python bench/standard_tasks.py                          # Hopper-v5 and Walker2d-v5, PPO and SAC, 1M env steps each
     python bench/standard_tasks.py --tasks Hopper-v5 --algos ppo --env-steps 300000
     python bench/standard_tasks.py --quick                  # every job for 30 s: does it run at all
-    python bench/standard_tasks.py --algos sac --env-steps 100000 --up-arg=--samples-per-insert=256 --sb3
+    python bench/standard_tasks.py --algos sac --env-steps 100000 --sb3
+    python bench/standard_tasks.py --algos sac --env-steps 100000 --up-arg=--recipe=runner   # the runner's recipe
     python bench/standard_tasks.py --plot docs/standard_tasks.png --results out.jsonl RUN_DIR ...   # curves only
 
 Each (task, algorithm) is one job, run one after the other on this host:
 `l2r up --env-id TASK --algo ALGO --action-repeat 1 --env-steps N --evaluators 1`, each algorithm
-with its `l2r up` defaults (docs/training.md). The job's metrics (metrics/episodes.csv and
+with its standard recipe (docs/training.md, "Recipes"). The job's metrics (metrics/episodes.csv and
 evaluation.csv) give, at each milestone of env steps, the mean return of the training episodes
 that ended in the last tenth before it and of the evaluation episodes (deterministic, seeds 0-4)
 of the newest policy evaluated by then. Published figures to set them against are the
 Stable-Baselines3 and CleanRL ones docs/training.md names; this script does not fetch them.
 
-`--up-arg` hands a flag to every `l2r up` (SAC's `--samples-per-insert=256`: one gradient step per
-env step, as Stable-Baselines3 and CleanRL train). `--sb3` also trains Stable-Baselines3 (the dev
-extra) with its defaults for the same env steps in this process, one thread per core, evaluating
-5 deterministic episodes at each milestone: the baseline in the same run, on the same machine.
+`--up-arg` hands a flag to every `l2r up` (`--up-arg=--recipe=runner`: the runner's recipe
+instead of the standard one; `--up-arg=--reward-scale=5`: one value of the recipe replaced).
+`--sb3` also trains Stable-Baselines3 (the dev extra) with its defaults for the same env steps in
+this process, one thread per core, evaluating 5 deterministic episodes at each milestone: the
+baseline in the same run, on the same machine.
 
 With `--plot`, draws the given run directories instead: return against env steps, one panel per
 task (training episodes as a rolling mean, evaluations as points), with the published figures
@@ -154,7 +156,7 @@ def main() -> None:
     p.add_argument("--runs-dir", type=Path, help="where the jobs' run directories go (default: a temporary one)")
     p.add_argument("--quick", action="store_true", help="every job for 30 s only")
     p.add_argument("--up-arg", action="append", default=[], metavar="FLAG",
-                   help="a flag for every l2r up, e.g. --up-arg=--samples-per-insert=256 (repeatable)")
+                   help="a flag for every l2r up, e.g. --up-arg=--recipe=runner (repeatable)")
     p.add_argument("--sb3", action="store_true", help="also train Stable-Baselines3 for the same env steps")
     p.add_argument("--plot", type=Path, metavar="PNG", help="draw RUN_DIRs' curves to PNG instead of training")
     p.add_argument("--results", type=Path, help="with --plot: this script's earlier output, for the SB3 points")

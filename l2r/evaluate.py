@@ -16,7 +16,7 @@ from l2r.config import CommandParser
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
 from l2r.sim.wrappers import ActionRepeat
 
-DEFAULT_ACTION_REPEAT = 3  # what l2r up and l2r-actor default to; for checkpoints that do not say
+DEFAULT_ACTION_REPEAT = 3  # the runner's recipe's and l2r-actor's; for checkpoints that do not say
 
 
 def build_parser() -> argparse.ArgumentParser:

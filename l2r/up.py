@@ -10,7 +10,8 @@ SIGTERM, or when it gives up on a process: actors first, then the learner (which
 then the replay server (which snapshots).
 
 The run directory `runs/<name>-<timestamp>/` keeps:
-    launch.json           the run's flags (reused by --resume), Zenoh run name, each session's ports
+    launch.json           the run's flags (reused by --resume), the recipe they resolve to, Zenoh run
+                          name, each session's ports
     logs/<process>.log    one log per process (a restarted one appends)
     learner/              the learner's checkpoints and best.pt (`l2r eval` takes this run directory)
     replay/               replay snapshots
@@ -45,10 +46,13 @@ from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
 from l2r.learner.checkpoint import checkpoint_path
-from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
+from l2r.recipes import (
+    ACTOR_SETTINGS, CHOICES, FAMILIES, RECIPES, REPLAY_FLAGS, RUNNER, SETTINGS, Recipe, family_of, resolve,
+    shown_values,
+)
 from l2r.replay.queue import QueueConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
@@ -56,22 +60,15 @@ from l2r.supervise import Child, ProcessGroup, last_lines
 from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
-PPO_DEFAULTS = PPOConfig()
 
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
 # the --config file, whose values launch.json keeps as the flags they set.
 NOT_REUSED = {"resume", "name", "runs_dir", "config"}
 
-# The learner's on/off options that the recipe turns on; up passes each one that is on.
-LEARNER_OPTIONS = {
-    "relative-x": "networks see world x coordinates as distances from the pelvis",
-    "normalize-obs": "networks see observations standardised by running statistics",
-    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC)",
-}
-# What the recipe sets for SAC alone; a PPO job leaves it to the learner (its batch and widths) or
-# sets its own (no random warm-up: PPO learns from the policy's own actions).
-SAC_RECIPE = {"batch_size": 256, "hidden": "256,256", "random_steps": 10_000}
-PPO_RECIPE = {"random_steps": 0}
+# The recipes' learner settings, each an l2r-learner flag of the same name: every setting neither the
+# replay server's nor the actors', but LayerNorm (`layer_norm_flag`).
+LEARNER_FLAGS = {name: f"--{name.replace('_', '-')}" for name in SETTINGS
+                 if name not in REPLAY_FLAGS and name not in ACTOR_SETTINGS and name != "layer_norm"}
 
 
 class _HelpDefaults(argparse.ArgumentDefaultsHelpFormatter):
@@ -90,6 +87,16 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _recipe_flag(name: str, text: str) -> dict:
+    """add_argument's options for a setting of the recipes: no default (the recipe's), the type of
+    the recipes' values, a switch with a --no- form for on/off ones."""
+    kind = type(next(table[name] for table in RECIPES.values() if name in table))
+    options = {"help": f"{text}; unset, the recipe's: {shown_values(name)}", "choices": CHOICES.get(name)}
+    if kind is bool:
+        return options | {"action": argparse.BooleanOptionalAction}
+    return options | {"type": kind} | ({"metavar": "N" if kind is int else "X"} if kind in (int, float) else {})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,17 +134,11 @@ def build_parser() -> argparse.ArgumentParser:
     a = p.add_argument_group("actors")
     a.add_argument("--env-id", default=PORT_ID,
                    help="gymnasium id of the task: the runner, or another with Box observations and actions, such as "
-                        "Hopper-v5 (the replay server and learner then take its widths, and the runner's own options "
-                        "are off: --relative-x, --mirror, the actors' blow-up check)")
+                        "Hopper-v5 (the replay server and learner then take its widths, the job trains with the "
+                        "standard recipe, and the runner's own options are off: --relative-x, --mirror, the actors' "
+                        "blow-up check)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
-    a.add_argument("--envs-per-actor", type=int, default=4, help="environments per actor, batched in one policy call")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
-    a.add_argument("--action-repeat", type=int, default=3,
-                   help="0.01 s environment steps per action (stored in checkpoints for `l2r eval`)")
-    a.add_argument("--random-steps", type=int,
-                   help=f"uniform random steps of each actor before it uses the policy (warm-up; unset: "
-                        f"{SAC_RECIPE['random_steps']:,} for SAC, {PPO_RECIPE['random_steps']} for PPO, which learns "
-                        f"from the policy's own actions)")
     a.add_argument("--evaluators", type=int, default=1,
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
     a.add_argument("--eval-episodes", type=int, default=2, help="episodes per evaluation round")
@@ -163,25 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--learner-threads", type=int, default=0,
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
-    le.add_argument("--algo", choices=("sac", "ppo"), default="sac",
+    le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table; ppo on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
-    # The learning recipe for a small CPU machine (docs/training.md, "The recipe"); the learner's
-    # own defaults are the 2017 reference solution's, sized for a GPU.
-    le.add_argument("--batch-size", type=int,
-                    help=f"learner batch size (unset: {SAC_RECIPE['batch_size']} for SAC; for PPO, transitions per "
-                         f"update, the learner's {PPO_DEFAULTS.batch_size})")
-    le.add_argument("--hidden", help=f"hidden layer widths of every network, comma-separated (unset: "
-                                     f"{SAC_RECIPE['hidden']} for SAC; the learner's "
-                                     f"{','.join(map(str, PPO_DEFAULTS.hidden))} for PPO)")
-    le.add_argument("--update-repeat", type=int, default=1, help="gradient steps per sampled batch (SAC)")
-    for flag, text in LEARNER_OPTIONS.items():
-        le.add_argument(f"--{flag}", action=argparse.BooleanOptionalAction, default=True, help=text)
-    le.add_argument("--min-replay", type=int, default=10_000,
-                    help="transitions stored before the learner starts (SAC)")
-    le.add_argument("--samples-per-insert", type=float, default=0.0,
-                    help="replay rate limit: sampled transitions per inserted one (0: no limit; SAC)")
     le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions (SAC)")
     le.add_argument("--queue-capacity", type=int,
                     help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
@@ -197,6 +183,14 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--actor-arg", action="append", default=[], metavar="ARG",
                     help="extra argument for every l2r-actor, evaluators included, e.g. "
                          "--actor-arg=--env-id=l2r/RunOpenSim-v0 (repeatable)")
+    rc = p.add_argument_group("recipe: every hyperparameter of the job, from the recipe of the task's family and "
+                              "algorithm (docs/training.md, \"Recipes\") unless its flag is given")
+    rc.add_argument("--recipe", choices=FAMILIES,
+                    help="train with this family's recipe (unset: the family of --env-id: runner for l2r/ ids, "
+                         "standard for any other task), e.g. --recipe runner on Hopper-v5 to set the two against "
+                         "each other")
+    for name, text in SETTINGS.items():
+        rc.add_argument(f"--{name.replace('_', '-')}", **_recipe_flag(name, text))
     o = p.add_argument_group("output")
     o.add_argument("--status-interval", type=float, default=2.0, help="seconds between status updates")
     o.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -254,6 +248,12 @@ def _launch(parser: argparse.ArgumentParser, given: argparse.Namespace) -> tuple
         print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
               f"defaults apply", file=sys.stderr)
     stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(given) and k not in NOT_REUSED}
+    if "args" in launch and "recipe" not in launch["args"]:
+        # From before recipes, when every task trained with the runner's: the same job goes on.
+        stored["recipe"] = RUNNER
+        if family_of(stored.get("env_id", PORT_ID)) != RUNNER:
+            print(f"l2r up: note: {launch_path} is from before recipes: the run goes on with the runner's recipe, "
+                  f"which trained every task then", file=sys.stderr)
     eval_env_id = stored.get("eval_env_id", [])
     if not isinstance(eval_env_id, list):  # one id or none, from before the flag was repeatable
         stored["eval_env_id"] = [eval_env_id] if eval_env_id else []
@@ -317,12 +317,13 @@ def replay_snapshot_capacity(directory: Path) -> int | None:
 
 
 def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.Namespace:
-    if args.actors < 1 or args.envs_per_actor < 1:
+    recipe = recipe_of(args).values
+    if args.actors < 1 or recipe["envs_per_actor"] < 1:
         parser.error("--actors and --envs-per-actor must be at least 1")
-    if args.max_restarts < 0 or args.keep_checkpoints < 1 or args.action_repeat < 1:
+    if args.max_restarts < 0 or args.keep_checkpoints < 1 or recipe["action_repeat"] < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
-    if (args.hidden is not None and not HIDDEN_WIDTHS.fullmatch(args.hidden)) or args.update_repeat < 1:
-        parser.error(f"--hidden takes widths such as 256,256 (got {args.hidden!r}), --update-repeat at least 1")
+    if not HIDDEN_WIDTHS.fullmatch(recipe["hidden"]) or recipe.get("update_repeat", 1) < 1:
+        parser.error(f"--hidden takes widths such as 256,256 (got {recipe['hidden']!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
     return args
@@ -339,10 +340,12 @@ def make_run_dir(args: argparse.Namespace) -> Path:
 
 def write_launch(run_dir: Path, args: argparse.Namespace, argv: list[str], launch: dict | None,
                  ports: dict[str, int]) -> None:
-    """launch.json: the first session's command line, the run's flags as this session uses them,
-    and every session's command line and ports."""
+    """launch.json: the first session's command line, the run's flags as this session uses them
+    (a recipe's setting left unset stays None, so --resume resolves it again), the recipe they
+    resolve to, and every session's command line and ports."""
     record = launch or {"argv": argv, "zenoh_run": run_dir.name}
     record["args"] = {k: _stored(v) for k, v in vars(args).items() if k not in NOT_REUSED}
+    record["recipe"] = recipe_of(args).to_dict()
     record.setdefault("sessions", []).append(
         {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "argv": argv, **ports})
     tmp = run_dir / ".launch.json.tmp"
@@ -373,46 +376,65 @@ def learner_threads(args: argparse.Namespace) -> int:
     return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args)) - 1)
 
 
+def recipe_of(args: argparse.Namespace) -> Recipe:
+    """The recipe the job trains with: --recipe's, else the task family's, and the flags given."""
+    return resolve(args.env_id, args.algo, args.recipe, {name: getattr(args, name) for name in SETTINGS})
+
+
+def daemon_flags(recipe: dict, flags: dict[str, str]) -> list[str]:
+    """The recipe's settings among `flags` (setting: a daemon's flag) as that daemon's arguments:
+    flag and value, a switch its flag when on (the daemons' switches are off unless given)."""
+    arguments = []
+    for name, flag in flags.items():
+        value = recipe.get(name)
+        if isinstance(value, bool):
+            arguments += [flag] if value else []
+        elif value is not None:
+            arguments += [flag, str(value)]
+    return arguments
+
+
+def layer_norm_flag(recipe: dict, learner_arg: list[str]) -> list[str]:
+    """LayerNorm, said either way, for the learner's SAC has it unless told --no-layer-norm and its
+    PPO not; nothing where a --learner-arg says it, since the learner refuses both flags at once."""
+    if {"--layer-norm", "--no-layer-norm"} & set(learner_arg):
+        return []
+    return ["--layer-norm" if recipe["layer_norm"] else "--no-layer-norm"]
+
+
 def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port: int, learner_port: int) -> list[Child]:
     """The processes of the job, in start order (stopped in reverse)."""
     replay_ep, learner_ep = loopback(replay_port), loopback(learner_port)
     # Everyone also listens on an ephemeral loopback port, so Zenoh's gossip meshes the peers.
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
-    recipe = {**(PPO_RECIPE if args.algo == "ppo" else SAC_RECIPE),
-              **{name: value for name, value in vars(args).items() if name in SAC_RECIPE and value is not None}}
+    recipe = recipe_of(args).values
     if args.algo == "ppo":  # the queue table alone; a learner asking for one batch at a time, the freshest
-        batch = recipe.get("batch_size", PPO_DEFAULTS.batch_size)
-        tables = ["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * batch),
+        tables = ["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * recipe["batch_size"]),
                   "--queue-max-lag", str(args.queue_max_lag)]
-        algorithm = ["--algo", "ppo", "--in-flight", "1"]
-        options = [flag for flag in LEARNER_OPTIONS if flag != "mirror"]
+        in_flight = ["--in-flight", "1"]
     else:
-        tables = ["--capacity", str(args.capacity), "--min-size", str(args.min_replay),
-                  "--samples-per-insert", str(args.samples_per_insert)]
-        algorithm = ["--update-repeat", str(args.update_repeat)]
-        options = list(LEARNER_OPTIONS)
-    task = []  # another task than the runner: its widths, and none of the runner's own options
+        tables, in_flight = ["--capacity", str(args.capacity)], []
+    task = []  # another task than the runner: its widths
     if not args.env_id.startswith("l2r/"):
         obs_dim, act_dim = task_widths(args.env_id)
         task = ["--obs-dim", str(obs_dim), "--act-dim", str(act_dim)]
-        options = [flag for flag in options if flag not in ("relative-x", "mirror")]
-    network = [arg for flag in ("batch_size", "hidden") if flag in recipe
-               for arg in (f"--{flag.replace('_', '-')}", str(recipe[flag]))]
     children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
-                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables, *task,
+                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables,
+                                 *daemon_flags(recipe, REPLAY_FLAGS), *task,
                                  "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
-                                     "--device", args.device, *algorithm, *network, *task,
-                                     *[f"--{flag}" for flag in options if getattr(args, flag.replace("-", "_"))],
+                                     "--device", args.device, "--algo", args.algo, *in_flight, *task,
+                                     *daemon_flags(recipe, LEARNER_FLAGS), *layer_norm_flag(recipe, args.learner_arg),
                                      "--threads", str(learner_threads(args)),
-                                     "--action-repeat", str(args.action_repeat),
+                                     "--action-repeat", str(recipe["action_repeat"]),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
                                      "--run-dir", str(run_dir), *args.learner_arg]))
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
-    acting = ["--env-id", args.env_id, "--num-envs", str(args.envs_per_actor), "--difficulty", str(args.difficulty),
-              "--action-repeat", str(args.action_repeat), "--seed", str(args.seed),
+    acting = ["--env-id", args.env_id, "--num-envs", str(recipe["envs_per_actor"]),
+              "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
+              "--seed", str(args.seed),
               *([] if args.env_id.startswith("l2r/") else ["--max-speed", "0"])]  # a runner's speed limit
     # MCAP episode logs record the runner's body: none for another task
     logs = [] if args.no_episode_logs or not args.env_id.startswith("l2r/") else [
@@ -432,7 +454,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                               progress=("evaluator", str(actor_id), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
                                          "--actor-id", str(actor_id),
-                                         "--num-envs", str(min(args.eval_episodes, args.envs_per_actor)),
+                                         "--num-envs", str(min(args.eval_episodes, recipe["envs_per_actor"])),
                                          "--eval-episodes", str(args.eval_episodes),
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
                                          *eval_env]))
@@ -491,9 +513,10 @@ def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates
              f"{'-' if best is None else f'{best:.2f} m'}", f"run directory: {run_dir}",
              f"metrics: tensorboard --logdir {run_dir / 'metrics'}  (CSV files beside)"]
     if summary["updates"] == 0:
-        waiting = summary["replay_size"] < args.min_replay and not summary["failing"]
+        min_replay = recipe_of(args).values.get("min_replay", 0)
+        waiting = summary["replay_size"] < min_replay and not summary["failing"]
         lines.append("the learner made no update, so there is nothing to evaluate" + (
-            f" (replay holds {summary['replay_size']:,} of the --min-replay {args.min_replay:,} transitions it "
+            f" (replay holds {summary['replay_size']:,} of the --min-replay {min_replay:,} transitions it "
             f"waits for)" if waiting else ""))
     elif not checkpoint_path(run_dir).exists():
         lines.append("no learner checkpoint was written")
@@ -528,6 +551,11 @@ def cli(argv: list[str] | None = None) -> int:
     run = run_dir.name
     replay_port, learner_port = free_port(), free_port()
     write_launch(run_dir, args, argv, launch, {"replay_port": replay_port, "learner_port": learner_port})
+    recipe = recipe_of(args)
+    log.info("%s", recipe.describe())
+    if recipe.unused:
+        log.warning("flags %s has no use for, ignored: %s", recipe.name,
+                    ", ".join(f"--{name.replace('_', '-')}" for name in recipe.unused))
 
     stop = threading.Event()
     reason = ["interrupted"]

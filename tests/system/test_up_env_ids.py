@@ -108,7 +108,8 @@ def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_
 
 
 def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_options_off():
-    args, _ = parse_args(["--env-id", "Hopper-v5", "--action-repeat", "1"])
+    # The runner's recipe, which turns them on, and the flags themselves: off all the same.
+    args, _ = parse_args(["--env-id", "Hopper-v5", "--recipe", "runner", "--relative-x", "--mirror"])
     children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
     replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
     assert (replay.obs_dim, replay.act_dim, learner.obs_dim, learner.act_dim) == (11, 3, 11, 3)

@@ -1,0 +1,169 @@
+"""Training recipes of `l2r up`: every hyperparameter of a job, per task family and algorithm.
+
+A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
+comes from the task: `runner` for the Learning to Run runner (ids starting with ``l2r/``),
+`standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
+family's recipe, and each setting has an `l2r up` flag of its own name that replaces the
+recipe's value.
+
+The settings span the three daemons: the replay server's (`REPLAY_FLAGS`), the actors'
+(`ACTOR_SETTINGS`) and the learner's (every other one, an `l2r-learner` flag of the same name).
+Left out, and the same in every recipe: the temperature is learnt towards an entropy of
+-act-dim, PPO standardises its advantages per minibatch; `--learner-arg` sets those.
+
+The learner's own defaults (`SACConfig`, `PPOConfig`) stay the 2017 reference solution's and
+CleanRL's; `l2r up` passes every value of the recipe, so the learner's command line shows it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+from l2r.learner.ppo import LAG_CORRECTIONS
+from l2r.policy import ACTIVATIONS
+
+RUNNER, STANDARD = "runner", "standard"
+FAMILIES = (RUNNER, STANDARD)
+
+Value = bool | int | float | str
+
+RECIPES: dict[tuple[str, str], dict[str, Value]] = {
+    # Tuned on the runner on a 2-core CPU (docs/training.md, "The recipe"): rewards of 0.01-0.03 m
+    # a step scaled up, a cool start, the body's symmetry and running statistics doing the rest.
+    (RUNNER, "sac"): dict(
+        hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
+        reward_scale=10.0, initial_alpha=0.1, update_repeat=1, publish_every=50,
+        relative_x=True, normalize_obs=True, mirror=True,
+        min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
+        random_steps=10_000, envs_per_actor=4, action_repeat=3,
+    ),
+    # Stable-Baselines3's and CleanRL's SAC for MuJoCo tasks: raw observations, learning from 5,000
+    # steps on, one gradient step per env step (samples-per-insert = batch-size / update-repeat,
+    # held both ways), the actor acting with each new policy.
+    (STANDARD, "sac"): dict(
+        hidden="256,256", activation="relu", layer_norm=False, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
+        reward_scale=1.0, initial_alpha=1.0, update_repeat=1, publish_every=1,
+        relative_x=False, normalize_obs=False, mirror=False,
+        min_replay=5_000, samples_per_insert=256.0, hold_actors=True,
+        random_steps=5_000, envs_per_actor=1, action_repeat=1,
+    ),
+    # CleanRL's PPO (PPOConfig), but for the lag correction, with the runner's observation options.
+    (RUNNER, "ppo"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, epochs=10, minibatches=32, lr=3e-4,
+        gamma=0.99, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", reward_scale=1.0,
+        relative_x=True, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
+    ),
+    # The same for other tasks: observations standardised (as CleanRL's wrapper does), one step per action.
+    (STANDARD, "ppo"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, epochs=10, minibatches=32, lr=3e-4,
+        gamma=0.99, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", reward_scale=1.0,
+        relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=1,
+    ),
+}
+
+# What each setting is, for its `l2r up` flag's help.
+SETTINGS: dict[str, str] = {
+    "hidden": "hidden layer widths of every network, comma-separated",
+    "activation": "hidden activation",
+    "layer_norm": "LayerNorm after each hidden layer",
+    "batch_size": "transitions per batch; for PPO, per update (its rollout)",
+    "lr": "Adam learning rate of every network (and of SAC's temperature)",
+    "gamma": "discount per action",
+    "tau": "Polyak rate of the target critics (SAC)",
+    "reward_scale": "multiplier on rewards",
+    "initial_alpha": "the entropy temperature at the start, learnt from there (SAC)",
+    "update_repeat": "gradient steps per sampled batch (SAC)",
+    "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC; PPO "
+                     "publishes after every batch)",
+    "epochs": "passes over each batch (PPO)",
+    "minibatches": "minibatches per pass, one gradient step each (PPO)",
+    "gae_lambda": "lambda of GAE (PPO)",
+    "clip": "clip range of the probability ratio, 1 +- clip (PPO)",
+    "value_coef": "weight of the value loss (PPO)",
+    "entropy_coef": "weight of the entropy bonus (PPO)",
+    "max_grad_norm": "gradient norm clip (PPO)",
+    "lag_correction": "what PPO does about the actors' policy lag (docs/learner.md)",
+    "relative_x": "networks see world x coordinates as distances from the pelvis (the runner alone)",
+    "normalize_obs": "networks see observations standardised by running statistics",
+    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, the runner "
+              "alone)",
+    "min_replay": "transitions stored before the learner starts (SAC)",
+    "samples_per_insert": "replay rate limit: sampled transitions per inserted one (0: no limit; SAC)",
+    "hold_actors": "with --samples-per-insert, the replay server holds the actors back while they are ahead of the "
+                   "learner, so the ratio holds both ways (SAC)",
+    "random_steps": "uniform random steps of each actor before it uses the policy (warm-up)",
+    "envs_per_actor": "environments per actor, batched in one policy call",
+    "action_repeat": "0.01 s environment steps per action on the runner, environment steps per action on another "
+                     "task (stored in checkpoints for `l2r eval`)",
+}
+# Settings whose values are one of a few names.
+CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS}
+
+# The replay server's settings, under their l2r-replay flags.
+REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per-insert",
+                "hold_actors": "--hold-actors"}
+# The actors' settings (l2r up hands each to the processes that need it).
+ACTOR_SETTINGS = ("random_steps", "envs_per_actor", "action_repeat")
+# Settings that read the runner's body (its x coordinates, its legs): off on any other task.
+RUNNER_BODY = ("relative_x", "mirror")
+
+
+def family_of(env_id: str) -> str:
+    return RUNNER if env_id.startswith("l2r/") else STANDARD
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """The values a job trains with: its recipe's, each replaced by its flag where one was given."""
+
+    name: str
+    """family/algorithm, e.g. runner/sac."""
+    values: dict[str, Value]
+    origins: dict[str, str]
+    """Where each value came from: 'recipe' or 'flag'; for the runner's options on another task, why they are off."""
+    unused: tuple[str, ...]
+    """Settings given as flags that this algorithm has no use for (--mirror with PPO)."""
+
+    def describe(self) -> str:
+        """One line: each value, grouped by where it came from (the unused flags aside)."""
+        groups: dict[str, list[str]] = {}
+        for name, value in self.values.items():
+            origin = {"recipe": "from the recipe", "flag": "from flags"}.get(self.origins[name], self.origins[name])
+            groups.setdefault(origin, []).append(f"{name} {_shown(value)}")
+        return f"recipe {self.name}: " + "; ".join(f"{origin}: {', '.join(items)}" for origin, items in groups.items())
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "values": {name: {"value": value, "from": self.origins[name]}
+                                              for name, value in self.values.items()}, "unused": list(self.unused)}
+
+
+def resolve(env_id: str, algo: str, family: str | None, flags: Mapping[str, Value | None]) -> Recipe:
+    """The recipe of `family` (None: the family of `env_id`) for `algo`, each value replaced by its
+    flag in `flags` unless that is None."""
+    family = family or family_of(env_id)
+    table = RECIPES[family, algo]
+    values, origins = {}, {}
+    for name, value in table.items():
+        given = flags.get(name)
+        values[name], origins[name] = (value, "recipe") if given is None else (given, "flag")
+        if name in RUNNER_BODY and values[name] and family_of(env_id) != RUNNER:
+            values[name], origins[name] = False, f"off on {env_id}, the runner's alone"
+    unused = tuple(name for name, value in flags.items() if value is not None and name not in table)
+    return Recipe(f"{family}/{algo}", values, origins, unused)
+
+
+def _shown(value: Value) -> str:
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return f"{value:,}" if isinstance(value, int) else f"{value:g}" if isinstance(value, float) else value
+
+
+def shown_values(name: str) -> str:
+    """A setting's value in each recipe that has it, e.g. 'runner/sac 10, standard/sac 1'."""
+    return ", ".join(f"{family}/{algo} {_shown(table[name])}" for (family, algo), table in RECIPES.items()
+                     if name in table)

@@ -1,0 +1,167 @@
+"""`l2r up`'s recipes (l2r.recipes): the task's family picks one, --recipe another, a flag replaces
+one value; every value reaches the daemon that uses it, as that daemon's own parser reads it; the
+runner trains as before recipes, and a run from before them resumes as it began."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.learner.__main__ import parse_settings as learner_settings
+from l2r.recipes import RECIPES, RUNNER, SETTINGS, STANDARD
+from l2r.replay.__main__ import parse_settings as replay_settings
+from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
+
+REPLAY = "--run run --log-level INFO --listen tcp/127.0.0.1:7447"
+LEARNER = "--run run --log-level INFO --listen tcp/127.0.0.1:7448 --connect tcp/127.0.0.1:7447 --device cpu"
+ACTOR = "--run run --log-level INFO --connect tcp/127.0.0.1:7447 --connect tcp/127.0.0.1:7448 --listen tcp/127.0.0.1:0"
+RUNNER_LOGS = "--episode-log-dir runs/x/episodes --log-every 10"
+EVALUATOR = "--evaluate --actor-id 1 --num-envs 2 --eval-episodes 2 --eval-interval 20.0"
+# The command lines `l2r up --learner-threads 1` planned before recipes, with --algo and, for
+# Hopper-v5, --env-id Hopper-v5 --action-repeat 1.
+BEFORE = {
+    ("l2r/Run-v0", "sac"): {
+        "replay": f"{REPLAY} --capacity 1000000 --min-size 10000 --samples-per-insert 0.0 --snapshot-dir runs/x/replay",
+        "learner": f"{LEARNER} --update-repeat 1 --batch-size 256 --hidden 256,256 --relative-x --normalize-obs "
+                   f"--mirror --threads 1 --action-repeat 3 --keep-checkpoints 3 --run-dir runs/x",
+        "actor-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 --actor-id 0 "
+                   f"--random-steps 10000 {RUNNER_LOGS}",
+        "evaluator-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 "
+                       f"{EVALUATOR} {RUNNER_LOGS}"},
+    ("l2r/Run-v0", "ppo"): {
+        "replay": f"{REPLAY} --capacity 0 --queue-capacity 4096 --queue-max-lag 3 --snapshot-dir runs/x/replay",
+        "learner": f"{LEARNER} --algo ppo --in-flight 1 --relative-x --normalize-obs --threads 1 --action-repeat 3 "
+                   f"--keep-checkpoints 3 --run-dir runs/x",
+        "actor-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 --actor-id 0 "
+                   f"--random-steps 0 {RUNNER_LOGS}",
+        "evaluator-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 "
+                       f"{EVALUATOR} {RUNNER_LOGS}"},
+    ("Hopper-v5", "sac"): {
+        "replay": f"{REPLAY} --capacity 1000000 --min-size 10000 --samples-per-insert 0.0 --obs-dim 11 --act-dim 3 "
+                  f"--snapshot-dir runs/x/replay",
+        "learner": f"{LEARNER} --update-repeat 1 --batch-size 256 --hidden 256,256 --obs-dim 11 --act-dim 3 "
+                   f"--normalize-obs --threads 1 --action-repeat 1 --keep-checkpoints 3 --run-dir runs/x",
+        "actor-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 --max-speed 0 "
+                   f"--actor-id 0 --random-steps 10000",
+        "evaluator-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 "
+                       f"--max-speed 0 {EVALUATOR}"},
+    ("Hopper-v5", "ppo"): {
+        "replay": f"{REPLAY} --capacity 0 --queue-capacity 4096 --queue-max-lag 3 --obs-dim 11 --act-dim 3 "
+                  f"--snapshot-dir runs/x/replay",
+        "learner": f"{LEARNER} --algo ppo --in-flight 1 --obs-dim 11 --act-dim 3 --normalize-obs --threads 1 "
+                   f"--action-repeat 1 --keep-checkpoints 3 --run-dir runs/x",
+        "actor-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 --max-speed 0 "
+                   f"--actor-id 0 --random-steps 0",
+        "evaluator-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 "
+                       f"--max-speed 0 {EVALUATOR}"},
+}
+
+
+def old_launch(env_id: str, algo: str) -> dict:
+    """launch.json's flags as l2r up stored them before recipes: the on/off options as true."""
+    return {"args": {
+        "seconds": 100.0, "env_steps": 0, "seed": 0, "max_restarts": 3, "env_id": env_id, "actors": 1,
+        "envs_per_actor": 4, "difficulty": 0, "action_repeat": 3 if env_id.startswith("l2r/") else 1,
+        "random_steps": None, "evaluators": 1, "eval_episodes": 2, "eval_interval": 20.0, "eval_env_id": [],
+        "opensim_actors": 0, "log_every": 10, "actor_nice": 10, "no_episode_logs": False, "device": "cpu",
+        "learner_threads": 0, "algo": algo, "batch_size": None, "hidden": None, "update_repeat": 1, "relative_x": True,
+        "normalize_obs": True, "mirror": True, "min_replay": 10000, "samples_per_insert": 0.0, "capacity": 1000000,
+        "queue_capacity": None, "queue_max_lag": 3, "keep_checkpoints": 3, "learner_arg": [], "replay_arg": [],
+        "actor_arg": [], "status_interval": 2.0, "log_level": "INFO"}}
+
+
+def planned(*argv: str) -> dict[str, list[str]]:
+    """Each process's arguments in the job `l2r up ARGV` plans."""
+    args, _ = parse_args(list(argv))
+    return {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+
+
+def assert_same_settings(now: dict[str, list[str]], before: dict[str, str]) -> None:
+    """Every daemon of both jobs is started with the same settings, as its own parser reads them."""
+    before = {name: line.split() for name, line in before.items()}
+    assert now.keys() == before.keys()
+    assert replay_settings(now["replay"]) == replay_settings(before["replay"])
+    learner_now, learner_before = learner_settings(now["learner"]), learner_settings(before["learner"])
+    assert learner_now.algorithm() == learner_before.algorithm()
+    assert learner_now.learner() == learner_before.learner()
+    for name in ("actor-0", "evaluator-0"):
+        assert actor_settings(now[name]) == actor_settings(before[name])
+
+
+def reached(children: dict[str, list[str]], recipe: dict) -> dict:
+    """The value of each setting of `recipe` as the planned daemons take it."""
+    replay, learner, actor = (replay_settings(children["replay"]), learner_settings(children["learner"]),
+                              actor_settings(children["actor-0"]))
+    values = {name: getattr(learner, name) for name in LEARNER_FLAGS}
+    values |= {"layer_norm": learner.algorithm().layer_norm, "min_replay": replay.min_size,
+               "samples_per_insert": replay.samples_per_insert, "hold_actors": replay.hold_actors,
+               "random_steps": actor.random_steps, "envs_per_actor": actor.num_envs,
+               "action_repeat": actor.action_repeat}
+    assert learner.action_repeat == actor.action_repeat  # the learner stores it for l2r eval
+    return {name: values[name] for name in recipe}
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_the_runner_trains_as_before_recipes(algo):
+    assert_same_settings(planned("--algo", algo, "--learner-threads", "1"), BEFORE["l2r/Run-v0", algo])
+
+
+@pytest.mark.parametrize("family, algo", RECIPES)
+def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, algo):
+    recipe = RECIPES[family, algo]
+    env_id = "l2r/RunOpenSim-v0" if family == RUNNER else "Walker2d-v5"
+    assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == recipe
+
+
+def test_recipe_forces_a_family_but_the_runner_s_body_options_stay_on_the_runner():
+    assert reached(planned("--recipe", "standard"), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"]
+    on_hopper = reached(planned("--env-id", "Hopper-v5", "--recipe", "runner"), RECIPES[RUNNER, "sac"])
+    assert on_hopper == RECIPES[RUNNER, "sac"] | {"relative_x": False, "mirror": False}
+
+
+def test_a_flag_replaces_one_value_and_launch_json_says_where_each_came_from(tmp_path):
+    argv = ["--env-id", "Hopper-v5", "--reward-scale", "5", "--layer-norm", "--no-hold-actors", "--envs-per-actor", "2"]
+    changed = {"reward_scale": 5.0, "layer_norm": True, "hold_actors": False, "envs_per_actor": 2}
+    assert reached(planned(*argv), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"] | changed
+    args, launch = parse_args(argv)
+    write_launch(tmp_path, args, argv, launch, {})
+    written = json.loads((tmp_path / "launch.json").read_text())
+    assert written["recipe"]["name"] == "standard/sac"
+    assert written["recipe"]["values"]["reward_scale"] == {"value": 5.0, "from": "flag"}
+    assert written["recipe"]["values"]["initial_alpha"] == {"value": 1.0, "from": "recipe"}
+    assert (written["args"]["reward_scale"], written["args"]["initial_alpha"]) == (5.0, None)  # as given
+    assert "from flags: layer_norm on, reward_scale 5, hold_actors off, envs_per_actor 2" in recipe_of(args).describe()
+
+
+def test_every_setting_of_the_recipes_is_described_and_of_one_type():
+    in_recipes = {name for table in RECIPES.values() for name in table}
+    assert in_recipes == set(SETTINGS)
+    for name in in_recipes:  # the type of its flag: 1 where 1.0 is meant would refuse --reward-scale 0.5
+        assert len({type(table[name]) for table in RECIPES.values() if name in table}) == 1, name
+
+
+def test_each_flag_s_help_names_the_recipes_values():
+    help_ = {action.dest: action.help for action in build_parser()._actions}
+    assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1")
+    assert help_["mirror"].endswith("runner/sac on, standard/sac off")
+
+
+def test_a_learner_arg_still_wins_over_the_recipe():
+    learner = planned("--learner-arg=--no-layer-norm", "--learner-arg=--reward-scale=1")["learner"]
+    config = learner_settings(learner).sac()  # the learner refuses --layer-norm and --no-layer-norm at once
+    assert (config.layer_norm, config.reward_scale, config.activation) == (False, 1.0, "elu")
+
+
+@pytest.mark.parametrize("env_id, algo", BEFORE)
+def test_a_run_from_before_recipes_resumes_as_it_began(env_id, algo, tmp_path):
+    (tmp_path / "launch.json").write_text(json.dumps(old_launch(env_id, algo)))
+    assert_same_settings(planned("--resume", str(tmp_path), "--learner-threads", "1"), BEFORE[env_id, algo])
+
+
+def test_a_run_resumes_with_the_recipe_it_resolved_and_the_flags_it_was_given(tmp_path):
+    argv = ["--env-id", "Hopper-v5", "--batch-size", "64"]
+    args, launch = parse_args(argv)
+    write_launch(tmp_path, args, argv, launch, {})
+    resumed = planned("--resume", str(tmp_path))
+    assert reached(resumed, RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"] | {"batch_size": 64}
