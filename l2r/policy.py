@@ -1,14 +1,18 @@
 """The policy network shared by the learner and the actors.
 
-A tanh-squashed Gaussian over the 18 muscle excitations. The network works in tanh space
-(-1, 1); `act` maps its output to excitations in [0, 1], the environment's action space.
-The learner maps stored excitations back with `to_tanh_space` before training on them.
+Two kinds over the 18 muscle excitations, one network shape (observation filter, hidden layers,
+linear head): "gaussian", a tanh-squashed Gaussian (SAC, PPO), and "deterministic", tanh(mu(s))
+explored with Gaussian noise (TD3). The network works in tanh space (-1, 1); `act` maps its
+output to excitations in [0, 1], the environment's action space. The learner maps stored
+excitations back with `to_tanh_space` before training on them.
 
 The architecture travels as a small spec dict in the weights message, so an actor can
 rebuild exactly the network the learner trains:
 
     {"obs_dim": 41, "act_dim": 18, "hidden": [512, 512, 512], "activation": "elu",
-     "layer_norm": true, "relative_x": false, "normalize_obs": false}
+     "layer_norm": true, "relative_x": false, "normalize_obs": false, "kind": "gaussian"}
+
+A spec without "kind" (from before the deterministic kind) is a Gaussian one.
 
 The network's first layer sees the observation through an `ObservationFilter` (x coordinates
 measured from the pelvis, running standardisation), part of the network's state: the filter's
@@ -39,12 +43,14 @@ ACTIVATIONS = {"elu": partial(nn.ELU, inplace=True), "relu": partial(nn.ReLU, in
 SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
 # Observation options; a spec from before they existed means "off".
 FILTER_KEYS = ("relative_x", "normalize_obs")
+GAUSSIAN, DETERMINISTIC = "gaussian", "deterministic"
 
 
 def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
     """The reference architecture: three hidden layers of 512, ELU, LayerNorm, raw observations."""
     return {"obs_dim": obs_dim, "act_dim": act_dim, "hidden": [512, 512, 512],
-            "activation": "elu", "layer_norm": True, "relative_x": False, "normalize_obs": False}
+            "activation": "elu", "layer_norm": True, "relative_x": False, "normalize_obs": False,
+            "kind": GAUSSIAN}
 
 
 def check_spec(spec: Mapping) -> dict:
@@ -65,11 +71,14 @@ def check_spec(spec: Mapping) -> dict:
         raise ValueError(f"policy spec 'activation' must be one of {sorted(ACTIVATIONS)}, "
                          f"got {spec['activation']!r}")
     options = {key: bool(spec.get(key, False)) for key in FILTER_KEYS}
+    kind = spec.get("kind", GAUSSIAN)
+    if not isinstance(kind, str) or kind not in POLICIES:
+        raise ValueError(f"policy spec 'kind' must be one of {sorted(POLICIES)}, got {kind!r}")
     if options["relative_x"] and spec["obs_dim"] != layout.OBS_SIZE:
         raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
                          f"got obs_dim {spec['obs_dim']}")
     return {"obs_dim": spec["obs_dim"], "act_dim": spec["act_dim"], "hidden": list(hidden),
-            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"]), **options}
+            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"]), **options, "kind": kind}
 
 
 def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: bool) -> nn.Sequential:
@@ -144,23 +153,46 @@ class ObservationFilter(nn.Module):
         self.count.copy_(count)
 
 
-class Policy(nn.Module):
-    """Tanh-Gaussian policy: observation -> mean and log-std of a pre-tanh Gaussian."""
+class PolicyNetwork(nn.Module):
+    """What every policy kind is: the spec, the observation filter, the hidden layers and a
+    linear head of `outputs` values per action dimension."""
 
-    def __init__(self, spec: Mapping):
+    KIND = ""
+    """The spec's "kind" of the subclass."""
+
+    def __init__(self, spec: Mapping, outputs: int):
         super().__init__()
         self.spec = check_spec(spec)
+        if self.spec["kind"] != self.KIND:
+            raise ValueError(f"a {self.KIND} policy cannot be built from a {self.spec['kind']} spec")
         self.observation_filter = ObservationFilter(self.spec["obs_dim"], self.spec["relative_x"],
                                                     self.spec["normalize_obs"])
         self.trunk = mlp_trunk(self.spec["obs_dim"], self.spec["hidden"],
                                self.spec["activation"], self.spec["layer_norm"])
-        self.head = nn.Linear(self.spec["hidden"][-1], 2 * self.spec["act_dim"])
+        self.head = nn.Linear(self.spec["hidden"][-1], outputs * self.spec["act_dim"])
+
+    def head_output(self, obs: torch.Tensor) -> torch.Tensor:
+        features = self.trunk(self.observation_filter(obs))
+        # The head stays in float32 under mixed precision: actions, means and log-stds need the bits.
+        with torch.autocast(obs.device.type, enabled=False):
+            return self.head(features.float())
+
+    @torch.no_grad()
+    def act(self, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Excitations in [0, 1] for a batch of observations, shape (n, obs_dim) -> (n, act_dim)."""
+        return act(self, obs_batch, deterministic)
+
+
+class Policy(PolicyNetwork):
+    """Tanh-Gaussian policy: observation -> mean and log-std of a pre-tanh Gaussian."""
+
+    KIND = GAUSSIAN
+
+    def __init__(self, spec: Mapping):
+        super().__init__(spec, outputs=2)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        features = self.trunk(self.observation_filter(obs))
-        # The head stays in float32 under mixed precision: means and log-stds need the bits.
-        with torch.autocast(obs.device.type, enabled=False):
-            mean, log_std = self.head(features.float()).chunk(2, dim=-1)
+        mean, log_std = self.head_output(obs).chunk(2, dim=-1)
         # Squash log-std smoothly into its bounds so gradients never vanish at a hard clip.
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mean, log_std
@@ -181,10 +213,45 @@ class Policy(nn.Module):
         entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1)
         return tanh_gaussian_log_prob(mean, log_std, action), entropy
 
-    @torch.no_grad()
-    def act(self, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        """Excitations in [0, 1] for a batch of observations, shape (n, obs_dim) -> (n, act_dim)."""
-        return act(self, obs_batch, deterministic)
+    def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """The deterministic action in (-1, 1): the tanh of the mean."""
+        return torch.tanh(self(obs)[0])
+
+    def explore(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sampled excitations in [0, 1] and the log-probability of each, taken of the excitation
+        as sent (float32, mapped back with `to_tanh_space`), so the learner, computing it from
+        the stored action, gets the same number."""
+        mean, log_std = self(obs)
+        excitation = to_excitation(torch.tanh(mean + log_std.exp() * torch.randn_like(mean)))
+        return excitation, tanh_gaussian_log_prob(mean, log_std, to_tanh_space(excitation))
+
+
+class DeterministicPolicy(PolicyNetwork):
+    """Deterministic policy: observation -> tanh(mu(s)) in (-1, 1).
+
+    It explores by adding N(0, exploration_std) to each action value and clipping the sum to the
+    bounds [-1, 1]; the noise itself is not clipped (as DrQ-v2 and Stable-Baselines3 explore).
+    `exploration_std` is a buffer, so the std the learner schedules travels with the weights and
+    the checkpoint."""
+
+    KIND = DETERMINISTIC
+
+    def __init__(self, spec: Mapping):
+        super().__init__(spec, outputs=1)
+        self.register_buffer("exploration_std", torch.zeros(()))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.head_output(obs))
+
+    def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
+        return self(obs)
+
+    def explore(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Explored excitations in [0, 1], and 0 for each log-probability: TD3 reads none, and an
+        action clipped at a bound has no density to give."""
+        action = self(obs)
+        action = (action + self.exploration_std * torch.randn_like(action)).clamp(-1.0, 1.0)
+        return to_excitation(action), action.new_zeros(len(action))
 
 
 def tanh_gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -201,33 +268,26 @@ def _log_density(noise: torch.Tensor, pre_tanh: torch.Tensor, log_std: torch.Ten
     return (gauss - squash).sum(-1)
 
 
-def build_policy(spec: Mapping) -> Policy:
-    """A freshly initialised policy for an architecture spec (see module docstring)."""
-    return Policy(spec)
+def build_policy(spec: Mapping) -> PolicyNetwork:
+    """A freshly initialised policy of the spec's kind (see module docstring)."""
+    return POLICIES[check_spec(spec)["kind"]](spec)
 
 
 @torch.no_grad()
-def act(policy: Policy, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
+def act(policy: PolicyNetwork, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
     """Excitations in [0, 1], float32, for a batch of observations (runs on the policy's device)."""
     device = next(policy.parameters()).device
     obs = torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device)
-    if deterministic:
-        mean, _ = policy(obs)
-        action = torch.tanh(mean)
-    else:
-        action, _ = policy.sample(obs)
-    return to_excitation(action).cpu().numpy()
+    excitation = to_excitation(policy.mean_action(obs)) if deterministic else policy.explore(obs)[0]
+    return excitation.cpu().numpy()
 
 
 @torch.no_grad()
-def act_with_log_prob(policy: Policy, obs_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Stochastic excitations in [0, 1] and the log-probability of each, float32. The
-    log-probability is of the excitations as sent (float32, mapped back with `to_tanh_space`),
-    so the learner, computing it from the stored action, gets the same number."""
+def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exploring excitations in [0, 1] and the log-probability of each, float32 (see each kind's
+    `explore`)."""
     device = next(policy.parameters()).device
-    mean, log_std = policy(torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device))
-    excitation = to_excitation(torch.tanh(mean + log_std.exp() * torch.randn_like(mean)))
-    log_prob = tanh_gaussian_log_prob(mean, log_std, to_tanh_space(excitation))
+    excitation, log_prob = policy.explore(torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device))
     return excitation.cpu().numpy(), log_prob.cpu().numpy()
 
 
@@ -246,13 +306,13 @@ def to_tanh_space(excitation: torch.Tensor) -> torch.Tensor:
     return excitation * 2.0 - 1.0
 
 
-def policy_state(policy: Policy) -> dict[str, np.ndarray]:
+def policy_state(policy: PolicyNetwork) -> dict[str, np.ndarray]:
     """The policy's parameters as float32 numpy arrays, keyed by parameter name."""
     return {name: t.detach().to("cpu", torch.float32).numpy().copy()
             for name, t in policy.state_dict().items()}
 
 
-def load_policy_state(policy: Policy, arrays: Mapping[str, np.ndarray]) -> None:
+def load_policy_state(policy: PolicyNetwork, arrays: Mapping[str, np.ndarray]) -> None:
     """Copy arrays from `policy_state` into the policy; ValueError on missing keys or bad shapes."""
     own = policy.state_dict()
     missing = sorted(set(own) - set(arrays))
@@ -270,3 +330,7 @@ def load_policy_state(policy: Policy, arrays: Mapping[str, np.ndarray]) -> None:
     with torch.no_grad():
         for name, target in own.items():
             target.copy_(torch.from_numpy(np.array(arrays[name], dtype=np.float32)))
+
+
+# The network of each spec "kind".
+POLICIES = {GAUSSIAN: Policy, DETERMINISTIC: DeterministicPolicy}

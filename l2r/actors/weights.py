@@ -16,7 +16,7 @@ import time
 import numpy as np
 import zenoh
 
-from l2r.policy import Policy, build_policy, check_spec, load_policy_state
+from l2r.policy import PolicyNetwork, build_policy, check_spec, load_policy_state
 from l2r.protocol import WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, Rejections, Weights, decode
 
 log = logging.getLogger("l2r.actor.weights")
@@ -36,7 +36,7 @@ class WeightFollower:
         self.version = -1  # version of the policy in use; -1 before any
         self.newest_seen = -1  # newest version announced by weights or the learner's beacon
         self.swaps = 0
-        self.policy: Policy | None = None
+        self.policy: PolicyNetwork | None = None
         self._subscriber = session.declare_subscriber(keys.weights, self._on_weights)
         self._beacon = session.declare_subscriber(keys.learner_version, self._on_beacon)
 

@@ -8,14 +8,15 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from l2r.policy import check_spec
+from l2r.policy import GAUSSIAN, check_spec
 
 
-def policy_spec(config, obs_dim: int, act_dim: int) -> dict:
-    """The architecture spec of the policy a config (SACConfig, PPOConfig) trains, sent with the weights."""
+def policy_spec(config, obs_dim: int, act_dim: int, kind: str = GAUSSIAN) -> dict:
+    """The architecture spec of the policy a config (SACConfig, PPOConfig, TD3Config) trains, sent
+    with the weights."""
     return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
                        "activation": config.activation, "layer_norm": config.layer_norm,
-                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs})
+                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs, "kind": kind})
 
 
 def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.optim.Adam:
