@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Mapping
 
 import numpy as np
@@ -113,14 +113,15 @@ class TwinCritic(nn.Module):
         self.norm_shifts = nn.ParameterList(
             [nn.Parameter(torch.zeros(n, 1, h)) for h in hidden] if layer_norm else [])
         self.activation = ACTIVATIONS[activation]()
-        self.n = n
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_weights: bool = False) -> torch.Tensor:
-        weights = [w.detach() if detach_weights else w for w in self.weights]
-        biases = [b.detach() if detach_weights else b for b in self.biases]
-        scales = [s.detach() if detach_weights else s for s in self.norm_scales]
-        shifts = [s.detach() if detach_weights else s for s in self.norm_shifts]
-        x = torch.cat([obs, action], dim=-1).expand(self.n, -1, -1)
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_weights: bool = False,
+                critics: int | None = None) -> torch.Tensor:
+        """Q values (critics, batch): of the first `critics` only if given (TD3's actor reads Q1)."""
+        def used(params: nn.ParameterList) -> list[torch.Tensor]:
+            return [(p.detach() if detach_weights else p)[:critics] for p in params]
+
+        weights, biases, scales, shifts = map(used, (self.weights, self.biases, self.norm_scales, self.norm_shifts))
+        x = torch.cat([obs, action], dim=-1).expand(len(weights[0]), -1, -1)
         for i, (w, b) in enumerate(zip(weights[:-1], biases[:-1])):
             x = torch.baddbmm(b, x, w)
             if scales:  # affine cast to x's dtype, so bfloat16 activations stay bfloat16 (half the bytes)
@@ -187,9 +188,7 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
                seed: int | None = None) -> TrainState:
     """Freshly initialised networks and optimizers on `device`."""
     device = torch.device(device)
-    if config.mirror and (obs_dim, act_dim) != (layout.OBS_SIZE, len(layout.ACTION_LABELS)):
-        raise ValueError(f"mirror needs the Learning to Run layout ({layout.OBS_SIZE} observations, "
-                         f"{len(layout.ACTION_LABELS)} actions), got {obs_dim} and {act_dim}")
+    check_mirror(config, obs_dim, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
     actor = Policy(policy_spec(config, obs_dim, act_dim)).to(device)
@@ -205,22 +204,34 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
                       bfloat16=bfloat16)
 
 
+def check_mirror(config: SACConfig, obs_dim: int, act_dim: int) -> None:
+    """ValueError if config.mirror is on for widths other than the Learning to Run layout's."""
+    if config.mirror and (obs_dim, act_dim) != (layout.OBS_SIZE, len(layout.ACTION_LABELS)):
+        raise ValueError(f"mirror needs the Learning to Run layout ({layout.OBS_SIZE} observations, "
+                         f"{len(layout.ACTION_LABELS)} actions), got {obs_dim} and {act_dim}")
+
+
 @dataclass
 class Batch(Transitions):
     """A batch of sampled transitions."""
 
     weights: torch.Tensor | None = None
     """Importance weights from prioritized replay, or None for uniform sampling."""
+    discounts: torch.Tensor | None = None
+    """n-step returns (TD3's n_step > 1; SAC asks for none): the discount of each sample's bootstrap,
+    0 where the episode terminated within its window, else gamma^m for a window of m steps; its
+    reward is then the window's discounted sum and next_obs the observation after it. None: one step."""
 
 
 def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                      terminated: np.ndarray, weights: np.ndarray | None = None,
-                     device: str | torch.device = "cpu") -> Batch:
+                     device: str | torch.device = "cpu", discounts: np.ndarray | None = None) -> Batch:
     """A Batch from replay arrays; actions arrive as [0, 1] excitations."""
     return Batch(float_tensor(obs, device), to_tanh_space(float_tensor(action, device)),
                  float_tensor(reward, device).reshape(-1), float_tensor(next_obs, device),
                  float_tensor(terminated, device).reshape(-1),
-                 None if weights is None else float_tensor(weights, device).reshape(-1))
+                 None if weights is None else float_tensor(weights, device).reshape(-1),
+                 None if discounts is None else float_tensor(discounts, device).reshape(-1))
 
 
 def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
@@ -230,10 +241,9 @@ def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
         swap = torch.rand(len(batch.obs), 1, device=batch.obs.device) < 0.5
         obs_mirror = torch.as_tensor(layout.MIRROR_OBS, device=batch.obs.device)
         action_mirror = torch.as_tensor(layout.MIRROR_ACTION, device=batch.obs.device)
-        batch = Batch(torch.where(swap, batch.obs[:, obs_mirror], batch.obs),
-                      torch.where(swap, batch.action[:, action_mirror], batch.action), batch.reward,
-                      torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs), batch.terminated,
-                      batch.weights)
+        batch = replace(batch, obs=torch.where(swap, batch.obs[:, obs_mirror], batch.obs),
+                        action=torch.where(swap, batch.action[:, action_mirror], batch.action),
+                        next_obs=torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs))
     state.actor.observation_filter.update(batch.obs, sum_over_ranks)
     return batch
 
