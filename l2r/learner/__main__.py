@@ -1,4 +1,4 @@
-"""``l2r-learner``: command line of the learner, SAC or PPO (see ``l2r.learner.daemon``)."""
+"""``l2r-learner``: command line of the learner, SAC, TD3 or PPO (see ``l2r.learner.daemon``)."""
 
 from __future__ import annotations
 
@@ -21,18 +21,20 @@ from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
 from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
+from l2r.learner.td3 import TD3Config  # noqa: E402
 from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
 
-SAC_DEFAULTS, PPO_DEFAULTS = SACConfig(), PPOConfig()
+SAC_DEFAULTS, PPO_DEFAULTS, TD3_DEFAULTS = SACConfig(), PPOConfig(), TD3Config()
 PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
-BOTH, SAC, PPO = "algorithm (SAC and PPO)", "SAC (with --algo sac)", "PPO (with --algo ppo)"
+BOTH, SAC, PPO = "algorithm (every --algo)", "SAC (with --algo sac)", "PPO (with --algo ppo)"
+OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
 
 
 def _either(sac_value, ppo_value) -> str:
-    """Help text for a setting whose default is the algorithm's."""
+    """Help text for a setting whose default is the algorithm's (TD3's are SAC's)."""
     def shown(value) -> str:
         return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
-    return f"(default: SAC {shown(sac_value)}, PPO {shown(ppo_value)})"
+    return f"(default: SAC and TD3 {shown(sac_value)}, PPO {shown(ppo_value)})"
 
 
 class LearnerSettings(DaemonSettings):
@@ -46,9 +48,10 @@ class LearnerSettings(DaemonSettings):
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)
     in_flight: int = setting(4, "sample requests kept in flight (PPO: a batch fetched ahead comes from an older "
                              "policy; l2r up --algo ppo keeps 1)", group=PROCESS, ge=1)
-    prioritized: bool = setting(False, "prioritized sampling, |TD error| sent back as priority (SAC)", group=PROCESS)
+    prioritized: bool = setting(False, "prioritized sampling, |TD error| sent back as priority (SAC, TD3)",
+                                group=PROCESS)
     priority_beta: float = setting(0.4, "importance-weight exponent under prioritized sampling", group=PROCESS, ge=0)
-    publish_every: int = setting(50, "updates between weight publications (SAC; PPO publishes after every batch)",
+    publish_every: int = setting(50, "updates between weight publications (SAC, TD3; PPO publishes after every batch)",
                                  group=PROCESS, ge=1)
     checkpoint_interval: float = setting(60.0, "seconds between checkpoints", group=PROCESS, gt=0)
     keep_checkpoints: int = setting(3, "checkpoints kept: checkpoint.pt is the newest, checkpoint-<updates>.pt "
@@ -68,8 +71,9 @@ class LearnerSettings(DaemonSettings):
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 
-    algo: Literal["sac", "ppo"] = setting("sac", "sac: off-policy, from the replay table; ppo: on-policy, from the "
-                                          "replay server's queue table (l2r-replay --queue-capacity)", group=BOTH)
+    algo: Literal["sac", "td3", "ppo"] = setting(
+        "sac", "sac: off-policy, from the replay table; td3: off-policy with a deterministic policy, from the replay "
+        "table; ppo: on-policy, from the replay server's queue table (l2r-replay --queue-capacity)", group=BOTH)
     batch_size: int | None = setting(None, "transitions per batch; for PPO, per update (its rollout) "
                                      + _either(SAC_DEFAULTS.batch_size, PPO_DEFAULTS.batch_size), group=BOTH, ge=1)
     gamma: float = setting(SAC_DEFAULTS.gamma, "discount", group=BOTH, ge=0, le=1)
@@ -79,7 +83,7 @@ class LearnerSettings(DaemonSettings):
                                  + _either(SAC_DEFAULTS.hidden, PPO_DEFAULTS.hidden), group=BOTH)
     activation: Literal["elu", "relu", "tanh"] | None = setting(
         None, "hidden activation " + _either(SAC_DEFAULTS.activation, PPO_DEFAULTS.activation), group=BOTH)
-    no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers (SAC's default has it)", group=BOTH)
+    no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers (SAC's and TD3's default has it)", group=BOTH)
     layer_norm: bool = setting(False, "LayerNorm in hidden layers (PPO's default has none)", group=BOTH)
     reward_scale: float | None = setting(None, "reward multiplier " + _either(SAC_DEFAULTS.reward_scale,
                                                                                 PPO_DEFAULTS.reward_scale), group=BOTH)
@@ -87,17 +91,37 @@ class LearnerSettings(DaemonSettings):
     normalize_obs: bool = setting(False, "networks see observations standardised by running statistics (shipped "
                                   "with the weights)", group=BOTH)
 
-    update_repeat: int = setting(SAC_DEFAULTS.update_repeat, "gradient steps per sampled batch", group=SAC, ge=1)
-    tau: float = setting(SAC_DEFAULTS.tau, "Polyak rate of the target critics", group=SAC, gt=0, le=1)
-    target_entropy: float | None = setting(None, "entropy target of alpha tuning (default: -act-dim)", group=SAC)
-    initial_alpha: float = setting(SAC_DEFAULTS.initial_alpha, "starting temperature", group=SAC, gt=0)
-    fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
+    update_repeat: int = setting(SAC_DEFAULTS.update_repeat, "gradient steps per sampled batch", group=OFF_POLICY,
+                                 ge=1)
+    tau: float = setting(SAC_DEFAULTS.tau, "Polyak rate of the target networks", group=OFF_POLICY, gt=0, le=1)
     mirror: bool = setting(False, "swap the legs of a random half of each batch (left-right symmetry as "
-                           "augmentation)", group=SAC)
+                           "augmentation)", group=OFF_POLICY)
     precision: Literal["auto", "float32", "bfloat16"] = setting(
         SAC_DEFAULTS.precision, "hidden-layer matmul precision; auto = bfloat16 on a CPU with native bfloat16, "
         "else float32 (PPO runs float32: its ratios compare the learner's log-probabilities with the actors')",
-        group=SAC)
+        group=OFF_POLICY)
+
+    target_entropy: float | None = setting(None, "entropy target of alpha tuning (default: -act-dim)", group=SAC)
+    initial_alpha: float = setting(SAC_DEFAULTS.initial_alpha, "starting temperature", group=SAC, gt=0)
+    fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
+
+    n_step: int = setting(TD3_DEFAULTS.n_step, "steps summed into each sampled reward before the bootstrap "
+                          "(n-step returns, built by the replay server)", group=TD3, ge=1)
+    policy_delay: int = setting(TD3_DEFAULTS.policy_delay, "the actor steps and the targets follow on every Nth "
+                                "update; the critics on every one", group=TD3, ge=1)
+    target_noise: float = setting(TD3_DEFAULTS.target_noise, "std of the noise on the target action (target policy "
+                                  "smoothing)", group=TD3, ge=0)
+    scheduled_target_noise: bool = setting(False, "the target action's noise takes the current exploration std "
+                                           "instead of --target-noise (DrQ-v2's way)", group=TD3)
+    noise_clip: float = setting(TD3_DEFAULTS.noise_clip, "the target action's noise is clipped to +-this (DrQ-v2: "
+                                "0.3)", group=TD3, ge=0)
+    exploration_std_start: float = setting(TD3_DEFAULTS.exploration_std_start, "std of the actors' Gaussian "
+                                           "exploration noise at update 0 (DrQ-v2: 1.0)", group=TD3, ge=0)
+    exploration_std_end: float = setting(TD3_DEFAULTS.exploration_std_end, "... and after "
+                                         "--exploration-std-updates updates", group=TD3, ge=0)
+    exploration_std_updates: int = setting(TD3_DEFAULTS.exploration_std_updates, "learner updates over which the "
+                                           "exploration std goes linearly from start to end (at one gradient step "
+                                           "per environment step: environment steps)", group=TD3, ge=0)
 
     epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)
     minibatches: int = setting(PPO_DEFAULTS.minibatches, "minibatches per pass, one gradient step each", group=PPO,
@@ -131,7 +155,7 @@ class LearnerSettings(DaemonSettings):
             raise UsageError("--mirror and --prioritized are SAC's: PPO learns from the actors' own actions, in "
                              "order (their log-probabilities are of the actions as taken)")
 
-    def _network(self, defaults: SACConfig | PPOConfig) -> dict:
+    def _network(self, defaults: SACConfig | PPOConfig | TD3Config) -> dict:
         """The settings both algorithms have, each unset one at the algorithm's default."""
         return {"batch_size": self.batch_size or defaults.batch_size, "gamma": self.gamma,
                 "hidden": tuple(int(h) for h in self.hidden.split(",")) if self.hidden else defaults.hidden,
@@ -161,8 +185,19 @@ class LearnerSettings(DaemonSettings):
         except ValueError as e:  # a combination PPOConfig refuses
             raise UsageError(str(e)) from None
 
-    def algorithm(self) -> SACConfig | PPOConfig:
-        return self.ppo() if self.algo == "ppo" else self.sac()
+    def td3(self) -> TD3Config:
+        try:
+            return TD3Config(
+                **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self.lr, critic_lr=self.lr,
+                update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
+                target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
+                exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
+                exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision)
+        except ValueError as e:  # a combination TD3Config refuses
+            raise UsageError(str(e)) from None
+
+    def algorithm(self) -> SACConfig | PPOConfig | TD3Config:
+        return {"sac": self.sac, "td3": self.td3, "ppo": self.ppo}[self.algo]()
 
     def learner(self) -> LearnerConfig:
         return LearnerConfig(
@@ -179,10 +214,13 @@ def build_parser() -> CommandParser:
     return settings_parser(
         LearnerSettings, "l2r-learner",
         "Learner of an l2r run. SAC (the default) samples batches from the replay server(s) with several requests "
-        "in flight and trains twin critics, a tanh-Gaussian policy and the entropy temperature; PPO (--algo ppo) "
+        "in flight and trains twin critics, a tanh-Gaussian policy and the entropy temperature; TD3 (--algo td3) "
+        "samples the same way and trains twin critics and a deterministic policy, which the actors explore with "
+        "scheduled Gaussian noise; PPO (--algo ppo) "
         "takes batches from the replay servers' queue table, each transition once, and trains the same policy with "
         "a value network. Both publish versioned policy weights for actors and checkpoint atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
+        "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
         "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192\n"
         "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500")
 

@@ -4,18 +4,21 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
 
     format          "l2r-learner-checkpoint"
     format_version  1
-    algo            "sac" or "ppo", the algorithm that trained it (absent: "sac", a file from
-                    before PPO)
+    algo            "sac", "ppo" or "td3", the algorithm that trained it (absent: "sac", a file
+                    from before PPO)
     sac_config      SACConfig as a dict (algorithm settings the state was trained with);
-                    None in a policy checkpoint and in a PPO checkpoint, so that readers from
-                    before PPO take a PPO checkpoint for a policy checkpoint
+                    None in a policy checkpoint and in a PPO or TD3 checkpoint, so that readers
+                    from before PPO take those for a policy checkpoint
     ppo_config      PPOConfig as a dict, in a PPO checkpoint
+    td3_config      TD3Config as a dict, in a TD3 checkpoint
     obs_dim, act_dim
-    policy_spec     the architecture spec of the policy (see l2r.policy)
+    policy_spec     the architecture spec of the policy (see l2r.policy; "kind" "deterministic"
+                    for TD3's)
     train_state     the algorithm's TrainState.state_dict(): for SAC actor, critic, target_critic
                     and their Adam states, log_alpha, updates, version, extra counters; for PPO
-                    actor, value, optimizer, updates, version, extra; a policy checkpoint holds
-                    only actor, updates and version
+                    actor, value, optimizer, updates, version, extra; for TD3 actor,
+                    target_actor, critic, target_critic, actor_opt, critic_opt, updates, version,
+                    extra; a policy checkpoint holds only actor, updates and version
     action_repeat   0.01 s steps per action the actors trained with (None: not known, as in
                     files from before it was stored)
     evaluation      policy checkpoints: how the policy did ({"mean_distance", "episodes", ...})
@@ -48,10 +51,11 @@ from typing import Any, Mapping
 import torch
 
 from l2r.durable import fsync_directory
-from l2r.learner import ppo, sac
+from l2r.learner import ppo, sac, td3
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
-from l2r.policy import Policy, build_policy
+from l2r.learner.td3 import TD3Config
+from l2r.policy import PolicyNetwork, build_policy
 
 FORMAT = "l2r-learner-checkpoint"
 FORMAT_VERSION = 1
@@ -61,11 +65,13 @@ UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of thei
 
 
 # What a checkpoint's "algo" names: the algorithm's config class and its module (init_state, TrainState, ...).
-ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo)}
+ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo), "td3": (TD3Config, td3)}
+AlgorithmConfig = SACConfig | PPOConfig | TD3Config
+TrainState = sac.TrainState | ppo.TrainState | td3.TrainState
 
 
-def algorithm_of(config: SACConfig | PPOConfig) -> str:
-    """The name of the algorithm a config is for ("sac", "ppo")."""
+def algorithm_of(config: AlgorithmConfig) -> str:
+    """The name of the algorithm a config is for ("sac", "ppo", "td3")."""
     return next(name for name, (cls, _) in ALGORITHMS.items() if isinstance(config, cls))
 
 
@@ -96,7 +102,7 @@ def find_checkpoint(path_or_run_dir: str | Path) -> Path:
     return path
 
 
-def save_checkpoint(path: str | Path, state: sac.TrainState | ppo.TrainState, config: SACConfig | PPOConfig,
+def save_checkpoint(path: str | Path, state: TrainState, config: AlgorithmConfig,
                     obs_dim: int, act_dim: int, action_repeat: int | None = None, keep: int = 1) -> Path:
     """Write the training state to `path` atomically. With `keep` > 1 the checkpoint is also
     kept as `checkpoint-<updates>.pt` beside it, and all but the newest `keep` such files go."""
@@ -157,7 +163,7 @@ class Checkpoint:
     """A loaded checkpoint: settings, shapes and the saved training state."""
 
     path: Path
-    config: SACConfig | PPOConfig | None
+    config: AlgorithmConfig | None
     """None in a policy checkpoint."""
     obs_dim: int
     act_dim: int
@@ -179,13 +185,13 @@ class Checkpoint:
     def updates(self) -> int:
         return int(self.train_state["updates"])
 
-    def policy(self, device: str | torch.device = "cpu") -> Policy:
+    def policy(self, device: str | torch.device = "cpu") -> PolicyNetwork:
         """The trained policy, ready for `act` (evaluation mode, on `device`)."""
         policy = build_policy(self.policy_spec)
         policy.load_state_dict(self.train_state["actor"])
         return policy.to(device).eval()
 
-    def restore(self, device: str | torch.device = "cpu") -> sac.TrainState | ppo.TrainState:
+    def restore(self, device: str | torch.device = "cpu") -> TrainState:
         """The full training state (networks, optimizers, counters) on `device`."""
         if self.config is None:
             raise CheckpointError(f"{self.path} holds a policy alone, not a training state to resume")

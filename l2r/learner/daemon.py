@@ -1,13 +1,14 @@
 """The learner process: batches in from replay, updates, weights, metrics and checkpoints out.
 
-The algorithms live in `l2r.learner.sac` and `l2r.learner.ppo`; this module only hosts them.
-Steady state:
+The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo`; this module
+only hosts them. Steady state:
 
     replay client (sample queries in flight) -> batch -> the algorithm's step:
-        SAC: update x update_repeat on a batch from the replay table, priorities back (prioritized only)
+        SAC, TD3: update x update_repeat on a batch from the replay table, priorities back
+                  (prioritized only)
         PPO: one update (epochs x minibatches) on a batch from the queue table
-        -> weights (new version) published and kept for queries: SAC every K updates, PPO after
-           every batch (its data must come from the newest policy)
+        -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
+           PPO after every batch (its data must come from the newest policy)
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
 
 SIGTERM and SIGINT stop the loop; the checkpoint is written last.
@@ -28,13 +29,15 @@ import numpy as np
 import torch
 import zenoh
 
-from l2r.learner import ppo, sac
+from l2r.learner import ppo, sac, td3
 from l2r.learner.checkpoint import (
-    ALGORITHMS, CheckpointError, algorithm_of, checkpoint_path, load_checkpoint, save_checkpoint,
+    ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
+    save_checkpoint,
 )
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
+from l2r.learner.td3 import TD3Config
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
     STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, ReplayClient, SampleBatch, Stats,
@@ -46,7 +49,8 @@ log = logging.getLogger("l2r.learner")
 
 @dataclass
 class LearnerConfig:
-    """Run and infrastructure settings of one learner process (the algorithm's are in SACConfig or PPOConfig)."""
+    """Run and infrastructure settings of one learner process (the algorithm's are in SACConfig, TD3Config or
+    PPOConfig)."""
 
     run: str = "default"
     run_dir: Path | None = None
@@ -83,10 +87,6 @@ class Diverged(RuntimeError):
     """Training produced NaN or infinite weights."""
 
 
-TrainState = sac.TrainState | ppo.TrainState
-AlgorithmConfig = SACConfig | PPOConfig
-
-
 def _finite(state: TrainState) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in state.parameters())
 
@@ -118,13 +118,15 @@ class WeightsOutlet:
 
 
 class Meter:
-    """Averages metrics over a reporting interval without reading tensors back every update."""
+    """Averages metrics over a reporting interval without reading tensors back every update. Each
+    metric is averaged over the batches that gave it (TD3's actor loss comes with actor updates only)."""
 
     def __init__(self) -> None:
         self.reset(time.monotonic())
 
     def reset(self, now: float) -> None:
         self.sums: dict[str, torch.Tensor] = {}
+        self.counts: dict[str, int] = {}
         self.updates = self.samples = 0
         self.lag_sum = self.waited = 0.0
         self.batches = 0
@@ -134,6 +136,7 @@ class Meter:
         for name, value in metrics.items():
             if value.dim() == 0:
                 self.sums[name] = self.sums[name] + value if name in self.sums else value.clone()
+                self.counts[name] = self.counts.get(name, 0) + 1
         self.updates += updates
         self.samples += samples
         self.lag_sum += lag
@@ -141,7 +144,7 @@ class Meter:
 
     def report(self, now: float) -> dict[str, float]:
         elapsed = max(now - self.since, 1e-9)
-        values = {name: float(total) / max(self.batches, 1) for name, total in self.sums.items()}
+        values = {name: float(total) / self.counts[name] for name, total in self.sums.items()}
         values |= {"updates_per_s": self.updates / elapsed, "samples_per_s": self.samples / elapsed,
                    "policy_lag": self.lag_sum / max(self.batches, 1), "wait_fraction": self.waited / elapsed}
         self.reset(now)
@@ -193,8 +196,10 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
             table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
+            n_step = getattr(algo, "n_step", 1)  # one-step requests stay as before n-step returns
+            returns = {"n_step": n_step, "gamma": algo.gamma} if n_step > 1 else {}
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
-                              table=table) as replay:
+                              table=table, **returns) as replay:
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version
@@ -229,14 +234,17 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
     return state
 
 
-def _sac_step(state: sac.TrainState, batch: SampleBatch, algo: SACConfig, config: LearnerConfig,
-              replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
+def _replay_step(state: sac.TrainState | td3.TrainState, batch: SampleBatch, algo: SACConfig | TD3Config,
+                 config: LearnerConfig, replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
+    """SAC's and TD3's step: update_repeat updates on one batch from the replay table."""
+    algorithm = ALGORITHMS[algorithm_of(algo)][1]
+    # n-step batches carry discounts; a SampleBatch from before n-step returns has no such field
     tensors = sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
                                    batch.importance_weights(config.priority_beta) if batch.prioritized else None,
-                                   device)
-    tensors = sac.prepare(state, tensors, algo)
+                                   device, getattr(batch, "discounts", None))
+    tensors = algorithm.prepare(state, tensors, algo)
     for _ in range(algo.update_repeat):
-        metrics = sac.update(state, tensors, algo)
+        metrics = algorithm.update(state, tensors, algo)
     if batch.prioritized:
         replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
     return metrics
@@ -248,7 +256,7 @@ def _ppo_step(state: ppo.TrainState, batch: SampleBatch, algo: PPOConfig, config
 
 
 # One batch's training, and whether weights go out after every batch (else every --publish-every updates).
-STEPS = {"sac": (_sac_step, False), "ppo": (_ppo_step, True)}
+STEPS = {"sac": (_replay_step, False), "td3": (_replay_step, False), "ppo": (_ppo_step, True)}
 
 
 def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, replay: ReplayClient,
@@ -324,6 +332,8 @@ LOGGED = {
                      ("entropy", "entropy")),
     ppo.TrainState: (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
                      ("kl", "approx_kl"), ("clipped", "clip_fraction")),
+    td3.TrainState: (("critic", "critic_loss"), ("actor", "actor_loss"), ("q", "q_mean"),
+                     ("std", "exploration_std")),
 }
 
 

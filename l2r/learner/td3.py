@@ -1,0 +1,242 @@
+"""Twin Delayed DDPG (TD3): settings, training state and the update, apart from any process.
+
+`update(state, batch, config)` is the whole algorithm, in CleanRL's order: the clipped double-Q
+target of a smoothed target action, the twin-critic loss and step, and on every `policy_delay`-th
+update the deterministic actor's step and the Polyak copy of target actor and target critics.
+The learner daemon and the tests call this same function.
+
+Two additions to Fujimoto et al.'s algorithm, both off by default:
+- n-step returns (`n_step`): the replay server sums the rewards of n steps and gives each sample
+  its bootstrap's discount (`Batch.discounts`), so the target needs no knowledge of the window.
+- a linear schedule of the exploration noise (`exploration_std_*`), as DrQ-v2 decays it. The
+  std is a buffer of the policy (`DeterministicPolicy.exploration_std`): set after every update,
+  it goes out with every weights message and checkpoint, and the actors explore with it.
+
+The critics, the batches, the precision options and the speed measures are SAC's
+(`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; its one
+branch (the policy delay) is taken on the Python update counter, not on a tensor, so steps 1-3
+make two graphs, with and without the actor step; step 4 writes the next exploration std from
+Python and stays outside them (the target noise reads the std's buffer, not a Python float).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass, field
+from typing import Mapping
+
+import torch
+
+from l2r.learner import sac
+from l2r.learner.common import adam, bfloat16_pays, policy_spec
+from l2r.learner.distributed import average_gradients, broadcast
+from l2r.learner.sac import Batch, TwinCritic
+from l2r.policy import ACTIVATIONS, DETERMINISTIC, DeterministicPolicy
+
+
+@dataclass
+class TD3Config:
+    """Algorithm settings (run and infrastructure settings live with the daemon). Network, batch,
+    reward and learning-rate defaults are SAC's, so the two compare on the same networks."""
+
+    gamma: float = 0.99
+    """Discount per environment step of the policy (one action-repeated step)."""
+    tau: float = 0.005
+    """Polyak rate: target <- (1 - tau) * target + tau * online, on every actor update."""
+    actor_lr: float = 3e-4
+    """Adam learning rate of the policy."""
+    critic_lr: float = 3e-4
+    """Adam learning rate of the twin critics."""
+    batch_size: int = 640
+    """Transitions per sampled batch."""
+    hidden: tuple[int, ...] = (512, 512, 512)
+    """Widths of the hidden layers, the same for policy and critics."""
+    activation: str = "elu"
+    """Hidden activation: 'elu', 'relu' or 'tanh'."""
+    layer_norm: bool = True
+    """LayerNorm after each hidden Linear, before the activation."""
+    reward_scale: float = 10.0
+    """Multiplier on rewards before the Bellman target."""
+    update_repeat: int = 3
+    """Gradient steps taken on each sampled batch."""
+    n_step: int = 1
+    """Steps summed into each sampled reward before the bootstrap (n-step returns, built by the
+    replay server); 1 is TD3's one-step target."""
+    policy_delay: int = 2
+    """The actor steps, and the targets follow, on every policy_delay-th update; the critics on every one."""
+    target_noise: float | None = 0.2
+    """Std of the Gaussian noise on the target action (target policy smoothing); None: the current
+    exploration std, as DrQ-v2 does."""
+    noise_clip: float = 0.5
+    """The target action's noise is clipped to +-noise_clip (TD3's paper and SB3: 0.5; DrQ-v2: 0.3)."""
+    exploration_std_start: float = 0.1
+    """Std of the actors' Gaussian exploration noise at update 0 (SB3 / rl-zoo: 0.1; DrQ-v2: 1.0)."""
+    exploration_std_end: float = 0.1
+    """... and from exploration_std_updates on (SB3 / rl-zoo: 0.1, a constant; DrQ-v2: 0.1)."""
+    exploration_std_updates: int = 250_000
+    """Learner updates over which the std goes linearly from start to end. The schedule counts
+    gradient steps: at one gradient step per environment step, environment steps."""
+    relative_x: bool = False
+    """The networks see world x coordinates as distances from the pelvis (see ObservationFilter)."""
+    normalize_obs: bool = False
+    """The networks see observations standardised by running statistics of the sampled batches."""
+    mirror: bool = False
+    """Each sampled transition has its legs swapped with probability 1/2, as for SAC."""
+    precision: str = "auto"
+    """Hidden-layer matmul precision, as SAC's: 'bfloat16', 'float32' or 'auto'."""
+
+    def __post_init__(self) -> None:
+        self.hidden = tuple(int(h) for h in self.hidden)
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
+        if not 0.0 <= self.gamma <= 1.0 or not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {self.gamma}, {self.tau}")
+        if self.precision not in ("auto", "float32", "bfloat16"):
+            raise ValueError(f"precision must be auto, float32 or bfloat16, got {self.precision!r}")
+        if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
+            raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
+        stds = (self.exploration_std_start, self.exploration_std_end, self.noise_clip,
+                0.0 if self.target_noise is None else self.target_noise)
+        if min(stds) < 0 or self.exploration_std_updates < 0:
+            raise ValueError("exploration stds, target_noise, noise_clip and exploration_std_updates must be >= 0")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "hidden": list(self.hidden)}
+
+
+def exploration_std(config: TD3Config, updates: int) -> float:
+    """The exploration std after `updates` updates: linear from start to end over
+    exploration_std_updates updates, then end."""
+    if updates >= config.exploration_std_updates:
+        return config.exploration_std_end
+    progress = updates / config.exploration_std_updates
+    return config.exploration_std_start + progress * (config.exploration_std_end - config.exploration_std_start)
+
+
+@dataclass
+class TrainState:
+    """Everything training changes: networks, target networks, optimizers and counters."""
+
+    actor: DeterministicPolicy
+    target_actor: DeterministicPolicy
+    critic: TwinCritic
+    target_critic: TwinCritic
+    actor_opt: torch.optim.Optimizer
+    critic_opt: torch.optim.Optimizer
+    updates: int = 0
+    """Gradient steps taken so far (over the whole run, across resumes)."""
+    version: int = 0
+    """Version of the last weights published; increases with every publication."""
+    extra: dict = field(default_factory=dict)
+    """Counters the hosting process wants checkpointed with the networks (plain values)."""
+    bfloat16: bool = False
+    """Whether hidden-layer matmuls run in bfloat16 (resolved from config.precision, not saved)."""
+
+    def parameters(self) -> list[torch.Tensor]:
+        """What training changes, to check for divergence."""
+        return [*self.actor.parameters(), *self.critic.parameters()]
+
+    def set_learning_rates(self, config: TD3Config) -> None:
+        """Apply the config's learning rates (a resumed run takes the command line's, not the saved ones)."""
+        for opt, lr in ((self.actor_opt, config.actor_lr), (self.critic_opt, config.critic_lr)):
+            for group in opt.param_groups:
+                group["lr"] = lr
+
+    def autocast(self) -> torch.autocast:
+        return torch.autocast(self.actor.head.weight.device.type, dtype=torch.bfloat16, enabled=self.bfloat16)
+
+    def state_dict(self) -> dict:
+        return {name: getattr(self, name).state_dict() for name in _MODULES} | {
+            "updates": self.updates, "version": self.version, "extra": dict(self.extra)}
+
+    def load_state_dict(self, saved: Mapping) -> None:
+        for name in _MODULES:
+            getattr(self, name).load_state_dict(saved[name])
+        self.updates, self.version = int(saved["updates"]), int(saved["version"])
+        self.extra = dict(saved.get("extra", {}))
+
+
+_MODULES = ("actor", "target_actor", "critic", "target_critic", "actor_opt", "critic_opt")
+
+
+def init_state(config: TD3Config, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
+               seed: int | None = None) -> TrainState:
+    """Freshly initialised networks and optimizers on `device`."""
+    device = torch.device(device)
+    sac.check_mirror(config, obs_dim, act_dim)
+    if seed is not None:
+        torch.manual_seed(seed)
+    actor = DeterministicPolicy(policy_spec(config, obs_dim, act_dim, kind=DETERMINISTIC)).to(device)
+    actor.exploration_std.fill_(exploration_std(config, 0))
+    target_actor = copy.deepcopy(actor).requires_grad_(False)
+    # The target policy sees observations through the online filter: its statistics are not
+    # learned weights, so a slow copy of them would only be a stale one.
+    target_actor.observation_filter = actor.observation_filter
+    critic = TwinCritic(obs_dim, act_dim, config.hidden, config.activation, config.layer_norm).to(device)
+    target_critic = copy.deepcopy(critic).requires_grad_(False)
+    bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and bfloat16_pays(device))
+    return TrainState(actor, target_actor, critic, target_critic,
+                      adam(actor.parameters(), config.actor_lr, device),
+                      adam(critic.parameters(), config.critic_lr, device), bfloat16=bfloat16)
+
+
+# Once per sampled batch, as for SAC: mirroring (config.mirror) and the observation statistics.
+prepare = sac.prepare
+
+
+def update(state: TrainState, batch: Batch, config: TD3Config) -> dict[str, torch.Tensor]:
+    """One TD3 gradient step. Returns detached metrics tensors (`actor_loss` on actor updates only)
+    and `priorities` (|TD error|, per sample)."""
+    # The critics see observations through the policy's filter; the policies apply it themselves.
+    with torch.no_grad():
+        critic_obs = state.actor.observation_filter(batch.obs)
+        critic_next_obs = state.actor.observation_filter(batch.next_obs)
+
+    # 1. Target: clipped double Q of the target policy's action, smoothed by clipped noise.
+    #    Only a real termination cuts the bootstrap; n-step batches carry the discount of theirs.
+    with torch.no_grad(), state.autocast():
+        next_action = state.target_actor(batch.next_obs)
+        noise_std = state.actor.exploration_std if config.target_noise is None else config.target_noise
+        smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
+        next_action = (next_action + smoothing).clamp(-1.0, 1.0)
+        next_q = state.target_critic(critic_next_obs, next_action).min(0).values
+        discount = config.gamma * (1.0 - batch.terminated) if batch.discounts is None else batch.discounts
+        target = config.reward_scale * batch.reward + discount * next_q
+
+    # 2. Twin critic loss (importance-weighted under prioritized replay) and step, every update.
+    with state.autocast():
+        q = state.critic(critic_obs, batch.action)
+    td_error = q - target
+    squared = td_error.pow(2) if batch.weights is None else td_error.pow(2) * batch.weights
+    critic_loss = squared.mean(-1).sum()
+    state.critic_opt.zero_grad(set_to_none=True)
+    critic_loss.backward()
+    average_gradients(state.critic.parameters())
+    state.critic_opt.step()
+    metrics = {"critic_loss": critic_loss.detach(), "q_mean": q.detach().mean(), "target_mean": target.mean(),
+               "priorities": td_error.detach().abs().mean(0)}
+
+    # 3. Delayed: the actor ascends Q1 of its own action against the updated critics (their
+    #    weights detached: only dQ/da is needed), then the targets follow by Polyak averaging.
+    state.updates += 1
+    if state.updates % config.policy_delay == 0:
+        with state.autocast():
+            q_pi = state.critic(critic_obs, state.actor(batch.obs), detach_weights=True, critics=1)[0]
+        actor_loss = -q_pi.mean()
+        state.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        average_gradients(state.actor.parameters())
+        state.actor_opt.step()
+        with torch.no_grad():
+            torch._foreach_lerp_([*state.target_actor.parameters(), *state.target_critic.parameters()],
+                                 [*state.actor.parameters(), *state.critic.parameters()], config.tau)
+        metrics["actor_loss"] = actor_loss.detach()
+
+    # 4. The exploration std of the schedule's next step: what the next publication carries.
+    state.actor.exploration_std.fill_(exploration_std(config, state.updates))
+    return metrics | {"exploration_std": state.actor.exploration_std.clone()}
+
+
+def broadcast_state(state: TrainState) -> None:
+    """Give every data-parallel rank the weights of rank 0, so all start identical."""
+    broadcast([state.actor, state.target_actor, state.critic, state.target_critic])

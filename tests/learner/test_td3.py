@@ -1,0 +1,298 @@
+"""The TD3 update on small networks against targets computed by hand, its exploration schedule, the
+deterministic policy as actors build it, checkpoints and the command line."""
+
+import copy
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.actors.actor import run_deterministic
+from l2r.learner.__main__ import cli, parse_settings
+from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.daemon import Meter
+from l2r.learner.sac import SACConfig, batch_from_numpy
+from l2r.learner.sac import init_state as init_sac_state
+from l2r.learner.td3 import TD3Config, exploration_std, init_state, update
+from l2r.policy import (
+    DeterministicPolicy, Policy, act, act_with_log_prob, build_policy, check_spec, load_policy_state, policy_state,
+    to_excitation,
+)
+from l2r.protocol import Weights, decode, encode
+from tests.actors.standin import StandIn
+
+OBS, ACT = 5, 3
+
+
+def small_config(**overrides) -> TD3Config:
+    base = dict(hidden=(32, 32), batch_size=64, precision="float32")
+    return TD3Config(**(base | overrides))
+
+
+def random_batch(n: int = 64, seed: int = 0, terminated=0.0, discounts=None):
+    rng = np.random.default_rng(seed)
+    return batch_from_numpy(rng.normal(size=(n, OBS)), rng.random((n, ACT)), rng.normal(size=n),
+                            rng.normal(size=(n, OBS)), np.broadcast_to(terminated, n), discounts=discounts)
+
+
+def hand_target(state, batch, config, discount: torch.Tensor) -> torch.Tensor:
+    """y = reward_scale * R + discount * min(Q1', Q2')(s', pi'(s')), without smoothing noise."""
+    with torch.no_grad():
+        next_q = state.target_critic(state.actor.observation_filter(batch.next_obs), state.target_actor(batch.next_obs))
+        return config.reward_scale * batch.reward + discount * next_q.min(0).values
+
+
+def priorities_for(state, batch, target: torch.Tensor) -> torch.Tensor:
+    """|Q_i(s, a) - y| averaged over the critics, as the update reports it."""
+    with torch.no_grad():
+        return (state.critic(state.actor.observation_filter(batch.obs), batch.action) - target).abs().mean(0)
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_two_updates_give_finite_metrics_and_move_every_network(precision):
+    config = small_config(precision=precision)
+    state = init_state(config, OBS, ACT, seed=0)
+    networks = ("actor", "critic", "target_actor", "target_critic")
+    before = {name: copy.deepcopy(getattr(state, name).state_dict()) for name in networks}
+    for step in range(2):
+        metrics = update(state, random_batch(seed=step), config)
+    assert {"critic_loss", "actor_loss", "q_mean", "target_mean", "exploration_std"} <= set(metrics)
+    for name, value in metrics.items():
+        assert torch.isfinite(value).all(), name
+    assert metrics["priorities"].shape == (64,)
+    for name in networks:
+        after = getattr(state, name).state_dict()
+        assert any(not torch.equal(before[name][k], after[k]) for k in after), name
+    assert state.updates == 2
+
+
+def trained_state(config: TD3Config, seed: int):
+    """A state a few updates in, its target networks well apart from the online ones (tau 0.5)."""
+    state = init_state(replace(config, tau=0.5, policy_delay=1), OBS, ACT, seed=seed)
+    for step in range(4):
+        update(state, random_batch(seed=100 + step), replace(config, tau=0.5, policy_delay=1))
+    return state
+
+
+def test_the_n_step_target_bootstraps_with_the_batch_s_discounts():
+    config = small_config(gamma=0.9, reward_scale=2.0, target_noise=0.0, n_step=3)
+    state = trained_state(config, seed=1)
+    # Sums of 3 discounted rewards; a window that ended in a termination (discount 0); a window cut
+    # short by the end of an episode's data after 2 steps (gamma^2).
+    discounts = np.array([0.9 ** 3, 0.0, 0.9 ** 2, 0.9 ** 3], np.float32)
+    batch = random_batch(n=4, seed=2, terminated=np.array([0.0, 1.0, 0.0, 0.0]), discounts=discounts)
+    expected = hand_target(state, batch, config, torch.as_tensor(discounts))
+    expected_priorities = priorities_for(state, batch, expected)
+    metrics = update(state, batch, config)
+    torch.testing.assert_close(metrics["target_mean"], expected.mean())
+    torch.testing.assert_close(metrics["priorities"], expected_priorities)
+    # gamma * (1 - terminated) would have bootstrapped the second sample and discounted the rest by 0.9.
+    one_step = hand_target(state, batch, config, 0.9 * (1.0 - batch.terminated))
+    assert not torch.allclose(priorities_for(state, batch, one_step), expected_priorities, atol=1e-3)
+
+
+def test_the_one_step_target_is_cut_by_a_termination_only():
+    config = small_config(gamma=0.5, reward_scale=3.0, target_noise=0.0)
+    state = trained_state(config, seed=3)
+    batch = random_batch(n=6, seed=4, terminated=np.array([1.0, 0.0, 1.0, 0.0, 0.0, 1.0]))
+    expected = hand_target(state, batch, config, 0.5 * (1.0 - batch.terminated))
+    expected_priorities = priorities_for(state, batch, expected)
+    metrics = update(state, batch, config)
+    torch.testing.assert_close(metrics["priorities"], expected_priorities)
+    torch.testing.assert_close(metrics["target_mean"], expected.mean())
+
+
+def recorded_target_actions(config: TD3Config, target_action: float, n: int = 512) -> torch.Tensor:
+    """The actions the target critics are asked about in one update, the target policy's every output
+    being `target_action`."""
+    state = init_state(config, OBS, ACT, seed=5)
+    with torch.no_grad():
+        state.target_actor.head.weight.zero_()
+        state.target_actor.head.bias.fill_(math.atanh(target_action))
+    seen = []
+    forward = state.target_critic.forward
+    state.target_critic.forward = lambda obs, action, **kw: seen.append(action) or forward(obs, action, **kw)
+    update(state, random_batch(n=n, seed=6), config)
+    (actions,) = seen
+    return actions
+
+
+def test_target_smoothing_noise_is_clipped_at_noise_clip_and_the_action_at_the_bounds():
+    # A std of 100 puts nearly every draw past the clip: the noise lands on +-0.3 exactly.
+    actions = recorded_target_actions(small_config(target_noise=100.0, noise_clip=0.3), target_action=0.0)
+    assert actions.abs().max() <= 0.3 + 1e-6
+    assert (actions.abs() > 0.3 - 1e-6).float().mean() > 0.9
+    # Around 0.9 the upper side meets the action bound first: actions in [0.6, 1], many exactly 1.
+    actions = recorded_target_actions(small_config(target_noise=100.0, noise_clip=0.3), target_action=0.9)
+    assert actions.min() >= 0.6 - 1e-6 and actions.max() == 1.0 and (actions == 1.0).float().mean() > 0.4
+
+
+def test_target_noise_none_takes_the_scheduled_exploration_std():
+    config = small_config(target_noise=None, noise_clip=1.0, exploration_std_start=0.05, exploration_std_end=0.05)
+    actions = recorded_target_actions(config, target_action=0.0, n=2048)
+    assert float(actions.std()) == pytest.approx(0.05, rel=0.05)
+    assert float(actions.mean()) == pytest.approx(0.0, abs=0.01)
+
+
+def test_the_exploration_schedule_is_linear_then_constant_and_the_weights_carry_it():
+    config = small_config(exploration_std_start=1.0, exploration_std_end=0.2, exploration_std_updates=8)
+    # 1.0 - (0.8 / 8) * k for k up to 8, then 0.2
+    expected = {0: 1.0, 2: 0.8, 4: 0.6, 6: 0.4, 8: 0.2, 9: 0.2, 1000: 0.2}
+    for updates, std in expected.items():
+        assert exploration_std(config, updates) == pytest.approx(std)
+    assert exploration_std(small_config(exploration_std_updates=0, exploration_std_start=1.0), 0) == 0.1
+    state = init_state(config, OBS, ACT, seed=7)
+    for updates in range(11):
+        published = policy_state(state.actor)["exploration_std"]  # what WeightsOutlet sends
+        assert float(published) == pytest.approx(exploration_std(config, updates)), updates
+        metrics = update(state, random_batch(seed=updates), config)
+        assert float(metrics["exploration_std"]) == pytest.approx(exploration_std(config, updates + 1))
+
+
+def test_the_actor_and_the_targets_move_on_every_policy_delay_th_update_only():
+    config = small_config(policy_delay=3)
+    state = init_state(config, OBS, ACT, seed=8)
+    for updates in range(1, 7):
+        actor, critic, targets = (copy.deepcopy(m.state_dict()) for m in (state.actor, state.critic,
+                                                                             torch.nn.ModuleList([state.target_actor,
+                                                                                                  state.target_critic])))
+        metrics = update(state, random_batch(seed=updates), config)
+        delayed = updates % 3 == 0
+        moved = {name: any(not torch.equal(old[k], new[k]) for k in old if "exploration_std" not in k)
+                 for name, old, new in (("actor", actor, state.actor.state_dict()),
+                                        ("critic", critic, state.critic.state_dict()),
+                                        ("targets", targets, torch.nn.ModuleList([state.target_actor,
+                                                                                  state.target_critic]).state_dict()))}
+        assert moved == {"actor": delayed, "critic": True, "targets": delayed}, updates
+        assert ("actor_loss" in metrics) == delayed
+
+
+def test_the_actor_loss_is_minus_q1_of_its_own_action_against_the_updated_critics():
+    config = small_config(policy_delay=1)
+    state = trained_state(config, seed=12)
+    actor_before, batch = copy.deepcopy(state.actor), random_batch(seed=13)
+    metrics = update(state, batch, config)
+    with torch.no_grad():  # the critic step came first; the actor step changes no critic
+        q = state.critic(state.actor.observation_filter(batch.obs), actor_before(batch.obs))
+    torch.testing.assert_close(metrics["actor_loss"], -q[0].mean())
+    assert not torch.allclose(q[0].mean(), q.min(0).values.mean(), atol=1e-3), "Q1 and min(Q1, Q2) must differ here"
+
+
+def test_targets_follow_by_polyak_averaging_on_actor_updates():
+    config = small_config(tau=0.25, policy_delay=1)
+    state = init_state(config, OBS, ACT, seed=9)
+    old = [copy.deepcopy(m.state_dict()) for m in (state.target_actor, state.target_critic)]
+    update(state, random_batch(), config)
+    for target, online, before in zip((state.target_actor, state.target_critic), (state.actor, state.critic), old):
+        for name, value in online.named_parameters():
+            torch.testing.assert_close(target.state_dict()[name], 0.75 * before[name] + 0.25 * value.detach())
+
+
+def test_a_checkpoint_restores_training_exactly_and_eval_reads_its_policy(tmp_path):
+    config = small_config(exploration_std_start=1.0, exploration_std_end=0.1, exploration_std_updates=10,
+                          normalize_obs=True, target_noise=None)
+    state = init_state(config, OBS, ACT, seed=10)
+    for step in range(3):
+        update(state, random_batch(seed=step), config)
+    state.version, state.extra = 4, {"samples": 192}
+    save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
+    actor_as_saved = copy.deepcopy(state.actor).eval()
+
+    saved = load_checkpoint(tmp_path)
+    assert (saved.algo, saved.config, saved.version, saved.updates) == ("td3", config, 4, 3)
+    assert torch.load(checkpoint_path(tmp_path), weights_only=True)["sac_config"] is None
+    restored = saved.restore()
+    assert restored.extra == {"samples": 192}
+    assert restored.target_actor.observation_filter is restored.actor.observation_filter
+    for step in (3, 4):  # update 4 is an actor update
+        torch.manual_seed(step)
+        metrics_a = update(state, random_batch(seed=step), config)
+        torch.manual_seed(step)
+        metrics_b = update(restored, random_batch(seed=step), config)
+        for name in metrics_a:  # networks, targets, optimizer moments, statistics, schedule: the same step
+            torch.testing.assert_close(metrics_a[name], metrics_b[name], rtol=0, atol=0)
+    for a, b in zip(state.parameters(), restored.parameters()):
+        assert torch.equal(a, b)
+
+    policy = load_checkpoint(tmp_path).policy()  # what l2r eval acts with
+    assert isinstance(policy, DeterministicPolicy) and policy.spec["kind"] == "deterministic"
+    obs = np.random.default_rng(1).normal(size=(4, OBS))
+    np.testing.assert_array_equal(act(policy, obs, True), act(actor_as_saved, obs, True))
+
+
+def test_a_td3_learner_refuses_a_sac_checkpoint_and_a_sac_learner_a_td3_one(tmp_path, caplog):
+    sac_config = SACConfig(hidden=(16,), precision="float32")
+    save_checkpoint(checkpoint_path(tmp_path / "sac"), init_sac_state(sac_config, 41, 18), sac_config, 41, 18)
+    td3_config = small_config(hidden=(16,))
+    save_checkpoint(checkpoint_path(tmp_path / "td3"), init_state(td3_config, 41, 18), td3_config, 41, 18)
+    for run_dir, algo, message in (("sac", "td3", "holds SAC, not a TD3 training state: use --algo sac"),
+                                   ("td3", "sac", "holds TD3, not a SAC training state: use --algo td3")):
+        caplog.clear()
+        # Fails before any network traffic, so the endpoint need not exist.
+        assert cli(["--run", "x", "--run-dir", str(tmp_path / run_dir), "--resume", "--device", "cpu",
+                    "--algo", algo, "--connect", "tcp/127.0.0.1:9"]) == 1
+        assert message in caplog.text
+
+
+def test_the_policy_an_actor_builds_from_the_weights_explores_within_bounds_and_acts_deterministically_if_asked():
+    config = small_config(exploration_std_start=0.5, exploration_std_end=0.5)
+    state = init_state(config, 41, 18, seed=11)  # the stand-in env's widths
+    message = decode(encode(Weights(3, policy_state(state.actor), dict(state.actor.spec))), Weights)
+    policy = build_policy(message.spec)  # as l2r.actors.weights does
+    load_policy_state(policy, {k: np.array(v) for k, v in message.params.items()})
+    assert isinstance(policy, DeterministicPolicy) and float(policy.exploration_std) == 0.5
+
+    obs = np.random.default_rng(2).normal(size=(256, 41)).astype(np.float32)
+    mean = to_excitation(state.actor(torch.as_tensor(obs))).detach().numpy()
+    np.testing.assert_allclose(act(policy, obs, deterministic=True), mean, atol=1e-6)
+    np.testing.assert_array_equal(act(policy, obs, deterministic=True), act(policy, obs, deterministic=True))
+
+    actions, log_probs = act_with_log_prob(policy, obs)  # what an actor sends
+    assert actions.dtype == np.float32 and ((0 <= actions) & (actions <= 1)).all()
+    assert (log_probs == 0).all() and log_probs.shape == (256,)
+    assert ((actions == 0) | (actions == 1)).any(), "a std of 0.5 must push some actions onto the bounds"
+    with torch.no_grad():
+        policy.exploration_std.fill_(0.05)  # so small that no action reaches a bound
+    noise = 2 * (act(policy, obs) - mean)  # in the policy's (-1, 1) space
+    assert float(noise.std()) == pytest.approx(0.05, rel=0.05) and abs(float(noise.mean())) < 0.005
+    with torch.no_grad():
+        policy.exploration_std.fill_(0.0)
+    np.testing.assert_allclose(act(policy, obs), act(policy, obs, deterministic=True), atol=1e-6)
+
+    # An evaluator's and l2r eval's deterministic episodes: the same twice.
+    first = run_deterministic(policy, [StandIn(length=5), StandIn(length=5)], [0, 1])
+    assert first == run_deterministic(policy, [StandIn(length=5), StandIn(length=5)], [0, 1])
+
+
+def test_a_spec_without_a_kind_is_a_gaussian_policy_and_a_bad_kind_is_refused():
+    old = {"obs_dim": OBS, "act_dim": ACT, "hidden": [8], "activation": "elu", "layer_norm": True}
+    assert check_spec(old)["kind"] == "gaussian"
+    policy = build_policy(old)
+    assert type(policy) is Policy
+    assert policy_state(policy)["head.weight"].shape == (2 * ACT, 8)
+    assert type(build_policy(old | {"kind": "deterministic"})) is DeterministicPolicy
+    for kind in ("greedy", ["deterministic"], None):
+        with pytest.raises(ValueError, match="kind"):
+            check_spec(old | {"kind": kind})
+    with pytest.raises(ValueError, match="deterministic spec"):
+        Policy(old | {"kind": "deterministic"})
+
+
+def test_the_command_line_builds_td3_s_settings():
+    config = parse_settings(["--algo", "td3", "--n-step", "3", "--policy-delay", "4", "--noise-clip", "0.3",
+                             "--exploration-std-start", "1.0", "--exploration-std-updates", "500", "--hidden", "64,64",
+                             "--mirror"]).algorithm()
+    assert config == TD3Config(n_step=3, policy_delay=4, noise_clip=0.3, exploration_std_start=1.0,
+                               exploration_std_updates=500, hidden=(64, 64), mirror=True)
+    assert parse_settings(["--algo", "td3", "--scheduled-target-noise"]).algorithm().target_noise is None
+    assert parse_settings(["--algo", "td3"]).algorithm() == TD3Config()
+
+
+def test_the_meter_averages_each_metric_over_the_batches_that_gave_it():
+    meter = Meter()
+    meter.add({"critic_loss": torch.tensor(1.0), "actor_loss": torch.tensor(4.0)}, 2, 64, 0.0)
+    meter.add({"critic_loss": torch.tensor(3.0)}, 2, 64, 0.0)
+    values = meter.report(meter.since + 1.0)
+    assert (values["critic_loss"], values["actor_loss"]) == (2.0, 4.0)
