@@ -11,8 +11,8 @@ The settings span the three daemons: the replay server's (`REPLAY_FLAGS`), the a
 Left out, and the same in every recipe: the temperature is learnt towards an entropy of
 -act-dim, PPO standardises its advantages per minibatch; `--learner-arg` sets those.
 
-The learner's own defaults (`SACConfig`, `PPOConfig`) stay the 2017 reference solution's and
-CleanRL's; `l2r up` passes every value of the recipe, so the learner's command line shows it.
+The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`) stay the 2017 reference
+solution's and CleanRL's; `l2r up` passes every value of the recipe, so the learner's command line shows it.
 """
 
 from __future__ import annotations
@@ -64,6 +64,29 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
+    # The runner's SAC recipe with TD3's own values (its paper's, as CleanRL and SB3 keep them): a
+    # constant exploration std of 0.1, target smoothing 0.2 clipped at 0.5, the actor every 2nd step.
+    # Not measured on the runner yet.
+    (RUNNER, "td3"): dict(
+        hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
+        reward_scale=10.0, update_repeat=1, publish_every=50,
+        n_step=1, policy_delay=2, target_noise=0.2, scheduled_target_noise=False, noise_clip=0.5,
+        exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
+        relative_x=True, normalize_obs=True, mirror=True,
+        min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
+        random_steps=10_000, envs_per_actor=4, action_repeat=3,
+    ),
+    # CleanRL's TD3 for MuJoCo tasks: standard/sac's networks and one gradient step per env step,
+    # learning from 25,000 uniform random steps on.
+    (STANDARD, "td3"): dict(
+        hidden="256,256", activation="relu", layer_norm=False, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
+        reward_scale=1.0, update_repeat=1, publish_every=1,
+        n_step=1, policy_delay=2, target_noise=0.2, scheduled_target_noise=False, noise_clip=0.5,
+        exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
+        relative_x=False, normalize_obs=False, mirror=False,
+        min_replay=25_000, samples_per_insert=256.0, hold_actors=True,
+        random_steps=25_000, envs_per_actor=1, action_repeat=1,
+    ),
 }
 
 # What each setting is, for its `l2r up` flag's help.
@@ -74,12 +97,22 @@ SETTINGS: dict[str, str] = {
     "batch_size": "transitions per batch; for PPO, per update (its rollout)",
     "lr": "Adam learning rate of every network (and of SAC's temperature)",
     "gamma": "discount per action",
-    "tau": "Polyak rate of the target critics (SAC)",
+    "tau": "Polyak rate of the target networks (SAC, TD3)",
     "reward_scale": "multiplier on rewards",
     "initial_alpha": "the entropy temperature at the start, learnt from there (SAC)",
-    "update_repeat": "gradient steps per sampled batch (SAC)",
-    "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC; PPO "
+    "update_repeat": "gradient steps per sampled batch (SAC, TD3)",
+    "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC, TD3; PPO "
                      "publishes after every batch)",
+    "n_step": "steps summed into each sampled reward before the bootstrap (TD3)",
+    "policy_delay": "the actor steps and the targets follow on every Nth update (TD3)",
+    "target_noise": "std of the noise on the target action (TD3's target policy smoothing)",
+    "scheduled_target_noise": "the target action's noise takes the current exploration std instead of "
+                              "--target-noise (TD3)",
+    "noise_clip": "the target action's noise is clipped to +- this (TD3)",
+    "exploration_std_start": "std of the actors' Gaussian exploration noise at update 0 (TD3)",
+    "exploration_std_end": "... and after --exploration-std-updates updates (TD3)",
+    "exploration_std_updates": "learner updates over which the exploration std goes linearly from start to end "
+                               "(TD3)",
     "epochs": "passes over each batch (PPO)",
     "minibatches": "minibatches per pass, one gradient step each (PPO)",
     "gae_lambda": "lambda of GAE (PPO)",
@@ -90,12 +123,12 @@ SETTINGS: dict[str, str] = {
     "lag_correction": "what PPO does about the actors' policy lag (docs/learner.md)",
     "relative_x": "networks see world x coordinates as distances from the pelvis (the runner alone)",
     "normalize_obs": "networks see observations standardised by running statistics",
-    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, the runner "
-              "alone)",
-    "min_replay": "transitions stored before the learner starts (SAC)",
-    "samples_per_insert": "replay rate limit: sampled transitions per inserted one (0: no limit; SAC)",
+    "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, TD3, the "
+              "runner alone)",
+    "min_replay": "transitions stored before the learner starts (SAC, TD3)",
+    "samples_per_insert": "replay rate limit: sampled transitions per inserted one (0: no limit; SAC, TD3)",
     "hold_actors": "with --samples-per-insert, the replay server holds the actors back while they are ahead of the "
-                   "learner, so the ratio holds both ways (SAC)",
+                   "learner, so the ratio holds both ways (SAC, TD3)",
     "random_steps": "uniform random steps of each actor before it uses the policy (warm-up)",
     "envs_per_actor": "environments per actor, batched in one policy call",
     "action_repeat": "0.01 s environment steps per action on the runner, environment steps per action on another "

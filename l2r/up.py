@@ -165,10 +165,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
-                    help="the learner's algorithm: sac learns off-policy from the replay table; ppo on-policy from the "
+                    help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
+                         "deterministic policy); ppo on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
-    le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions (SAC)")
+    le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions (SAC, TD3)")
     le.add_argument("--queue-capacity", type=int,
                     help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
     le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,

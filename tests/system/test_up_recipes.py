@@ -114,6 +114,17 @@ def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, a
     assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == recipe
 
 
+def test_a_td3_job_samples_the_replay_table_as_sac_does_with_a_td3_learner():
+    children = planned("--algo", "td3")
+    replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
+    assert (replay.capacity, replay.min_size, replay.queue_capacity) == (1_000_000, 10_000, 0)
+    config = learner.algorithm()
+    assert (learner.algo, type(config).__name__, learner.in_flight) == ("td3", "TD3Config", 4)
+    assert (config.batch_size, config.hidden, config.update_repeat, config.policy_delay) == (256, (256, 256), 1, 2)
+    assert actor_settings(children["actor-0"]).random_steps == 10_000
+    assert learner_settings(planned("--algo", "td3", "--scheduled-target-noise")["learner"]).td3().target_noise is None
+
+
 def test_recipe_forces_a_family_but_the_runner_s_body_options_stay_on_the_runner():
     assert reached(planned("--recipe", "standard"), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"]
     on_hopper = reached(planned("--env-id", "Hopper-v5", "--recipe", "runner"), RECIPES[RUNNER, "sac"])
@@ -143,8 +154,10 @@ def test_every_setting_of_the_recipes_is_described_and_of_one_type():
 
 def test_each_flag_s_help_names_the_recipes_values():
     help_ = {action.dest: action.help for action in build_parser()._actions}
-    assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1")
-    assert help_["mirror"].endswith("runner/sac on, standard/sac off")
+    assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
+                                          "runner/td3 10, standard/td3 1")
+    assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off")
+    assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2")
 
 
 def test_a_learner_arg_still_wins_over_the_recipe():
