@@ -1,6 +1,7 @@
 """Two learner processes on loopback (gloo): different seeds and batches, identical weights.
 
-On CPU here and in CI; on one GPU shared by both ranks where CUDA is present."""
+On CPU here and in CI; on one GPU shared by both ranks where CUDA is present. SAC, and TD3 (whose
+actor steps on every second update)."""
 
 import json
 import subprocess
@@ -17,37 +18,40 @@ REPO = Path(__file__).resolve().parents[2]
 STEPS = 5
 
 
-def worker(rank: int, world_size: int, url: str, out: str, device: str = "cpu") -> None:
+def worker(rank: int, world_size: int, url: str, out: str, device: str = "cpu", algo: str = "sac") -> None:
     """One rank: start from rank 0's weights, train on its own batches, record weights per step."""
+    from l2r.learner.checkpoint import ALGORITHMS
     from l2r.learner.distributed import close_distributed, init_distributed
-    from l2r.learner.sac import SACConfig, batch_from_numpy, broadcast_state, init_state, update
+    from l2r.learner.sac import batch_from_numpy
 
     torch.set_num_threads(1)
     init_distributed(world_size, rank, url, torch.device(device), timeout_s=60)
-    config = SACConfig(hidden=(16, 16), precision="float32")
-    state = init_state(config, 5, 3, device, seed=100 + rank)  # different on purpose
-    broadcast_state(state)
+    config_class, algorithm = ALGORITHMS[algo]
+    config = config_class(hidden=(16, 16), precision="float32")
+    state = algorithm.init_state(config, 5, 3, device, seed=100 + rank)  # different on purpose
+    algorithm.broadcast_state(state)
+    targets = [state.target_critic, *([state.target_actor] if algo == "td3" else [])]
     rng = np.random.default_rng(rank)  # each rank samples its own batches
     records = []
     for _ in range(STEPS + 1):
-        flat = torch.cat([p.detach().reshape(-1) for p in [*state.actor.parameters(), *state.critic.parameters(),
-                                                          *state.target_critic.parameters(), state.log_alpha]])
+        flat = torch.cat([p.detach().reshape(-1) for p in [*state.parameters(),
+                                                          *(p for t in targets for p in t.parameters())]])
         records.append(flat.tolist())
         batch = batch_from_numpy(rng.normal(size=(32, 5)), rng.random((32, 3)), rng.normal(size=32),
                                  rng.normal(size=(32, 5)), rng.random(32) < 0.1, device=device)
-        update(state, batch, config)
+        algorithm.update(state, batch, config)
     Path(out).write_text(json.dumps(records))
     close_distributed()
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not torch.cuda.is_available(), reason="no CUDA device here"))])
-def test_two_learners_hold_identical_weights_after_every_step(tmp_path, device):
+@pytest.mark.parametrize("device, algo", [("cpu", "sac"), ("cpu", "td3"), pytest.param(
+    "cuda", "sac", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here"))])
+def test_two_learners_hold_identical_weights_after_every_step(tmp_path, device, algo):
     url = f"tcp://127.0.0.1:{free_port()}"
     outs = [tmp_path / f"rank{r}.json" for r in range(2)]
     procs = [subprocess.Popen([sys.executable, "-c", f"from tests.learner.test_data_parallel import worker; "
-                               f"worker({r}, 2, {url!r}, {str(outs[r])!r}, {device!r})"], cwd=REPO,
+                               f"worker({r}, 2, {url!r}, {str(outs[r])!r}, {device!r}, {algo!r})"], cwd=REPO,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for r in range(2)]
     for proc in procs:
         output, _ = proc.communicate(timeout=120)

@@ -154,18 +154,14 @@ def test_the_exploration_schedule_is_linear_then_constant_and_the_weights_carry_
 def test_the_actor_and_the_targets_move_on_every_policy_delay_th_update_only():
     config = small_config(policy_delay=3)
     state = init_state(config, OBS, ACT, seed=8)
+    networks = {name: getattr(state, name) for name in ("actor", "critic", "target_actor", "target_critic")}
     for updates in range(1, 7):
-        actor, critic, targets = (copy.deepcopy(m.state_dict()) for m in (state.actor, state.critic,
-                                                                             torch.nn.ModuleList([state.target_actor,
-                                                                                                  state.target_critic])))
+        before = {name: [p.detach().clone() for p in net.parameters()] for name, net in networks.items()}
         metrics = update(state, random_batch(seed=updates), config)
+        moved = {name: any(not torch.equal(old, new) for old, new in zip(before[name], net.parameters()))
+                 for name, net in networks.items()}
         delayed = updates % 3 == 0
-        moved = {name: any(not torch.equal(old[k], new[k]) for k in old if "exploration_std" not in k)
-                 for name, old, new in (("actor", actor, state.actor.state_dict()),
-                                        ("critic", critic, state.critic.state_dict()),
-                                        ("targets", targets, torch.nn.ModuleList([state.target_actor,
-                                                                                  state.target_critic]).state_dict()))}
-        assert moved == {"actor": delayed, "critic": True, "targets": delayed}, updates
+        assert moved == {"actor": delayed, "critic": True, "target_actor": delayed, "target_critic": delayed}, updates
         assert ("actor_loss" in metrics) == delayed
 
 
