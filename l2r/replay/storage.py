@@ -132,10 +132,6 @@ class Storage:
         self.check(chunk)
         t, start = chunk.size, self.written % self.capacity
         first = min(t, self.capacity - start)
-        ends = chunk.terminated | chunk.truncated
-        ahead = (~ends).astype(np.int32)  # links inside the chunk: +1 to the next step, none after an episode end
-        ahead[-1] = 0  # the chunk's last step: joined to the stream's next chunk, if that matches
-        back = np.concatenate([np.zeros(1, np.int32), -ahead[:-1]])
         # at most two contiguous pieces of the ring: slices are cheaper than index arrays
         for ring, lo, hi in ((start, 0, first), (0, first, t)):
             if lo == hi:
@@ -150,16 +146,21 @@ class Storage:
             self.versions[at] = chunk.policy_version
             self.generation[at] = np.arange(self.written + lo, self.written + hi)
             self.next_row[at] = -1
-            self.next_link[at] = ahead[lo:hi]
-            self.prev_link[at] = back[lo:hi]
+            self.next_link[at] = 1  # each step to the next, but for the ends below
+            self.prev_link[at] = -1
             self.tree.set_range(ring, hi - lo, self.max_priority)
 
-        inner_ends = np.flatnonzero(ends[:-1])
-        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(inner_ends) else chunk.obs[-1:]
-        side_slots = (start + np.append(inner_ends, t - 1)) % self.capacity
+        ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
+        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(ends) else chunk.obs[-1:]
+        side_slots = (start + np.append(ends, t - 1)) % self.capacity
         rows = self._side_write(side_values, side_slots)
         self.next_row[side_slots] = rows
         self.side_owner_generation[rows] = self.generation[side_slots]
+        # no link past an episode end, nor (until the stream's next chunk joins) past the chunk's last step
+        self.next_link[side_slots] = 0
+        self.prev_link[start] = 0
+        if len(ends):
+            self.prev_link[(start + ends + 1) % self.capacity] = 0
         self._extend_stream(chunk, self.written)
         self.written += t
         self.live += t
@@ -182,10 +183,10 @@ class Storage:
     def _join(self, end: int, first: int, first_obs: np.ndarray) -> None:
         """Link generation ``end`` (a chunk's last step) to ``first`` if that step is still stored,
         ended no episode, and its true next observation is ``first_obs``."""
-        slot = end % self.capacity
-        if self.generation[slot] != end or self.terminated[slot] or self.truncated[slot]:
+        slot = end % self.capacity  # (item() and bytes: numpy scalars and an array comparison took 4x as long)
+        if self.generation.item(slot) != end or self.terminated.item(slot) or self.truncated.item(slot):
             return  # overwritten or evicted meanwhile, or the episode ended there: nothing to join
-        if not np.array_equal(self.side_obs[self.next_row[slot]], first_obs):
+        if self.side_obs[self.next_row.item(slot)].tobytes() != first_obs.tobytes():
             self.link_mismatches += 1  # a chunk in between was lost (or the stream is not what it claims)
             return
         self.next_link[slot] = first - end

@@ -109,6 +109,15 @@ def test_previous_links_lead_back_across_chunks_until_the_slot_is_overwritten():
     assert not storage.follow(first, storage.prev_link[first])[1].any()
 
 
+def test_previous_links_stop_at_an_episode_start_and_at_another_stream():
+    storage = storage_of(steps(0, 4, seq=0), steps(0, 6, seq=1, env_id=1, ends=(2,)))
+    starts = np.array([4, 7])  # the other stream's first step, and the step after its episode end
+    assert list(storage.obs[starts, 0]) == [1000, 1003]
+    assert not storage.follow(starts, storage.prev_link[starts])[1].any()
+    back, holds = storage.follow(np.array([6]), storage.prev_link[[6]])
+    assert holds.all() and storage.obs[back, 0] == 1001
+
+
 def test_streams_are_forgotten_once_overwritten_or_beyond_the_cap(monkeypatch):
     storage = storage_of(steps(0, 4, seq=0), steps(0, 20, seq=1, env_id=1), capacity=20)
     assert list(storage.stream_ends) == [(0, 1, 1)]  # env 0's last step is overwritten: nothing can join it
