@@ -222,9 +222,8 @@ class ReplayServer:
             delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(wanted, self._insert_rate())
             return [], reason, size, delay
         self.limiter.sampled += wanted
-        n_step, gamma = request.n_step or 1, request.gamma if request.gamma is not None else 1.0
-        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, n_step, gamma)
-                for _ in range(request.count)], "", size, 0.0
+        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, request.n_step or 1,
+                                    request.gamma) for _ in range(request.count)], "", size, 0.0
 
     def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
         """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""

@@ -228,9 +228,9 @@ class Storage:
         return rows
 
     def sample(self, batch_size: int, prioritized: bool, shard: int = 0, n_step: int = 1,
-               gamma: float = 1.0) -> SampleBatch:
+               gamma: float | None = None) -> SampleBatch:
         """A batch of live transitions; requires ``live > 0``. With ``n_step`` > 1, each carries
-        the return of up to ``n_step`` steps of its trajectory (see ``_n_step``)."""
+        the return of up to ``n_step`` steps of its trajectory discounted by ``gamma`` (``_n_step``)."""
         if prioritized:
             slots, probabilities = self._sample_prioritized(batch_size)
         else:
