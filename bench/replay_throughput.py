@@ -4,6 +4,7 @@ Prints one JSON line. Phases, all in one run:
   raw      actor-like publisher processes send encoded chunks to a bare Zenoh subscriber process
   ingest   the same processes send the same bytes to a real ``l2r-replay`` process (it fills up)
   sample   a learner-like client samples batches of 256 from it, several requests in flight
+           (one-step, prioritized, and 3-step returns)
   numpy    plain in-process numpy sampling of the same batch (the limit for sampling)
   baseline a multiprocessing manager proxy around a list: one transition per push call,
            ``random.sample`` per batch (the reference solution's replay design)
@@ -43,6 +44,7 @@ def free_endpoint() -> str:
 def make_payloads(actor_id: int, chunks: int, steps: int) -> list[bytes]:
     rng = np.random.default_rng(actor_id)
     obs = rng.standard_normal((steps + 1, OBS), np.float32)
+    obs[-1] = obs[0]  # each chunk starts where the one before ended, so the shard links them as an actor's
     actions = rng.uniform(0, 1, (steps, ACT)).astype(np.float32)
     rewards = rng.standard_normal(steps, np.float32)
     done = np.zeros(steps, bool)
@@ -183,6 +185,7 @@ def in_process_figures(capacity: int, steps: int) -> dict:
         server.storage.insert(decode(payload))
         n += 1
     in_process = n * steps / (time.perf_counter() - start)
+    sample_us = {n_step: sample_time(server.storage, n_step) * 1e6 for n_step in (1, 3)}
     start = time.perf_counter()
     arrays, meta = server.capture()
     copied = time.perf_counter()
@@ -192,7 +195,17 @@ def in_process_figures(capacity: int, steps: int) -> dict:
     return {"in_process_decode_insert_transitions_per_s": round(in_process),
             "snapshot_longest_hold_up_s": round(server.snapshot_pause, 4), "snapshot_copy_s": round(copied - start, 3),
             "snapshot_write_s": round(written - copied, 3), "snapshot_bytes": size,
-            "bytes_per_transition": round(server.storage.nbytes / capacity, 1)}
+            "bytes_per_transition": round(server.storage.nbytes / capacity, 1),
+            "in_process_sample_us": round(sample_us[1], 1), "in_process_n_step_3_sample_us": round(sample_us[3], 1)}
+
+
+def sample_time(storage, n_step: int, seconds: float = 1.0) -> float:
+    """Seconds the storage takes to draw one uniform batch of 256 (n-step returns with gamma 0.99)."""
+    n, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        storage.sample(256, False, n_step=n_step, gamma=0.99)
+        n += 1
+    return (time.perf_counter() - start) / n
 
 
 def main() -> None:
@@ -256,8 +269,9 @@ def main() -> None:
             resident = rss_bytes(server.pid)
             size = stats[-1][1]["size"]
 
-            def batches_per_s(prioritized: bool) -> float:
-                with ReplayClient(session, run, batch_size=256, in_flight=16, prioritized=prioritized) as client:
+            def batches_per_s(prioritized: bool, n_step: int = 1) -> float:
+                with ReplayClient(session, run, batch_size=256, in_flight=16, prioritized=prioritized,
+                                  n_step=n_step, gamma=0.99) as client:
                     client.sample(timeout=30)
                     n, start = 0, time.perf_counter()
                     while time.perf_counter() - start < seconds:
@@ -267,6 +281,7 @@ def main() -> None:
 
             sample_rate = batches_per_s(prioritized=False)
             prioritized_rate = batches_per_s(prioritized=True)
+            n_step_rate = batches_per_s(prioritized=False, n_step=3)
     finally:
         server.terminate()
         server.wait(60)
@@ -289,6 +304,7 @@ def main() -> None:
         "ingest_fraction_of_raw_zenoh": round(ingest_bytes_per_s / raw_bytes_per_s, 3),
         "sample_batches_per_s": round(sample_rate, 1),
         "prioritized_sample_batches_per_s": round(prioritized_rate, 1),
+        "n_step_3_sample_batches_per_s": round(n_step_rate, 1),
         "numpy_sample_batches_per_s": round(numpy_rate, 1),
         "sample_fraction_of_numpy": round(sample_rate / numpy_rate, 3),
         "baseline_ingest_transitions_per_s": round(base_ingest),

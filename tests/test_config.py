@@ -150,7 +150,7 @@ def test_a_port_in_use_is_one_line_and_exit_code_1():
 
 
 def test_a_replay_larger_than_memory_is_one_line_and_exit_code_1():
-    result = run("l2r.replay", "--capacity", "10000000000")
+    result = run("l2r.replay", "--capacity", "2000000000")
     assert result.returncode == 1, result.stderr
     assert len(result.stderr.splitlines()) == 1, result.stderr
-    assert result.stderr.startswith("l2r-replay: --capacity 10000000000 needs 2942.9 GiB of memory; ")
+    assert result.stderr.startswith("l2r-replay: --capacity 2000000000 needs 584.3 GiB of memory; ")

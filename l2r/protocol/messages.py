@@ -141,13 +141,25 @@ class SampleRequest(Message):
 
     KIND: ClassVar[str] = "sample_request"
     SCHEMA: ClassVar[dict[str, str]] = {"batch_size": "int", "count": "int", "prioritized": "bool",
-                                        "learner_version": "int", "table": "str?"}
+                                        "learner_version": "int", "table": "str?", "n_step": "int?",
+                                        "gamma": "float?"}
     batch_size: int = 256
     count: int = 1  # batches in one reply, each a separate reply sample
     prioritized: bool = False
     learner_version: int = -1  # newest version the learner has published; for policy lag
     table: str | None = None
     """Which table of the shard to take from: "replay" (None means it too) or "queue"."""
+    n_step: int | None = None
+    """Steps of the return each transition of the batch carries, 1 to 20 (limits.MAX_N_STEP; None: 1)."""
+    gamma: float | None = None
+    """The discount of those returns, in [0, 1]; needed when n_step > 1."""
+
+    def validate(self) -> None:
+        if self.gamma is not None and not 0.0 <= self.gamma <= 1.0:
+            raise ProtocolError(f"sample_request.gamma: {self.gamma} not in [0, 1]", "out_of_range")
+        if (self.n_step or 1) > 1 and self.gamma is None:
+            raise ProtocolError(f"sample_request: n_step {self.n_step} needs gamma, the discount of its returns",
+                                "missing_field")
 
 
 @dataclass
@@ -161,7 +173,7 @@ class SampleBatch(Message):
         "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]",
         "terminated": "bool[]", "truncated": "bool[]", "indices": "int64[]", "generations": "int64[]",
         "probabilities": "float64[]", "policy_versions": "int64[]",
-        "log_probs": "float32[]?", "segment_ends": "bool[]?",
+        "log_probs": "float32[]?", "segment_ends": "bool[]?", "discounts": "float32[]?",
     }
     shard: int
     size: int
@@ -181,6 +193,9 @@ class SampleBatch(Message):
     segment_ends: np.ndarray | None = None
     """Queue batches: True where the next row does not continue this transition's trajectory
     (the end of a chunk, or of the batch)."""
+    discounts: np.ndarray | None = None
+    """Batches of n-step returns (``n_step`` > 1 asked): what multiplies the bootstrap value of
+    ``next_obs``, gamma ** (steps summed in ``rewards``), or 0 where the last of them terminated."""
 
     def validate(self) -> None:
         _ndim(self, obs=2, actions=2, next_obs=2, rewards=1, terminated=1, truncated=1,
@@ -193,6 +208,9 @@ class SampleBatch(Message):
         if self.log_probs is not None:
             _ndim(self, log_probs=1, segment_ends=1)
             _rows(self, b, "log_probs", "segment_ends")
+        if self.discounts is not None:
+            _ndim(self, discounts=1)
+            _rows(self, b, "discounts")
         if self.next_obs.shape != self.obs.shape:
             raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}",
                                 "shape_mismatch")
@@ -483,7 +501,8 @@ def _in_range(where: str, value: int, limits: tuple[int, int]) -> None:
 def _check_ranges(message: Message) -> None:
     """A sender's check that its integer fields are within the table (decode checks the same)."""
     for name, limits in INTEGER_LIMITS[message.KIND].items():
-        _in_range(f"{message.KIND}.{name}", getattr(message, name), limits)
+        if getattr(message, name) is not None:  # an optional field left out
+            _in_range(f"{message.KIND}.{name}", getattr(message, name), limits)
 
 
 def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:

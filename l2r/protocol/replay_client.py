@@ -5,11 +5,15 @@
     client.update_priorities(batch, td_errors)
     client.learner_version = 12               # reported back as policy lag
     queue = ReplayClient(session, run="exp1", batch_size=2048, in_flight=1, table="queue")  # on-policy
+    n3 = ReplayClient(session, run="exp1", n_step=3, gamma=0.99)  # 3-step returns, with batch.discounts
 
 Up to ``in_flight`` queries are kept outstanding, spread round-robin over the replay shards
 that hold a liveliness token; each batch taken sends the next query, so while the learner
 trains, the next batches are on their way. A "not ready" reply (the rate limiter holds the
-learner back) is retried after the delay the server asks for; it is never an error.
+learner back) is retried after the delay the server asks for; it is never an error. With
+``n_step`` > 1 every batch must carry ``discounts``: one without (from a shard older than n-step
+returns, which ignores ``n_step``) is rejected and counted (``no_discounts``), and that shard is
+left alone for a second.
 """
 
 from __future__ import annotations
@@ -43,11 +47,14 @@ class ReplayClient:
         in_flight: int = 4,
         timeout: float = 10.0,
         table: str | None = None,
+        n_step: int = 1,
+        gamma: float | None = None,
     ):
         self.keys = Keys(run)
         self.batch_size = batch_size
         self.prioritized = prioritized
         self.table = table  # None: the replay table, as for servers older than the queue
+        self.n_step, self.gamma = n_step, gamma  # left out of requests for n_step 1: older shards get what they know
         self.learner_version = -1
         self.rejections = Rejections(log)
         self.waits = 0  # "not ready" replies seen
@@ -60,6 +67,7 @@ class ReplayClient:
         self._pending = 0  # queries sent and not answered yet
         self._not_before: dict[int, float] = {}  # shard -> earliest time to ask it again
         self._turn = 0
+        encode(self._sample_request())  # a bad batch_size, n_step or gamma raises ProtocolError here, not per query
         self._liveliness = session.liveliness().declare_subscriber(
             self.keys.alive_role("replay"), self._on_alive, history=True)
 
@@ -137,8 +145,13 @@ class ReplayClient:
             if retry_after:
                 self._not_before[shard] = time.monotonic() + retry_after
 
+    def _sample_request(self) -> SampleRequest:
+        n_step = None if self.n_step == 1 else self.n_step
+        return SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version), self.table, n_step,
+                             self.gamma if n_step else None)
+
     def _request(self, shard: int) -> None:
-        request = SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version), self.table)
+        request = self._sample_request()
         query = {"answered": False}
 
         def on_reply(reply: zenoh.Reply) -> None:
@@ -153,9 +166,15 @@ class ReplayClient:
                 return
             if isinstance(message, NotReady):
                 self.waits += 1
+                self._answered(query, shard, message.retry_after)
+            elif request.n_step and message.discounts is None:
+                self.rejections.add(ProtocolError(f"a one-step batch in answer to n_step {request.n_step}: is the "
+                                                  "shard an l2r-replay from before n-step returns?", "no_discounts"),
+                                    f"shard {shard}")
+                self._answered(query, shard, 1.0)
             else:
                 self._ready.put(message)
-            self._answered(query, shard, message.retry_after if isinstance(message, NotReady) else 0.0)
+                self._answered(query, shard, 0.0)
 
         def on_done() -> None:  # the query ended; if it had no answer, back off a little
             self._answered(query, shard, 0.2)

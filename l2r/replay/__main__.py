@@ -27,8 +27,9 @@ class ReplaySettings(DaemonSettings):
     max_actors: int = setting(MAX_ACTORS, "actor ids this shard keeps sequence records of; chunks of further "
                               "ids are rejected (too_many_actors), so a peer inventing ids cannot exhaust "
                               "its memory", group=SHARD, ge=1)
-    capacity: int = setting(1_000_000, "transitions the replay table keeps, oldest evicted first; 0: no replay "
-                            "table (a shard with the queue alone)", group=STORAGE, ge=0)
+    capacity: int = setting(1_000_000, "transitions the replay table keeps, oldest evicted first, at most "
+                            "2^31 - 1 (trajectory links are 32-bit); 0: no replay table (a shard with the queue "
+                            "alone)", group=STORAGE, ge=0, lt=2**31)
     obs_dim: int = setting(41, "observation width; other widths are rejected", group=STORAGE, ge=1)
     act_dim: int = setting(18, "action width; other widths are rejected", group=STORAGE, ge=1)
     side_fraction: float = setting(0.125, "rows for next observations at chunk and episode ends, as a fraction "

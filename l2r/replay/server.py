@@ -41,11 +41,11 @@ log = logging.getLogger("l2r.replay")
 REPLY_OVERHEAD = 4096  # bytes of a sample_batch reply beyond its arrays' data (msgpack framing, names)
 
 
-def reply_bytes_per_transition(obs_dim: int, act_dim: int, queue: bool = False) -> int:
+def reply_bytes_per_transition(obs_dim: int, act_dim: int, queue: bool = False, n_step: bool = False) -> int:
     """What one transition adds to a sample_batch: obs and next_obs, action and reward (float32),
     two flags, index, generation, probability and policy version (8 bytes each); from the queue
-    also a log-probability (float32) and a flag."""
-    return 4 * (2 * obs_dim + act_dim + 1) + 2 + 4 * 8 + (5 if queue else 0)
+    also a log-probability (float32) and a flag; with n-step returns a discount (float32)."""
+    return 4 * (2 * obs_dim + act_dim + 1) + 2 + 4 * 8 + (5 if queue else 0) + (4 if n_step else 0)
 
 
 @dataclass
@@ -196,13 +196,16 @@ class ReplayServer:
         if table not in ("replay", "queue"):
             raise ProtocolError(f"sample_request: unknown table {table!r}; l2r-replay keeps 'replay' and 'queue'",
                                 "no_table")
-        queue = table == "queue"
+        queue, n_step = table == "queue", (request.n_step or 1) > 1
         if (self.queue if queue else self.storage) is None:
             raise ProtocolError(f"sample_request: shard {self.config.shard} keeps no {table} table "
                                 f"({'--queue-capacity' if queue else '--capacity'} 0)", "no_table")
+        if queue and n_step:
+            raise ProtocolError(f"sample_request: n_step {request.n_step} from the queue table; n-step returns "
+                                "come from the replay table (queue batches are whole trajectory pieces)", "invalid")
         obs_dim, act_dim = (self.queue.obs_dim, self.queue.act_dim) if queue else (
             self.storage.config.obs_dim, self.storage.config.act_dim)
-        largest = (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(obs_dim, act_dim, queue)
+        largest = (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(obs_dim, act_dim, queue, n_step)
         if queue and self.queue.capacity < largest:
             largest = self.queue.capacity
         if request.batch_size > largest:
@@ -219,8 +222,8 @@ class ReplayServer:
             delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(wanted, self._insert_rate())
             return [], reason, size, delay
         self.limiter.sampled += wanted
-        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard)
-                for _ in range(request.count)], "", size, 0.0
+        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, request.n_step or 1,
+                                    request.gamma) for _ in range(request.count)], "", size, 0.0
 
     def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
         """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""
@@ -339,6 +342,9 @@ class ReplayServer:
                 "policy_lag": self.lag_sum / self.lag_batches if self.lag_batches else float("nan"),
                 "snapshot_pause_s": self.snapshot_pause,
             }
+            if self.storage is not None:
+                values |= {"chunk_links": self.storage.chunk_links, "link_mismatches": self.storage.link_mismatches,
+                           "streams": len(self.storage.stream_ends)}
             if self.queue is not None:
                 q = self.queue
                 values |= {"queue.size": q.size, "queue.capacity": q.capacity, "queue.inserted": q.arrived,

@@ -7,11 +7,27 @@ When that side ring wraps over a row a live slot still points to, the slot is ev
 (priority 0, not sampled); size it so this stays rare (default: capacity / 8 rows).
 
 Every write gives a slot a new generation (the running count of transitions stored), so a
-priority update computed for an overwritten slot is recognised and ignored.
+priority update computed for an overwritten slot is recognised and ignored. The slot of
+generation g is always g % capacity.
+
+Trajectory links: each slot keeps how many generations ahead the next transition of its
+trajectory lies (``next_link``, 0: none) and how many back the previous one (``prev_link``,
+negative, 0: none). A link is followed only while the slot it reaches still holds that
+generation (``follow``), so an overwritten or evicted neighbour ends it. Inside a chunk the
+links join consecutive slots and stop at episode ends. Chunks of one environment stream
+(actor_id, epoch, env_id) interleave with other streams; the last slot of a stream's newest
+chunk is joined to the first of its next chunk when that last step ended no episode and the
+next chunk's first observation equals the true next observation stored for it (else a chunk
+was lost in between: counted in ``link_mismatches``). Where each stream's newest chunk ended is
+remembered for at most ``MAX_STREAMS`` streams and only while that slot is not overwritten.
+n-step returns (``sample(n_step=...)``) follow the next links; stacks of past frames can
+follow the previous ones.
 """
 
 from __future__ import annotations
 
+import logging
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,13 +35,21 @@ import numpy as np
 from l2r.protocol import ExperienceChunk, ProtocolError, SampleBatch
 from l2r.replay.sumtree import SumTree
 
+log = logging.getLogger("l2r.replay")
+
+MAX_STREAMS = 65_536
+"""Environment streams whose newest chunk end is remembered for linking (about 260 bytes each,
+17 MB at most; a snapshot holds inserts up about 2 us per stream while it copies them); beyond
+it the least recently extended stream is forgotten (its next chunk starts unlinked)."""
+LINKS = ("next_link", "prev_link")
+
 
 @dataclass
 class StorageConfig:
     """What is stored and how it is sampled."""
 
     capacity: int = 1_000_000
-    """Transitions kept; the oldest are evicted first."""
+    """Transitions kept; the oldest are evicted first. Below 2**31 (links are int32)."""
     obs_dim: int = 41
     """Observation width; chunks of another width are rejected."""
     act_dim: int = 18
@@ -40,8 +64,9 @@ class StorageConfig:
 def storage_bytes(config: StorageConfig) -> int:
     """Bytes a `Storage` of ``config`` allocates (its ``nbytes``), known before allocating."""
     c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
-    # per slot: obs, actions, reward, terminated and truncated flags, version, generation, next row
-    per_slot = 4 * config.obs_dim + 4 * config.act_dim + 4 + 2 + 3 * 8
+    # per slot: obs, actions, reward, terminated and truncated flags, version, generation, next row,
+    # next and previous trajectory links
+    per_slot = 4 * config.obs_dim + 4 * config.act_dim + 4 + 2 + 3 * 8 + 2 * 4
     per_side_row = 4 * config.obs_dim + 2 * 8  # next obs, owner and its generation
     return c * per_slot + s * per_side_row + SumTree.nbytes_for(c)
 
@@ -54,7 +79,7 @@ class Storage:
     """See the module docstring. Not thread-safe: the server serialises access."""
 
     ARRAYS = ("obs", "actions", "rewards", "terminated", "truncated", "versions", "generation",
-              "next_row", "side_obs", "side_owner", "side_owner_generation")
+              "next_row", *LINKS, "side_obs", "side_owner", "side_owner_generation")
 
     def __init__(self, config: StorageConfig):
         c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
@@ -70,6 +95,13 @@ class Storage:
         self.versions = np.zeros(c, np.int64)
         self.generation = np.full(c, -1, np.int64)  # -1: empty or evicted
         self.next_row = np.full(c, -1, np.int64)  # side row of the next obs; -1: next slot's obs
+        self.next_link = np.zeros(c, np.int32)  # generations ahead to the next step of the trajectory; 0: none
+        self.prev_link = np.zeros(c, np.int32)  # generations to the previous step (negative); 0: none
+        # (actor_id, epoch, env_id) -> (seq, generation of the last step) of the stream's newest chunk,
+        # least recently extended first (so also in the order of those generations)
+        self.stream_ends: OrderedDict[tuple[int, int, int], tuple[int, int]] = OrderedDict()
+        self.chunk_links = 0  # chunks joined to the one before them in their stream
+        self.link_mismatches = 0  # chunks whose stream went on, but whose first observation did not match
         self.side_owner = np.full(s, -1, np.int64)
         self.side_owner_generation = np.full(s, -1, np.int64)
         self.tree = SumTree(c)
@@ -114,6 +146,8 @@ class Storage:
             self.versions[at] = chunk.policy_version
             self.generation[at] = np.arange(self.written + lo, self.written + hi)
             self.next_row[at] = -1
+            self.next_link[at] = 1  # each step to the next, but for the ends below
+            self.prev_link[at] = -1
             self.tree.set_range(ring, hi - lo, self.max_priority)
 
         ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
@@ -122,9 +156,57 @@ class Storage:
         rows = self._side_write(side_values, side_slots)
         self.next_row[side_slots] = rows
         self.side_owner_generation[rows] = self.generation[side_slots]
+        # no link past an episode end, nor (until the stream's next chunk joins) past the chunk's last step
+        self.next_link[side_slots] = 0
+        self.prev_link[start] = 0
+        if len(ends):
+            self.prev_link[(start + ends + 1) % self.capacity] = 0
+        self._extend_stream(chunk, self.written)
         self.written += t
         self.live += t
+        self._forget_streams()
         return t
+
+    def _extend_stream(self, chunk: ExperienceChunk, first: int) -> None:
+        """Join the chunk just stored from generation ``first`` on to its stream's newest chunk,
+        and make it the newest. A late chunk (resent after a loss) is older than the newest: it
+        stays unlinked and leaves the newest as it is, so the stream's next chunk still joins."""
+        key = (chunk.actor_id, chunk.epoch, chunk.env_id)
+        newest = self.stream_ends.pop(key, None)
+        if newest is not None and newest[0] > chunk.seq:
+            self.stream_ends[key] = newest
+            return
+        if newest is not None:
+            self._join(newest[1], first, chunk.obs[0])
+        self.stream_ends[key] = (chunk.seq, first + chunk.size - 1)
+
+    def _join(self, end: int, first: int, first_obs: np.ndarray) -> None:
+        """Link generation ``end`` (a chunk's last step) to ``first`` if that step is still stored,
+        ended no episode, and its true next observation is ``first_obs``."""
+        slot = end % self.capacity  # (item() and bytes: numpy scalars and an array comparison took 4x as long)
+        if self.generation.item(slot) != end or self.terminated.item(slot) or self.truncated.item(slot):
+            return  # overwritten or evicted meanwhile, or the episode ended there: nothing to join
+        if self.side_obs[self.next_row.item(slot)].tobytes() != first_obs.tobytes():
+            self.link_mismatches += 1  # a chunk in between was lost (or the stream is not what it claims)
+            return
+        self.next_link[slot] = first - end
+        self.prev_link[first % self.capacity] = end - first
+        self.chunk_links += 1
+
+    def _forget_streams(self) -> None:
+        """Drop the streams whose newest chunk end is overwritten (nothing can join it any more),
+        and the least recently extended beyond MAX_STREAMS."""
+        oldest_stored = self.written - self.capacity
+        while self.stream_ends and (len(self.stream_ends) > MAX_STREAMS
+                                    or next(iter(self.stream_ends.values()))[1] < oldest_stored):
+            self.stream_ends.popitem(last=False)
+
+    def follow(self, slots: np.ndarray, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The slots ``links`` generations away from the live ``slots`` (their ``next_link`` or
+        ``prev_link``), and whether each link holds: set, and its slot still stores that generation."""
+        targets = (slots + links) % self.capacity
+        holds = (links != 0) & (self.generation.take(targets) == self.generation.take(slots) + links)
+        return targets, holds
 
     def _evict(self, slots: np.ndarray) -> None:
         self.live -= int(np.count_nonzero(self.generation[slots] >= 0))
@@ -145,21 +227,43 @@ class Storage:
         self.side_written += n
         return rows
 
-    def sample(self, batch_size: int, prioritized: bool, shard: int = 0) -> SampleBatch:
-        """A batch of live transitions; requires ``live > 0``."""
+    def sample(self, batch_size: int, prioritized: bool, shard: int = 0, n_step: int = 1,
+               gamma: float | None = None) -> SampleBatch:
+        """A batch of live transitions; requires ``live > 0``. With ``n_step`` > 1, each carries
+        the return of up to ``n_step`` steps of its trajectory discounted by ``gamma`` (``_n_step``)."""
         if prioritized:
             slots, probabilities = self._sample_prioritized(batch_size)
         else:
             slots = self._sample_uniform(batch_size)
             probabilities = np.full(batch_size, 1.0 / self.live)
-        side = self.next_row[slots]
-        next_rows = np.where(side < 0, (slots + 1) % self.capacity, self.capacity + side)
+        if n_step > 1:
+            last, rewards, discounts = self._n_step(slots, n_step, gamma)
+        else:
+            last, rewards, discounts = slots, self.rewards.take(slots), None
+        side = self.next_row[last]
+        next_rows = np.where(side < 0, (last + 1) % self.capacity, self.capacity + side)
         return SampleBatch(
             shard=shard, size=self.live, prioritized=prioritized, obs=self.all_obs.take(slots, axis=0),
-            actions=self.actions.take(slots, axis=0), rewards=self.rewards.take(slots),
-            next_obs=self.all_obs.take(next_rows, axis=0), terminated=self.terminated.take(slots),
-            truncated=self.truncated.take(slots), indices=slots, generations=self.generation.take(slots),
-            probabilities=probabilities, policy_versions=self.versions.take(slots))
+            actions=self.actions.take(slots, axis=0), rewards=rewards,
+            next_obs=self.all_obs.take(next_rows, axis=0), terminated=self.terminated.take(last),
+            truncated=self.truncated.take(last), indices=slots, generations=self.generation.take(slots),
+            probabilities=probabilities, policy_versions=self.versions.take(slots), discounts=discounts)
+
+    def _n_step(self, slots: np.ndarray, n: int, gamma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For windows of up to ``n`` steps from ``slots``, following next links (which stop at
+        episode ends, lost chunks and overwritten slots): the window's last slot, its discounted
+        reward sum, and gamma ** steps, 0 where the last step terminated (a truncation bootstraps)."""
+        last = slots.copy()
+        rewards = self.rewards.take(slots)
+        weight = np.ones(len(slots), np.float32)  # gamma ** (steps in the window so far - 1)
+        for _ in range(n - 1):  # a window that stopped stays stopped: its link does not hold now either
+            ahead, holds = self.follow(last, self.next_link.take(last))
+            ahead = ahead[holds]
+            weight[holds] *= gamma
+            rewards[holds] += weight[holds] * self.rewards.take(ahead)
+            last[holds] = ahead
+        discounts = np.where(self.terminated.take(last), np.float32(0), weight * np.float32(gamma))
+        return last, rewards, discounts
 
     def _sample_uniform(self, n: int) -> np.ndarray:
         high = min(self.written, self.capacity)
@@ -211,12 +315,25 @@ class Storage:
             raise ValueError(f"snapshot has capacity/side rows/obs/action dims {(capacity, side_capacity, obs_dim, act_dim)}, "
                              f"this server is configured for {mine}")
         for name in self.ARRAYS:
+            if name in LINKS and name not in state:
+                continue  # a snapshot from before trajectory links: its transitions stay unlinked
             values = state[name]
             getattr(self, name)[:len(values)] = values
         if len(state["priorities"]):
             self.tree.set_range(0, len(state["priorities"]), state["priorities"])
         self.written, self.side_written, self.live = written, side_written, live
         self.max_priority = float(state["max_priority"])
+        if "stream_keys" not in state:
+            log.info("snapshot from before trajectory links: n-step returns and frame stacks reach only into "
+                     "chunks stored from now on")
+            return
+        self.stream_ends = OrderedDict(zip(map(tuple, state["stream_keys"].tolist()),
+                                           map(tuple, state["stream_ends"].tolist())))
+        # A chunk stored while the copy was taken may have linked a row not copied yet to a transition the
+        # snapshot lacks; without a log to replay, another transition would later take that generation.
+        filled = slice(0, min(written, self.capacity))
+        beyond = (self.next_link[filled] != 0) & (self.generation[filled] + self.next_link[filled] >= written)
+        self.next_link[filled][beyond] = 0
 
 
 class Overtaken(RuntimeError):
@@ -245,6 +362,8 @@ class StateCopy:
         self.arrays["counters"] = np.array([storage.written, storage.side_written, storage.live, storage.capacity,
                                             storage.side_capacity, storage.config.obs_dim, storage.config.act_dim], np.int64)
         self.arrays["max_priority"] = np.array(storage.max_priority)
+        self.arrays["stream_keys"] = np.array(list(storage.stream_ends), np.int64).reshape(-1, 3)
+        self.arrays["stream_ends"] = np.array(list(storage.stream_ends.values()), np.int64).reshape(-1, 2)
         # offsets from each ring's write head: rows [capacity - filled, capacity) hold data
         self._next = [storage.capacity - filled, storage.side_capacity - side_filled]
 

@@ -27,6 +27,24 @@ def make_chunk(actor_id: int = 0, seq: int = 0, steps: int = 10, ends: tuple[int
     return ExperienceChunk(actor_id, 0, epoch, seq, version, obs, actions, rewards, terminated, truncated, final_obs)
 
 
+def stream_chunk(first: int, size: int, seq: int, env_id: int = 0, ends=(), truncate=(), actor_id: int = 0,
+                 obs_dim: int = 2, act_dim: int = 1) -> ExperienceChunk:
+    """Steps ``first`` .. ``first + size - 1`` of one environment's stream: step k sees observation
+    k + 1000 * env_id and earns reward k + 1; an episode that ends at step k (``ends``: terminated,
+    ``truncate``: time limit; global step numbers) has the final observation -(k + 1) - 1000 * env_id,
+    and the next episode starts at observation k + 1."""
+    offset = 1000 * env_id
+    k = np.arange(first, first + size)
+    terminated, truncated = np.isin(k, ends), np.isin(k, truncate)
+    obs = (np.arange(first, first + size + 1) + offset).astype(np.float32)
+    if terminated[-1] or truncated[-1]:
+        obs[-1] = -(first + size) - offset
+    inner = k[:-1][(terminated | truncated)[:-1]]
+    return ExperienceChunk(actor_id, env_id, 1, seq, 0, np.repeat(obs[:, None], obs_dim, 1),
+                           np.zeros((size, act_dim), np.float32), (k + 1).astype(np.float32), terminated, truncated,
+                           np.repeat((-(inner + 1) - offset).astype(np.float32)[:, None], obs_dim, 1))
+
+
 def every_message() -> list:
     rng = np.random.default_rng(0)
     b = 8
@@ -35,7 +53,7 @@ def every_message() -> list:
         Weights(5, {"pi.0.weight": rng.random((4, 41), np.float32), "pi.0.bias": np.zeros(4, np.float16),
                     "observation_filter.count": np.array(3.0, np.float32)},  # a 0-d buffer keeps its shape
                 {"hidden": [512, 512], "activation": "elu"}),
-        SampleRequest(256, 2, True, 9),
+        SampleRequest(256, 2, True, 9, n_step=3, gamma=0.99),
         SampleBatch(1, 1000, True, rng.random((b, 41), np.float32), rng.random((b, 18), np.float32),
                     rng.random(b, np.float32), rng.random((b, 41), np.float32), np.zeros(b, bool), np.ones(b, bool),
                     np.arange(b, dtype=np.int64), np.arange(b, dtype=np.int64) + 5, np.full(b, 1e-3),

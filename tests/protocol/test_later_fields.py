@@ -1,5 +1,6 @@
-"""Fields added to protocol version 1 for on-policy learning: a sender may leave them out, so the
-messages of earlier peers still decode, and when present they are checked like any other."""
+"""Fields added to protocol version 1 for on-policy learning and n-step returns: a sender may leave
+them out, so the messages of earlier peers still decode, and when present they are checked like
+any other."""
 
 from __future__ import annotations
 
@@ -19,6 +20,12 @@ def without(message, *names: str) -> bytes:
     return msgpack.packb(raw, use_bin_type=True)
 
 
+def n_step_batch() -> SampleBatch:
+    batch = next(m for m in every_message() if isinstance(m, SampleBatch))
+    batch.discounts = np.linspace(0, 0.97, len(batch.obs)).astype(np.float32)
+    return batch
+
+
 def queue_batch(n: int = 4) -> SampleBatch:
     batch = next(m for m in every_message() if isinstance(m, SampleBatch))
     batch.log_probs, batch.segment_ends = np.linspace(-3, 0, len(batch.obs)).astype(np.float32), \
@@ -36,11 +43,15 @@ def test_messages_of_earlier_peers_decode_with_the_new_fields_none():
     ack = next(m for m in every_message() if isinstance(m, ReplayAck))
     ack.hold = True
     assert decode(without(ack, "hold")).hold is None
+    request = decode(without(SampleRequest(64, 1, False, 3, n_step=3, gamma=0.9), "n_step", "gamma"))
+    assert request.n_step is None and request.gamma is None
+    assert decode(without(n_step_batch(), "discounts")).discounts is None
 
 
 def test_a_field_left_unset_is_left_out_so_earlier_peers_get_the_bytes_they_know():
     assert b"table" not in encode(SampleRequest(64, 1, False, 3))
     assert b"log_probs" not in encode(make_chunk(steps=3))
+    assert b"n_step" not in encode(SampleRequest(64)) and b"gamma" not in encode(SampleRequest(64))
 
 
 def test_the_new_fields_round_trip():
@@ -52,6 +63,9 @@ def test_the_new_fields_round_trip():
     back = decode(encode(sent))
     np.testing.assert_array_equal(back.log_probs, sent.log_probs)
     np.testing.assert_array_equal(back.segment_ends, sent.segment_ends)
+    request = decode(encode(SampleRequest(64, 1, False, 3, n_step=20, gamma=0.0)))
+    assert (request.n_step, request.gamma) == (20, 0.0)
+    np.testing.assert_array_equal(decode(encode(n_step_batch())).discounts, n_step_batch().discounts)
 
 
 @pytest.mark.parametrize("log_probs, reason", [
@@ -71,3 +85,29 @@ def test_a_queue_batch_needs_both_of_its_fields():
     with pytest.raises(ProtocolError) as error:
         decode(without(queue_batch(), "segment_ends"))
     assert error.value.reason == "missing_field"
+
+
+@pytest.mark.parametrize("fields, reason", [
+    ({"n_step": 0, "gamma": 0.9}, "out_of_range"),
+    ({"n_step": 21, "gamma": 0.9}, "out_of_range"),
+    ({"n_step": 3, "gamma": -0.01}, "out_of_range"),
+    ({"n_step": 3, "gamma": 1.5}, "out_of_range"),
+    ({"n_step": 3, "gamma": float("nan")}, "not_finite"),
+    ({"n_step": 3, "gamma": "0.99"}, "wrong_type"),
+    ({"n_step": 3.0, "gamma": 0.9}, "wrong_type"),
+    ({"n_step": 3}, "missing_field"),  # a return of several steps needs its discount
+])
+def test_bad_n_step_requests_are_rejected(fields, reason):
+    raw = msgpack.unpackb(encode(SampleRequest(64))) | fields
+    with pytest.raises(ProtocolError) as error:
+        decode(msgpack.packb(raw, use_bin_type=True), SampleRequest)
+    assert error.value.reason == reason
+
+
+def test_one_step_needs_no_gamma_and_discounts_need_a_row_each():
+    assert decode(encode(SampleRequest(64, n_step=1))).gamma is None
+    raw = msgpack.unpackb(encode(n_step_batch()))
+    raw["discounts"] = dict(raw["discounts"], shape=[3], data=bytes(12))
+    with pytest.raises(ProtocolError) as error:
+        decode(msgpack.packb(raw, use_bin_type=True))
+    assert error.value.reason == "shape_mismatch"

@@ -16,7 +16,7 @@ from tests.protocol.factories import every_message, make_chunk
 
 EXAMPLES = {m.KIND: m for m in every_message()}
 INTEGER_FIELDS = [(kind, name) for kind, cls in sorted(_KINDS.items())
-                  for name, spec in cls.SCHEMA.items() if spec == "int"]
+                  for name, spec in cls.SCHEMA.items() if spec in ("int", "int?")]
 
 
 def wire(message) -> dict:

@@ -9,14 +9,15 @@ import signal
 import time
 
 import msgpack
+import numpy as np
 import pytest
 import zenoh
 
-from l2r.protocol import EXPERIENCE_QOS, Keys, SampleRequest, encode
+from l2r.protocol import EXPERIENCE_QOS, Keys, SampleBatch, SampleRequest, decode, encode
 from l2r.protocol.limits import INTEGER_LIMITS
 from l2r.replay import snapshot
 from tests.conftest import wait_for
-from tests.protocol.factories import make_chunk
+from tests.protocol.factories import make_chunk, stream_chunk
 
 pytestmark = pytest.mark.slow
 
@@ -129,7 +130,7 @@ def test_sample_requests_at_their_limits_and_beyond(start_replay, connect, ask_s
     assert len(sample(session, keys)) == 1
     for name, (low, high) in INTEGER_LIMITS["sample_request"].items():
         for value in edge_values(low, high):
-            replies = sample(session, keys, **{name: value})
+            replies = sample(session, keys, **{name: value}, **({"gamma": 0.9} if name == "n_step" else {}))
             assert replies, f"{name}={value}: no answer\n{replay.log()[-3000:]}"
             if not low <= value <= high:
                 assert replies[0].err.payload.to_string().startswith("out_of_range: "), (name, value)
@@ -157,3 +158,32 @@ def test_sequence_jumps_neither_stall_the_shard_nor_fill_its_snapshot(start_repl
     assert replay.stop() == 0
     saved = snapshot.read(snapshot.snapshot_path(snap, 0))[1]["sequences"]["actors"]["3"]
     assert saved["gaps"] == stats["gaps"] and len(saved["missing_runs"]) == 1
+
+
+def test_bad_n_step_requests_and_streams_that_do_not_join_are_counted(start_replay, connect, ask_stats, run_name):
+    replay = start_replay("--obs-dim", "2", "--act-dim", "1", "--queue-capacity", "100")
+    session = connect(replay)
+    keys = Keys(run_name)
+    honest, liar = stream_chunk(0, 8, seq=0, actor_id=1), stream_chunk(8, 8, seq=1, actor_id=1)
+    liar.obs[0] = 99.0  # claims to go on where the stream's last chunk ended, but starts elsewhere
+    liar.log_probs = honest.log_probs = np.zeros(8, np.float32)
+    for chunk in (honest, liar):
+        session.put(keys.experience(1), encode(chunk), **EXPERIENCE_QOS.put())
+    assert wait_for(lambda: (v := ask_stats(session)) and v["size"] == 16), ask_stats(session)
+    bad = {"out_of_range": [{"n_step": 0, "gamma": 0.9}, {"n_step": 21, "gamma": 0.9}, {"n_step": 3, "gamma": 1.01},
+                            {"n_step": 3, "gamma": -1.0}],
+           "not_finite": [{"n_step": 3, "gamma": float("inf")}],
+           "wrong_type": [{"n_step": "3", "gamma": 0.9}, {"n_step": 3, "gamma": None}],
+           "missing_field": [{"n_step": 3}],
+           "invalid": [{"n_step": 3, "gamma": 0.9, "table": "queue"}]}
+    for reason, requests in bad.items():
+        for fields in requests:
+            replies = sample(session, keys, **fields)
+            assert len(replies) == 1 and replies[0].err.payload.to_string().startswith(f"{reason}: "), fields
+    stats = ask_stats(session)
+    assert {reason: stats.get(f"rejected.{reason}") for reason in bad} == {r: len(q) for r, q in bad.items()}, stats
+    assert (stats["chunk_links"], stats["link_mismatches"]) == (0, 1), stats
+    good = decode(sample(session, keys, n_step=3, gamma=0.5, batch_size=200)[0].ok.payload, SampleBatch)
+    by_obs = dict(zip(good.obs[:, 0], zip(good.rewards, good.discounts)))
+    assert by_obs[7] == (8, 0.5)  # the honest chunk's last step is not joined to the liar's first
+    assert by_obs[5] == (6 + 0.5 * 7 + 0.25 * 8, 0.125)
