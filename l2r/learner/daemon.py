@@ -196,10 +196,8 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
             table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
-            n_step = getattr(algo, "n_step", 1)  # one-step requests stay as before n-step returns
-            returns = {"n_step": n_step, "gamma": algo.gamma} if n_step > 1 else {}
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
-                              table=table, **returns) as replay:
+                              table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma) as replay:
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version
@@ -238,10 +236,9 @@ def _replay_step(state: sac.TrainState | td3.TrainState, batch: SampleBatch, alg
                  config: LearnerConfig, replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
     """SAC's and TD3's step: update_repeat updates on one batch from the replay table."""
     algorithm = ALGORITHMS[algorithm_of(algo)][1]
-    # n-step batches carry discounts; a SampleBatch from before n-step returns has no such field
     tensors = sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
                                    batch.importance_weights(config.priority_beta) if batch.prioritized else None,
-                                   device, getattr(batch, "discounts", None))
+                                   device, batch.discounts)
     tensors = algorithm.prepare(state, tensors, algo)
     for _ in range(algo.update_repeat):
         metrics = algorithm.update(state, tensors, algo)

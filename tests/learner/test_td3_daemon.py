@@ -20,7 +20,8 @@ from tests.learner.conftest import WeightsWatcher, learner_args
 # The std falls from 1.0 to 0.1 over the first 100 updates; with 2 updates a batch and weights every
 # 20 updates, version v (v >= 2) goes out at update 20 * (v - 1).
 SCHEDULE = ["--exploration-std-start", "1.0", "--exploration-std-end", "0.1", "--exploration-std-updates", "100"]
-TD3_LEARNER = ["--algo", "td3", "--checkpoint-interval", "1", *SCHEDULE]
+# 3-step returns: the learner's requests ask the replay server for them (SAC's tests cover one step).
+TD3_LEARNER = ["--algo", "td3", "--n-step", "3", "--checkpoint-interval", "1", *SCHEDULE]
 
 
 @pytest.mark.slow
@@ -50,6 +51,7 @@ def test_td3_trains_on_an_actor_s_experience_publishes_its_schedule_and_checkpoi
 
     saved = load_checkpoint(run_dir)  # written on SIGTERM, after the last publication
     assert saved.algo == "td3" and isinstance(saved.config, TD3Config) and saved.version == last.version
+    assert saved.config.n_step == 3 and "rejected" not in learner.log()
     assert saved.updates >= 120 and isinstance(saved.policy(), DeterministicPolicy)
     evaluation = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "1",
                                  "--json", "--action-repeat", "1", "--env-id", "tests.actors.standin:StandIn-v0"],
