@@ -16,6 +16,7 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
+from l2r.protocol.errors import ProtocolError
 from l2r.protocol.limits import ANY, INTEGER_LIMITS
 
 PROTOCOL_VERSION = 1
@@ -31,15 +32,6 @@ _SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)
 _DTYPES = {d.str: d for d in map(np.dtype, ("float16", "float32", "float64", "int32", "int64", "uint8", "bool"))}
 _BY_NAME = {d.name: d for d in _DTYPES.values()}
 _WEIGHT_DTYPES = (_BY_NAME["float16"], _BY_NAME["float32"], _BY_NAME["float64"])
-
-
-class ProtocolError(ValueError):
-    """A message that cannot be accepted: ``str(error)`` says why in words, ``reason`` in one
-    stable identifier (such as ``out_of_range``) that receivers count rejections by."""
-
-    def __init__(self, text: str, reason: str):
-        super().__init__(text)
-        self.reason = reason
 
 
 class Message:
