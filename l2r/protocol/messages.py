@@ -174,10 +174,10 @@ class SampleBatch(Message):
     SCHEMA: ClassVar[dict[str, str]] = {
         "shard": "int", "size": "int", "prioritized": "bool",
         "obs": "float32[]?", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]?",
+        "frames": "fields?", "obs_frames": "int64[]?", "next_obs_frames": "int64[]?",
         "terminated": "bool[]", "truncated": "bool[]", "indices": "int64[]", "generations": "int64[]",
         "probabilities": "float64[]", "policy_versions": "int64[]",
         "log_probs": "float32[]?", "segment_ends": "bool[]?",
-        "frames": "fields?", "obs_frames": "int64[]?", "next_obs_frames": "int64[]?",
     }
     shard: int
     size: int
