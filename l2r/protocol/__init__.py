@@ -9,6 +9,7 @@ from l2r.protocol.messages import (
     LearnerVersion, Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch, SampleRequest, Stats,
     Weights, decode, encode,
 )
+from l2r.protocol.observations import FieldSpec, ObservationSpec, as_fields
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
     DaemonSettings, Rejections, configure_logging, session_config, wait_alive, watched,
@@ -19,6 +20,7 @@ __all__ = [
     "VERSION_QOS", "WEIGHTS_QOS", "Keys", "QoS", "check_name", "parse_alive", "shard_of",
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "ActorId", "ActorIdRequest", "EpisodeSummary", "ExperienceChunk",
     "Frame", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck",
-    "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "ReplayClient",
+    "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "FieldSpec", "ObservationSpec",
+    "as_fields", "ReplayClient",
     "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive", "watched",
 ]

@@ -1,6 +1,8 @@
 """The messages l2r daemons exchange, and their msgpack wire format.
 
-Every message is one msgpack map ``{"v": PROTOCOL_VERSION, "kind": KIND, <fields>}``.
+Every message is one msgpack map ``{"v": VERSION, "kind": KIND, <fields>}``, where VERSION is
+the lowest protocol version that can read it: 2 for a message with observation fields other
+than the float32 vector, else 1, so version-1 peers get the bytes they know.
 An array field is a map ``{"dtype": "<f4", "shape": [T, 41], "data": <bin>}`` in C order,
 decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data).
 ``decode`` checks everything a peer could get wrong, integer ranges included (``limits.py``),
@@ -16,30 +18,28 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
+from l2r.protocol.errors import ProtocolError
 from l2r.protocol.limits import ANY, INTEGER_LIMITS
+from l2r.protocol.observations import DTYPES as OBSERVATION_DTYPES
+from l2r.protocol.observations import VECTOR_FIELD, ObservationSpec, as_fields
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""The newest version this side speaks; it reads every version from 1 on."""
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_ARRAY_DIMS = 4
 
 # Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
-# msgpack-native), "arrays" (str -> float array), or an array of one dtype such as "float32[]".
-# A trailing "?" marks a field added to version 1 later: a sender may leave it out (it is then
-# None), so messages of earlier senders still decode.
+# msgpack-native), "arrays" (str -> float array), an array of one dtype such as "float32[]",
+# "fields" (observation field name -> array with rows first, in the field's dtype: version 2
+# only), or "observations": the float32[rows, width] array of the vector observation in
+# version 1, fields in version 2 (in memory, the array or the map of fields).
+# A trailing "?" marks a field added later: a sender may leave it out (it is then None), so
+# messages of earlier senders still decode.
 _SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)}
 # the dtypes arrays may have, by their little-endian wire name ("<f4", "|b1", ...)
 _DTYPES = {d.str: d for d in map(np.dtype, ("float16", "float32", "float64", "int32", "int64", "uint8", "bool"))}
 _BY_NAME = {d.name: d for d in _DTYPES.values()}
 _WEIGHT_DTYPES = (_BY_NAME["float16"], _BY_NAME["float32"], _BY_NAME["float64"])
-
-
-class ProtocolError(ValueError):
-    """A message that cannot be accepted: ``str(error)`` says why in words, ``reason`` in one
-    stable identifier (such as ``out_of_range``) that receivers count rejections by."""
-
-    def __init__(self, text: str, reason: str):
-        super().__init__(text)
-        self.reason = reason
 
 
 class Message:
@@ -56,37 +56,42 @@ def _kinds() -> dict[str, type[Message]]:
     return {cls.KIND: cls for cls in Message.__subclasses__()}
 
 
+Observations = np.ndarray | dict[str, np.ndarray]
+"""Rows of observations: the float32 matrix of the vector observation, or a map of field name
+to array with the rows first (``observations.as_fields`` reads either as fields)."""
+
+
 @dataclass
 class ExperienceChunk(Message):
     """T consecutive transitions of one environment of one actor.
 
-    ``obs`` has T+1 rows: ``obs[t]`` is seen before step t and ``obs[t+1]`` after it, so
-    consecutive steps share one row. When step t < T-1 ends an episode, ``obs[t+1]`` is the
-    first observation of the next episode and the true next observation of step t is the
-    next row of ``final_obs`` (rows in step order); ``obs[T]`` is always the true next
-    observation of the last step. ``terminated`` (no bootstrap) and ``truncated`` (time
-    limit: bootstrap) are kept apart. ``(actor_id, epoch, seq)`` makes a chunk unique:
-    ``epoch`` is fixed for one actor process (its start time in ns), ``seq`` counts its
-    chunks from 0, one per chunk, across all its environments.
+    ``obs`` has T+1 rows (of every field): ``obs[t]`` is seen before step t and ``obs[t+1]``
+    after it, so consecutive steps share one row. When step t < T-1 ends an episode,
+    ``obs[t+1]`` is the first observation of the next episode and the true next observation of
+    step t is the next row of ``final_obs`` (rows in step order, the same fields as ``obs``);
+    ``obs[T]`` is always the true next observation of the last step. ``terminated`` (no
+    bootstrap) and ``truncated`` (time limit: bootstrap) are kept apart. ``(actor_id, epoch,
+    seq)`` makes a chunk unique: ``epoch`` is fixed for one actor process (its start time in
+    ns), ``seq`` counts its chunks from 0, one per chunk, across all its environments.
     """
 
     KIND: ClassVar[str] = "experience"
     SCHEMA: ClassVar[dict[str, str]] = {
         "actor_id": "int", "env_id": "int", "epoch": "int", "seq": "int", "policy_version": "int",
-        "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]",
-        "terminated": "bool[]", "truncated": "bool[]", "final_obs": "float32[]", "log_probs": "float32[]?",
+        "obs": "observations", "actions": "float32[]", "rewards": "float32[]",
+        "terminated": "bool[]", "truncated": "bool[]", "final_obs": "observations", "log_probs": "float32[]?",
     }
     actor_id: int
     env_id: int
     epoch: int
     seq: int
     policy_version: int
-    obs: np.ndarray
+    obs: Observations
     actions: np.ndarray
     rewards: np.ndarray
     terminated: np.ndarray
     truncated: np.ndarray
-    final_obs: np.ndarray
+    final_obs: Observations
     log_probs: np.ndarray | None = None
     """log pi(action | obs) of each step under the policy that acted, in the policy's (-1, 1)
     action space (None from actors older than the queue table)."""
@@ -96,32 +101,36 @@ class ExperienceChunk(Message):
         return len(self.actions)
 
     def validate(self) -> None:
-        _ndim(self, obs=2, actions=2, rewards=1, terminated=1, truncated=1, final_obs=2)
+        _ndim(self, actions=2, rewards=1, terminated=1, truncated=1)
         t = len(self.actions)
         if t == 0:
             raise ProtocolError("experience: empty chunk", "empty_chunk")
-        if len(self.obs) != t + 1:
-            raise ProtocolError(f"experience: obs has {len(self.obs)} rows, expected T+1 = {t + 1}", "shape_mismatch")
         _rows(self, t, "rewards", "terminated", "truncated")
-        if self.final_obs.shape[1] != self.obs.shape[1]:
-            raise ProtocolError(f"experience: final_obs width {self.final_obs.shape[1]} != obs width "
-                                f"{self.obs.shape[1]}", "shape_mismatch")
         inner_ends = int(np.count_nonzero((self.terminated | self.truncated)[:-1]))
-        if len(self.final_obs) != inner_ends:
-            raise ProtocolError(f"experience: final_obs has {len(self.final_obs)} rows, but {inner_ends} episodes "
-                                "end before the last step", "shape_mismatch")
-        _finite(self, "obs", "actions", "rewards", "final_obs")
+        spec = _observation_rows(self, "obs", t + 1, f"expected T+1 = {t + 1}")
+        final_spec = _observation_rows(self, "final_obs", inner_ends,
+                                       f"but {inner_ends} episodes end before the last step")
+        if final_spec != spec:
+            raise ProtocolError(f"experience: final_obs rows are {final_spec}, obs rows {spec}", "shape_mismatch")
+        _finite(self, "actions", "rewards")
         if self.log_probs is not None:
             _ndim(self, log_probs=1)
             _rows(self, t, "log_probs")
             _finite(self, "log_probs")
 
-    def next_obs(self) -> np.ndarray:
-        """The true next observation of every step, (T, obs_dim) (a copy; for tests and tools)."""
-        nxt = np.array(self.obs[1:])
+    def next_obs(self) -> Observations:
+        """The true next observation of every step, T rows in the form of ``obs`` (a copy; for
+        tests and tools)."""
         ends = np.flatnonzero((self.terminated | self.truncated)[:-1])
-        nxt[ends] = self.final_obs
-        return nxt
+
+        def after(rows: np.ndarray, final: np.ndarray) -> np.ndarray:
+            nxt = np.array(rows[1:])
+            nxt[ends] = final
+            return nxt
+
+        final = as_fields(self.final_obs)
+        nxt = {name: after(rows, final[name]) for name, rows in as_fields(self.obs).items()}
+        return nxt[VECTOR_FIELD] if isinstance(self.obs, np.ndarray) else nxt
 
 
 @dataclass
@@ -165,12 +174,19 @@ class SampleRequest(Message):
 @dataclass
 class SampleBatch(Message):
     """One sampled batch (query reply). ``probabilities`` are the sampling probabilities
-    (1/size when uniform); ``indices`` and ``generations`` address the slots for priority updates."""
+    (1/size when uniform); ``indices`` and ``generations`` address the slots for priority updates.
+
+    Observations come in one of two forms: ``obs`` and ``next_obs``, float32 vectors of each
+    transition (version 1); or ``frames``, each distinct observation of the batch once, with
+    ``obs_frames`` and ``next_obs_frames`` saying which frames, oldest first, make the stacked
+    observation before and after each transition (version 2).
+    """
 
     KIND: ClassVar[str] = "sample_batch"
     SCHEMA: ClassVar[dict[str, str]] = {
         "shard": "int", "size": "int", "prioritized": "bool",
-        "obs": "float32[]", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]",
+        "obs": "float32[]?", "actions": "float32[]", "rewards": "float32[]", "next_obs": "float32[]?",
+        "frames": "fields?", "obs_frames": "int64[]?", "next_obs_frames": "int64[]?",
         "terminated": "bool[]", "truncated": "bool[]", "indices": "int64[]", "generations": "int64[]",
         "probabilities": "float64[]", "policy_versions": "int64[]",
         "log_probs": "float32[]?", "segment_ends": "bool[]?", "discounts": "float32[]?",
@@ -178,10 +194,10 @@ class SampleBatch(Message):
     shard: int
     size: int
     prioritized: bool
-    obs: np.ndarray
+    obs: np.ndarray | None
     actions: np.ndarray
     rewards: np.ndarray
-    next_obs: np.ndarray
+    next_obs: np.ndarray | None
     terminated: np.ndarray
     truncated: np.ndarray
     indices: np.ndarray
@@ -196,12 +212,19 @@ class SampleBatch(Message):
     discounts: np.ndarray | None = None
     """Batches of n-step returns (``n_step`` > 1 asked): what multiplies the bootstrap value of
     ``next_obs``, gamma ** (steps summed in ``rewards``), or 0 where the last of them terminated."""
+    frames: dict[str, np.ndarray] | None = None
+    """Each distinct observation of the batch once: field name -> array (N, *field shape)."""
+    obs_frames: np.ndarray | None = None
+    """(B, k): the rows of ``frames`` whose fields, stacked oldest first, are each
+    transition's observation (k: the stack the learner asked for)."""
+    next_obs_frames: np.ndarray | None = None
+    """(B, k): the same for the observation after each transition."""
 
     def validate(self) -> None:
-        _ndim(self, obs=2, actions=2, next_obs=2, rewards=1, terminated=1, truncated=1,
+        _ndim(self, actions=2, rewards=1, terminated=1, truncated=1,
               indices=1, generations=1, probabilities=1, policy_versions=1)
-        b = len(self.obs)
-        _rows(self, b, "actions", "rewards", "next_obs", "terminated", "truncated",
+        b = len(self.actions)
+        _rows(self, b, "rewards", "terminated", "truncated",
               "indices", "generations", "probabilities", "policy_versions")
         if (self.log_probs is None) != (self.segment_ends is None):
             raise ProtocolError("sample_batch: log_probs and segment_ends come together", "missing_field")
@@ -211,9 +234,39 @@ class SampleBatch(Message):
         if self.discounts is not None:
             _ndim(self, discounts=1)
             _rows(self, b, "discounts")
-        if self.next_obs.shape != self.obs.shape:
-            raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape {self.obs.shape}",
+        self._check_observations(b)
+
+    def _check_observations(self, b: int) -> None:
+        if self.frames is None and self.obs_frames is None and self.next_obs_frames is None:
+            if self.obs is None or self.next_obs is None:
+                raise ProtocolError("sample_batch: expected obs and next_obs, or frames with obs_frames and "
+                                    "next_obs_frames", "missing_field")
+            _ndim(self, obs=2, next_obs=2)
+            _rows(self, b, "obs", "next_obs")
+            if self.next_obs.shape != self.obs.shape:
+                raise ProtocolError(f"sample_batch: next_obs shape {self.next_obs.shape} != obs shape "
+                                    f"{self.obs.shape}", "shape_mismatch")
+            return
+        if self.obs is not None or self.next_obs is not None:
+            raise ProtocolError("sample_batch: obs and next_obs, or frames: not both", "invalid")
+        if self.frames is None or self.obs_frames is None or self.next_obs_frames is None:
+            raise ProtocolError("sample_batch: frames, obs_frames and next_obs_frames come together", "missing_field")
+        ObservationSpec.of_rows(self.frames, "sample_batch.frames")
+        counts = {name: len(rows) for name, rows in self.frames.items()}
+        n = max(counts.values())
+        if min(counts.values()) != n:
+            raise ProtocolError(f"sample_batch: frames fields have different numbers of rows {counts}",
                                 "shape_mismatch")
+        _ndim(self, obs_frames=2, next_obs_frames=2)
+        _rows(self, b, "obs_frames", "next_obs_frames")
+        if self.obs_frames.shape != self.next_obs_frames.shape or self.obs_frames.shape[1] == 0:
+            raise ProtocolError(f"sample_batch: obs_frames {self.obs_frames.shape} and next_obs_frames "
+                                f"{self.next_obs_frames.shape} must be stacks of the same k >= 1 frames",
+                                "shape_mismatch")
+        for name in ("obs_frames", "next_obs_frames"):
+            rows = getattr(self, name)
+            if rows.size and (rows.min() < 0 or rows.max() >= n):
+                raise ProtocolError(f"sample_batch: {name} has a row outside frames' {n}", "out_of_range")
 
     def importance_weights(self, beta: float) -> np.ndarray:
         """Prioritized-replay correction ``(size * p)^-beta``, normalised to a maximum of 1."""
@@ -388,13 +441,18 @@ def encode(message: Message) -> bytes:
     """msgpack bytes of ``message`` (validated first, so a sender cannot emit garbage)."""
     message.validate()
     _check_ranges(message)
-    out: dict[str, Any] = {"v": PROTOCOL_VERSION, "kind": message.KIND}
+    version = _version(message)
+    out: dict[str, Any] = {"v": version, "kind": message.KIND}
     for name, kind in message.SCHEMA.items():
         value = getattr(message, name)
         kind = kind.removesuffix("?")
         if value is None and kind != message.SCHEMA[name]:
             continue  # an optional field left out
-        if kind == "arrays":
+        if kind == "observations" and version == 1:
+            out[name] = _pack_array(as_fields(value)[VECTOR_FIELD])
+        elif kind in ("observations", "fields"):
+            out[name] = {field_name: _pack_array(rows) for field_name, rows in as_fields(value).items()}
+        elif kind == "arrays":
             out[name] = {k: _pack_array(np.asarray(a)) for k, a in value.items()}
         elif kind.endswith("[]"):
             out[name] = _pack_array(np.asarray(value, dtype=_BY_NAME[kind[:-2]]))
@@ -404,6 +462,20 @@ def encode(message: Message) -> bytes:
         else:
             out[name] = value
     return msgpack.packb(out, use_bin_type=True)
+
+
+def _version(message: Message) -> int:
+    """The lowest protocol version that reads ``message``: 2 where it holds observation fields
+    other than the float32 vector alone, else 1."""
+    for name, kind in message.SCHEMA.items():
+        value = getattr(message, name)
+        if kind.removesuffix("?") == "fields" and value is not None:
+            return 2
+        if kind == "observations" and not isinstance(value, np.ndarray):  # (a matrix is the vector)
+            spec = ObservationSpec.of_rows(value, f"{message.KIND}.{name}")  # checked by validate
+            if spec.vector_width is None:
+                return 2
+    return 1
 
 
 def _pack_array(a: np.ndarray) -> dict:
@@ -431,15 +503,15 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
     if not isinstance(raw, dict):
         raise ProtocolError(f"message is a msgpack {type(raw).__name__}, expected a map", "not_a_map")
     version = raw.get("v")
-    if type(version) is not int or version != PROTOCOL_VERSION:  # not 1.0, not true
-        raise ProtocolError(f"protocol version {version!r}, this side speaks {PROTOCOL_VERSION}", "version")
+    if type(version) is not int or not 1 <= version <= PROTOCOL_VERSION:  # not 1.0, not true
+        raise ProtocolError(f"protocol version {version!r}, this side speaks 1 to {PROTOCOL_VERSION}", "version")
     kind = raw.get("kind")
     cls = _KINDS.get(kind) if isinstance(kind, str) else None
     if cls is None:
         raise ProtocolError(f"unknown message kind {kind!r}", "unknown_kind")
     if not issubclass(cls, expected):
         raise ProtocolError(f"unexpected message kind {kind!r} here", "unexpected_kind")
-    values = {name: _field(kind, name, spec, raw.get(name, _MISSING)) for name, spec in cls.SCHEMA.items()}
+    values = {name: _field(kind, name, spec, raw.get(name, _MISSING), version) for name, spec in cls.SCHEMA.items()}
     message = cls(**values)
     try:
         message.validate()
@@ -453,7 +525,7 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
 _MISSING = object()
 
 
-def _field(kind: str, name: str, spec: str, value: Any) -> Any:
+def _field(kind: str, name: str, spec: str, value: Any, version: int) -> Any:
     where = f"{kind}.{name}"
     if spec.endswith("?"):
         if value is _MISSING:
@@ -461,6 +533,14 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
         spec = spec[:-1]
     if value is _MISSING:
         raise ProtocolError(f"{where}: missing", "missing_field")
+    if spec == "fields" and version < 2:
+        raise ProtocolError(f"{where}: observation fields in a version {version} message", "version")
+    if spec == "observations":
+        spec = "fields" if version >= 2 else "float32[]"
+    if spec == "fields":
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+            raise ProtocolError(f"{where}: expected a map of field names to arrays", "wrong_type")
+        return {k: _unpack_array(f"{where}.{k}", v, tuple(OBSERVATION_DTYPES.values())) for k, v in value.items()}
     if spec in _SCALARS:
         ok = isinstance(value, _SCALARS[spec]) and not (spec != "bool" and isinstance(value, bool))
         if not ok:
@@ -488,8 +568,8 @@ def _field(kind: str, name: str, spec: str, value: Any) -> Any:
     if spec == "arrays":
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
             raise ProtocolError(f"{where}: expected a map of names to arrays", "wrong_type")
-        return {k: _unpack_array(f"{where}.{k}", v, None) for k, v in value.items()}
-    return _unpack_array(where, value, spec[:-2])
+        return {k: _unpack_array(f"{where}.{k}", v, _WEIGHT_DTYPES) for k, v in value.items()}
+    return _unpack_array(where, value, (_BY_NAME[spec[:-2]],))
 
 
 def _in_range(where: str, value: int, limits: tuple[int, int]) -> None:
@@ -505,7 +585,7 @@ def _check_ranges(message: Message) -> None:
             _in_range(f"{message.KIND}.{name}", getattr(message, name), limits)
 
 
-def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:
+def _unpack_array(where: str, value: Any, allowed: tuple[np.dtype, ...]) -> np.ndarray:
     if not isinstance(value, dict) or len(value) != 3:
         raise ProtocolError(f"{where}: expected an array map with dtype, shape and data", "bad_array")
     dtype_str, shape, data = value.get("dtype"), value.get("shape"), value.get("data")
@@ -513,7 +593,6 @@ def _unpack_array(where: str, value: Any, dtype_name: str | None) -> np.ndarray:
         raise ProtocolError(f"{where}: expected an array map with dtype (a string), shape and data (bytes)",
                             "bad_array")
     dtype = _DTYPES.get(dtype_str)
-    allowed = (_BY_NAME[dtype_name],) if dtype_name else _WEIGHT_DTYPES
     if dtype is None or dtype not in allowed:  # (None == float64 in numpy: test it first)
         names = " or ".join(d.name for d in allowed)
         raise ProtocolError(f"{where}: dtype {dtype_str}, expected {names} (little-endian)", "wrong_dtype")
@@ -543,6 +622,23 @@ def _rows(message: Message, n: int, *names: str) -> None:
         if len(getattr(message, name)) != n:
             raise ProtocolError(f"{message.KIND}: {name} has {len(getattr(message, name))} rows, expected {n}",
                                 "shape_mismatch")
+
+
+def _observation_rows(message: Message, name: str, rows: int, expected: str) -> ObservationSpec:
+    """Check that the observations in field ``name`` have ``rows`` rows of finite values (of a
+    matrix, the vector observation; of a map, fields); return the spec of those rows."""
+    value = getattr(message, name)
+    if isinstance(value, np.ndarray):
+        _ndim(message, **{name: 2})
+    fields = as_fields(value)
+    spec = ObservationSpec.of_rows(fields, f"{message.KIND}.{name}")
+    for field_name, array in fields.items():
+        label = name if isinstance(value, np.ndarray) else f"{name}.{field_name}"
+        if len(array) != rows:
+            raise ProtocolError(f"{message.KIND}: {label} has {len(array)} rows, {expected}", "shape_mismatch")
+        if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+            raise ProtocolError(f"{message.KIND}: {label} contains NaN or infinity", "not_finite")
+    return spec
 
 
 def _finite(message: Message, *names: str) -> None:

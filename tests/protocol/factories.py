@@ -68,3 +68,33 @@ def every_message() -> list:
         ActorIdRequest("actor-7f3a:7"),
         ActorId("actor-7f3a:7", 12),
     ]
+
+
+def make_image_chunk(steps: int = 6, ends: tuple[int, ...] = (2,), side: int = 84, seq: int = 0) -> ExperienceChunk:
+    """A camera task's chunk: pixels uint8[3, side, side] beside a float32[5] state. Every byte
+    of pixel row t is t, and of the final observation after step t, 200 + t; the state rows
+    hold t, and -(t + 1)."""
+    rows = np.arange(steps + 1)
+    inner = np.array([t for t in ends if t < steps - 1], int)
+    terminated = np.zeros(steps, bool)
+    terminated[list(ends)] = True
+
+    def pixels(values: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(values.astype(np.uint8)[:, None, None, None], (len(values), 3, side, side)).copy()
+
+    obs = {"pixels": pixels(rows), "state": np.repeat(rows[:, None], 5, axis=1).astype(np.float32)}
+    final_obs = {"pixels": pixels(200 + inner), "state": np.repeat(-(inner[:, None] + 1), 5, axis=1).astype(np.float32)}
+    return ExperienceChunk(4, 1, 9, seq, 3, obs, np.full((steps, 6), 0.5, np.float32), rows[:-1].astype(np.float32),
+                           terminated, np.zeros(steps, bool), final_obs)
+
+
+def make_frames_batch(b: int = 4, k: int = 3, side: int = 84) -> SampleBatch:
+    """A batch of b transitions in a row, stacks of k frames: frame i is all i, transition i's
+    observation is frames i .. i+k-1 and its next observation frames i+1 .. i+k, so the
+    batch carries b + k distinct frames."""
+    frames = np.broadcast_to(np.arange(b + k, dtype=np.uint8)[:, None, None, None], (b + k, 3, side, side)).copy()
+    stacks = np.arange(b)[:, None] + np.arange(k)
+    return SampleBatch(2, 500, False, None, np.zeros((b, 6), np.float32), np.ones(b, np.float32), None,
+                       np.zeros(b, bool), np.zeros(b, bool), np.arange(b, dtype=np.int64),
+                       np.arange(b, dtype=np.int64), np.full(b, 1 / 500), np.zeros(b, np.int64),
+                       frames={"pixels": frames}, obs_frames=stacks, next_obs_frames=stacks + 1)
