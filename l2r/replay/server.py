@@ -113,6 +113,9 @@ class ReplayServer:
 
     def _check(self, payload: bytes) -> ExperienceChunk:
         chunk = decode(payload, ExperienceChunk)
+        if not isinstance(chunk.obs, np.ndarray):  # version 2's observation fields (docs/observations.md)
+            raise ProtocolError(f"experience: observation fields {sorted(chunk.obs)}; this l2r-replay stores the "
+                                f"float32 vector observation alone", "unknown_field")
         if self.storage is not None:
             self.storage.check(chunk)
         if self.queue is not None and (self.storage is None or chunk.log_probs is not None):

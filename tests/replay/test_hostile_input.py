@@ -17,7 +17,7 @@ from l2r.protocol import EXPERIENCE_QOS, Keys, SampleBatch, SampleRequest, decod
 from l2r.protocol.limits import INTEGER_LIMITS
 from l2r.replay import snapshot
 from tests.conftest import wait_for
-from tests.protocol.factories import make_chunk, stream_chunk
+from tests.protocol.factories import make_chunk, make_image_chunk, stream_chunk
 
 pytestmark = pytest.mark.slow
 
@@ -91,12 +91,17 @@ def test_what_was_quietly_accepted_is_rejected_with_its_reason(start_replay, con
         for raw in raws:
             put_raw(session, keys.experience(4), raw)
     put_raw(session, keys.experience(5), chunk)  # actor 4's chunk under actor 5's key
-    stats = wait_for(lambda: (values := ask_stats(session)) and values["rejected"] >= 7 and values)
-    assert stats["size"] == 0 and stats["rejected"] == 7, stats
-    assert {reason: stats.get(f"rejected.{reason}") for reason in (*cases, "actor_id_mismatch")} == {
-        "version": 2, "out_of_range": 1, "bad_bool": 1, "not_finite": 1, "empty_chunk": 1, "actor_id_mismatch": 1}
+    image = msgpack.unpackb(encode(make_image_chunk()), raw=False)  # camera frames, not stored yet
+    put_raw(session, keys.experience(image["actor_id"]), image)
+    stats = wait_for(lambda: (values := ask_stats(session)) and values["rejected"] >= 8 and values)
+    assert stats["size"] == 0 and stats["rejected"] == 8, stats
+    reasons = (*cases, "actor_id_mismatch", "unknown_field")
+    assert {reason: stats.get(f"rejected.{reason}") for reason in reasons} == {
+        "version": 2, "out_of_range": 1, "bad_bool": 1, "not_finite": 1, "empty_chunk": 1, "actor_id_mismatch": 1,
+        "unknown_field": 1}
     log = replay.log()
-    for reason in (*cases, "actor_id_mismatch"):  # the first of each reason is logged, whatever came before
+    assert "Traceback" not in log
+    for reason in reasons:  # the first of each reason is logged, whatever came before
         assert f"({reason}: 1 so far" in log, reason
 
 
