@@ -3,8 +3,10 @@ the time limit, bad actions."""
 
 import contextlib
 import os
+import warnings
 
 import gymnasium
+from gymnasium.utils.env_checker import check_env
 import numpy as np
 import pytest
 
@@ -37,6 +39,9 @@ def test_spaces_are_a_single_channels_first_frame_and_the_state(env):
     assert env.observation_space["state"].shape == (5,) and env.observation_space["state"].dtype == np.float32
     assert env.action_space == gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
     assert env.unwrapped.action_repeat == 2
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", ".*A Box observation space m.*infinity")  # the state's bounds
+        check_env(env.unwrapped, skip_render_check=True)
 
 
 def test_frames_are_real_renders_that_follow_the_state(env):
