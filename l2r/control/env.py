@@ -82,7 +82,8 @@ class ControlEnv(gym.Env):
         # pixels, rendered faster (bench/render_speed.py); set before the first render makes it.
         self.physics.model.vis.global_.offwidth = image_size
         self.physics.model.vis.global_.offheight = image_size
-        self.camera = Camera(self.physics, height=image_size, width=image_size, camera_id=CAMERAS.get(domain, 0))
+        self.camera_id = CAMERAS.get(domain, 0)
+        self.camera = Camera(self.physics, height=image_size, width=image_size, camera_id=self.camera_id)
         self.gl = rendering.gl_report(self.physics)
 
         spec = self.control_env.action_spec()
