@@ -2,7 +2,8 @@
 
 Rates are per second of this process's CPU time, all its threads counted (llvmpipe, Mesa's CPU
 renderer behind EGL here, draws on threads of its own), with the process pinned to one core;
-`wall_*` gives the same figures by the wall clock.
+`wall_*` gives the same figures by the wall clock. The ways of rendering are timed in turns,
+interleaved, so that they compare under the same load.
 
 Per task (image_size × image_size frames, the suite's default visuals):
 renders_per_s: frames the env renders (`ControlEnv.pixels`: one reused camera, an offscreen
@@ -41,17 +42,30 @@ from dm_control.mujoco.engine import Camera  # noqa: E402
 from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
 
 TASKS = ("cartpole-swingup", "walker-walk", "cheetah-run")
+ROUNDS = 10  # turns each way of rendering gets, interleaved with the others
 
 
 def rate(call: Callable[[], object], seconds: float) -> tuple[float, float]:
     """(CPU, wall) calls per second of `call`, timed for `seconds` of CPU time after one warm-up."""
-    call()
-    calls, cpu, wall = 0, time.process_time(), time.perf_counter()
-    while time.process_time() - cpu < seconds:
-        for _ in range(10):
-            call()
-        calls += 10
-    return calls / (time.process_time() - cpu), calls / (time.perf_counter() - wall)
+    return interleaved_rates({"call": call}, seconds, rounds=1)["call"]
+
+
+def interleaved_rates(calls: dict[str, Callable[[], object]], seconds: float, rounds: int) -> dict[str, tuple[float, float]]:
+    """(CPU, wall) calls per second of each of `calls`, timed in turn for `seconds / rounds` of CPU
+    time each, `rounds` times over, so that a change of load on a shared machine falls on all alike."""
+    counts = dict.fromkeys(calls, 0)
+    cpu_spent, wall_spent = dict.fromkeys(calls, 0.0), dict.fromkeys(calls, 0.0)
+    for call in calls.values():
+        call()  # warm-up
+    for _ in range(rounds):
+        for name, call in calls.items():
+            cpu, wall = time.process_time(), time.perf_counter()
+            while time.process_time() - cpu < seconds / rounds:
+                call()
+                counts[name] += 1
+            cpu_spent[name] += time.process_time() - cpu
+            wall_spent[name] += time.perf_counter() - wall
+    return {name: (counts[name] / cpu_spent[name], counts[name] / wall_spent[name]) for name in calls}
 
 
 def lever_cameras(env: ControlEnv, domain: str, task: str, size: int) -> dict[str, Callable[[], np.ndarray]]:
@@ -88,9 +102,6 @@ def lever_cameras(env: ControlEnv, domain: str, task: str, size: int) -> dict[st
 def measure(name: str, seconds: float, size: int) -> tuple[rendering.GLReport, dict]:
     domain, task = name.split("-")
     env = ControlEnv(domain, task, image_size=size)
-    env.reset(seed=0)
-    renders, wall_renders = rate(env.pixels, seconds)
-
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (4096, *env.action_space.shape)).astype(np.float32)
     step_count = [0]
@@ -118,9 +129,11 @@ def measure(name: str, seconds: float, size: int) -> tuple[rendering.GLReport, d
         env.step(action)
     cameras = lever_cameras(env, domain, task, size)
     reference = cameras["physics_render"]().astype(int)
+    rates = interleaved_rates({"env": env.pixels, **cameras}, seconds, rounds=ROUNDS)
+    renders, wall_renders = rates.pop("env")
     levers = {}
-    for lever, render in cameras.items():
-        cpu, wall = rate(render, seconds)
+    for lever, (cpu, wall) in rates.items():
+        render = cameras[lever]
         difference = np.abs(render().astype(int) - reference)
         levers[lever] = {
             "renders_per_s": round(cpu, 1),
