@@ -73,6 +73,8 @@ class ControlEnv(gym.Env):
         for name, value in (("action_repeat", action_repeat), ("image_size", image_size)):
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not isinstance(with_state, bool):
+            raise ValueError(f"with_state must be True or False, got {with_state!r}")
         self.name = f"{domain}-{task}"
         self.action_repeat = action_repeat
         self.with_state = with_state
@@ -88,7 +90,7 @@ class ControlEnv(gym.Env):
 
         spec = self.control_env.action_spec()
         self.suite_low, self.suite_high = spec.minimum, spec.maximum
-        # [-1, 1] mapped onto the suite's bounds, as DrQ-v2 does (the same bounds for all but the quadruped).
+        # [-1, 1] mapped onto the suite's bounds, as DrQ-v2 does: the identity but for the quadruped.
         self.action_space = gym.spaces.Box(-1.0, 1.0, spec.shape, np.float32)
         spaces = {"pixels": gym.spaces.Box(0, 255, (3, image_size, image_size), np.uint8)}
         if with_state:
@@ -108,7 +110,7 @@ class ControlEnv(gym.Env):
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self.episode_over:
-            raise RuntimeError(f"{self.name}: step() after the episode ended; call reset() first")
+            raise RuntimeError(f"{self.name}: step() before the first reset() or after the episode ended; call reset()")
         action = self.check_action(action)
         suite_action = self.suite_low + (action + 1.0) * 0.5 * (self.suite_high - self.suite_low)
         reward = 0.0

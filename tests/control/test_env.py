@@ -141,3 +141,5 @@ def test_bad_settings_are_refused():
         ControlEnv("cartpole", "run")
     with pytest.raises(ValueError, match="action_repeat must be a positive integer, got 0"):
         ControlEnv("cartpole", "swingup", action_repeat=0)
+    with pytest.raises(ValueError, match="with_state must be True or False, got 'no'"):
+        ControlEnv("cartpole", "swingup", with_state="no")
