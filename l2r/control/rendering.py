@@ -44,6 +44,10 @@ def choose_backend() -> str:
         if failure:
             log.warning("EGL cannot render here (%s); rendering with OSMesa", failure)
         os.environ["MUJOCO_GL"] = OSMESA if failure else EGL
+    # dm_control renders OSMesa frames on a thread of its own, which interpreter exit stops before
+    # dm_control frees an unclosed env's context (tracebacks at exit); render on the stepping
+    # thread instead, as it always does with EGL.
+    os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")
     return os.environ["MUJOCO_GL"]
 
 
