@@ -151,4 +151,4 @@ class ControlEnv(gym.Env):
         return observation
 
     def close(self) -> None:
-        self.physics.free()  # the GL contexts, before interpreter exit tears down the render thread
+        self.physics.free()  # its GL context, now rather than at interpreter exit

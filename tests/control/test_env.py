@@ -18,7 +18,7 @@ from dm_control import suite  # after l2r.control.env, which chooses MUJOCO_GL a
 
 @pytest.fixture(scope="module")
 def env():
-    """One env for the module: each new one costs a GL context (about a second)."""
+    """One env for the module: each new one makes a GL context (about 0.3 s of CPU)."""
     env = gymnasium.make("l2r/dmc-cartpole-swingup-v0", with_state=True)
     yield env
     env.close()
