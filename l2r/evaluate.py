@@ -40,8 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0,
                    help="the runner's: 0 flat, 1 obstacles, 2 obstacles and random psoas strengths")
     p.add_argument("--action-repeat", type=int,
-                   help="env steps per action (of 0.01 s on the runner); default: what the checkpoint says training used "
-                        f"({DEFAULT_ACTION_REPEAT} for checkpoints that do not say)")
+                   help="env steps per action (of 0.01 s on the runner); default: what the checkpoint says training "
+                        f"used ({DEFAULT_ACTION_REPEAT} for checkpoints that do not say)")
     p.add_argument("--env-id", default="l2r/Run-v0",
                    help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port), l2r/RunOpenSim-v0 "
                         "(OpenSim 4.6 as in 2017: about 100 steps/s, 10 s for 1000 steps; pip install 'l2r[opensim]'), "
@@ -97,9 +97,10 @@ def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: i
         envs = [ActionRepeat(env, action_repeat) for env in envs]
     try:
         widths = (int(np.prod(envs[0].observation_space.shape)), int(np.prod(envs[0].action_space.shape)))
-        if widths != (policy.spec["obs_dim"], policy.spec["act_dim"]):
-            raise WrongTask(f"the policy takes {policy.spec['obs_dim']} observations and gives {policy.spec['act_dim']} "
-                            f"actions, {env_id} has {widths[0]} and {widths[1]}: --env-id names the task it trained on")
+        policy_widths = (policy.spec["obs_dim"], policy.spec["act_dim"])
+        if widths != policy_widths:
+            raise WrongTask(f"the policy takes {policy_widths[0]} observations and gives {policy_widths[1]} actions, "
+                            f"{env_id} has {widths[0]} and {widths[1]}: --env-id names the task it trained on")
         # The runner's blow-up check, as in training; `l2r up` turns it off on other tasks.
         max_speed = ActorConfig.max_speed if family_of(env_id) == RUNNER else 0.0
         return run_deterministic(policy, envs, [seed + i for i in range(episodes)], max_speed=max_speed)
@@ -137,7 +138,8 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"l2r eval: {checkpoint.path}: {e}", file=sys.stderr)
         return 1
     score = score_of(args.env_id)
-    episodes = [SimpleNamespace(episode_return=ret, distance=distance, length=length) for ret, distance, length in results]
+    episodes = [SimpleNamespace(episode_return=ret, distance=distance, length=length)
+                for ret, distance, length in results]
     mean = sum(map(score.of, episodes)) / len(episodes)
     if args.json:
         print(json.dumps({

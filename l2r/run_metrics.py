@@ -278,7 +278,8 @@ class RunMetrics:
                 "actor": ep.actor_id, "env": ep.env_id, "simulator": simulator, "return": ep.episode_return,
                 "distance": ep.distance,
                 "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty}
-            if ep.evaluation and (self.best_eval is None or self._score_of_row(row) > self._score_of_row(self.best_eval)):
+            if ep.evaluation and (self.best_eval is None
+                                  or self._score_of_row(row) > self._score_of_row(self.best_eval)):
                 self.best_eval = row
             self._csv["evaluation" if ep.evaluation else "episodes"].write(row)
             # The actors' task's episodes under eval/ and train/, another simulator's under eval/<its name>/.
