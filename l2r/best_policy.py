@@ -2,9 +2,11 @@
 
 An evaluator runs rounds of `--eval-episodes` deterministic episodes, each round with one
 policy version, on the same seeds. With evaluators in several simulators, those of the first
-`--eval-env-id` judge. When a round ends with a higher mean distance than any
-before in the run, the policy of that version is saved as a policy checkpoint (see
-l2r.learner.checkpoint) that `l2r eval` reads. The weights come from the learner's weights
+`--eval-env-id` judge. When a round ends with a higher mean score (l2r.families: the distance on
+the runner, the return on a standard task) than any before in the run, the policy of that
+version is saved as a policy checkpoint (see l2r.learner.checkpoint) that `l2r eval` reads. Its
+`evaluation` names the score and holds its mean as `mean_<score>` (`mean_distance` on the
+runner, as files from before scores were named). The weights come from the learner's weights
 messages, the very ones the evaluator loaded: the newest `CACHED_VERSIONS` are kept in memory
 until a round of theirs ends.
 """
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import zenoh
 
+from l2r.families import Score
 from l2r.learner.checkpoint import CheckpointError, best_policy_path, load_checkpoint, save_policy_checkpoint
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Weights, watched
 
@@ -28,30 +31,43 @@ CACHED_VERSIONS = 64  # how far the learner may run ahead of an evaluation round
 
 
 class BestPolicy:
-    """Saves the policy of each evaluation round that beats the best mean distance so far."""
+    """Saves the policy of each evaluation round that beats the best mean score so far."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, run_dir: Path, episodes_per_round: int,
-                 action_repeat: int, judges: set[int] | None = None):
+                 action_repeat: int, score: Score, judges: set[int] | None = None):
         self.path = best_policy_path(run_dir)
+        self.score = score
         self.judges = judges  # the evaluators (actor ids) whose rounds count; None: all of them
         self.episodes_per_round, self.action_repeat = episodes_per_round, action_repeat
         self.best: dict | None = None  # the evaluation of the policy in best.pt
         if self.path.exists():  # a resumed run: beat the best of the sessions before
-            try:
-                self.best = load_checkpoint(self.path).evaluation
-            except CheckpointError as e:
-                log.warning("%s; it will be replaced by the next evaluated policy", e)
+            self.best = self._earlier_best()
         self._lock = threading.Lock()
         self._weights: OrderedDict[int, Weights] = OrderedDict()
         self._updates: dict[int, int] = {}  # updates at each version, from the learner's beacon
-        self._rounds: dict[tuple[int, int], dict[int, float]] = {}  # (evaluator, version) -> seed -> distance
+        self._rounds: dict[tuple[int, int], dict[int, float]] = {}  # (evaluator, version) -> seed -> score
         self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
                       session.declare_subscriber(keys.learner_version, self._on_version),
                       session.declare_subscriber(keys.all_episodes, self._on_episode)]
 
+    def _earlier_best(self) -> dict | None:
+        """The evaluation of the best.pt a resumed run left, if it was judged by this score."""
+        try:
+            evaluation = load_checkpoint(self.path).evaluation or {}
+        except CheckpointError as e:
+            log.warning("%s; it will be replaced by the next evaluated policy", e)
+            return None
+        # Files from before scores were named hold mean_distance alone, whatever the task.
+        if f"mean_{self.score.name}" not in evaluation:
+            log.warning("%s was not chosen by %s, this run's score: it will be replaced by the next evaluated policy",
+                        self.path, self.score.name)
+            return None
+        return evaluation
+
     @property
-    def best_distance(self) -> float:
-        return -math.inf if self.best is None else float(self.best["mean_distance"])
+    def best_mean(self) -> float:
+        """The mean score of the policy in best.pt (-inf without one)."""
+        return -math.inf if self.best is None else float(self.best[f"mean_{self.score.name}"])
 
     def _on_weights(self, sample: zenoh.Sample) -> None:
         weights = watched(sample, Weights)
@@ -78,26 +94,26 @@ class BestPolicy:
             return
         with self._lock:
             round_ = self._rounds.setdefault((ep.actor_id, ep.policy_version), {})
-            round_[ep.seed] = ep.distance  # a restarted evaluator repeats a seed with the same result
+            round_[ep.seed] = self.score.of(ep)  # a restarted evaluator repeats a seed with the same result
             if len(round_) < self.episodes_per_round:
                 return
             del self._rounds[(ep.actor_id, ep.policy_version)]
             mean = sum(round_.values()) / len(round_)
-            if mean <= self.best_distance:
+            if mean <= self.best_mean:
                 return
             weights = self._weights.get(ep.policy_version)
             if weights is None:
-                log.warning("evaluation of v%d: best mean distance so far (%.2f m), but its weights are no longer "
-                            "at hand; %s keeps %s", ep.policy_version, mean, self.path,
+                log.warning("evaluation of v%d: best mean %s so far, but its weights are no longer at hand; %s "
+                            "keeps %s", ep.policy_version, self.score.text(mean), self.path,
                             f"v{self.best['version']}" if self.best else "no policy yet")
                 return
-            evaluation = {"version": ep.policy_version, "mean_distance": mean, "episodes": len(round_),
-                          "seeds": sorted(round_), "evaluator": ep.actor_id}
+            evaluation = {"version": ep.policy_version, "score": self.score.name, f"mean_{self.score.name}": mean,
+                          "episodes": len(round_), "seeds": sorted(round_), "evaluator": ep.actor_id}
             save_policy_checkpoint(self.path, weights.params, weights.spec, ep.policy_version,
                                    self._updates.get(ep.policy_version, -1), self.action_repeat, evaluation)
             self.best = evaluation
-            log.info("best evaluated policy so far: v%d, mean distance %.2f m, saved as %s", ep.policy_version, mean,
-                     self.path)
+            log.info("best evaluated policy so far: v%d, mean %s, saved as %s", ep.policy_version,
+                     self.score.text(mean), self.path)
 
     def close(self) -> None:
         for sub in self._subs:

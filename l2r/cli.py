@@ -9,7 +9,7 @@ from l2r.config import EXIT_USAGE
 # subcommand -> (module exposing `cli(argv) -> int`, one-line help)
 SUBCOMMANDS = {
     "up": ("l2r.up", "run a whole training job on this host (replay, learner, actors)"),
-    "eval": ("l2r.evaluate", "run deterministic episodes of a checkpoint and print distances"),
+    "eval": ("l2r.evaluate", "run deterministic episodes of a checkpoint and print their scores"),
     "view": ("l2r.view", "replay MCAP episode logs into Rerun, or watch a run live"),
     "router": ("l2r.router", "run a Zenoh router (a stand-in for zenohd)"),
     "validate": ("l2r.sim.validate", "compare the MuJoCo body with OpenSim reference figures"),

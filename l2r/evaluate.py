@@ -1,4 +1,5 @@
-"""`l2r eval`: deterministic episodes of a trained policy, distance per episode."""
+"""`l2r eval`: deterministic episodes of a trained policy, the task's score per episode (l2r.families):
+the distance on the runner, the return on another task."""
 
 from __future__ import annotations
 
@@ -6,13 +7,16 @@ import argparse
 import json
 import sys
 import time
+from types import SimpleNamespace
 
 import gymnasium
+import numpy as np
 import torch
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0 and l2r/RunOpenSim-v0)
-from l2r.actors.actor import run_deterministic
+from l2r.actors.actor import ActorConfig, make_task, run_deterministic
 from l2r.config import CommandParser
+from l2r.families import RUNNER, family_of, score_of
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
 from l2r.sim.wrappers import ActionRepeat
 
@@ -23,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = CommandParser(
         prog="l2r eval",
         description="Run deterministic episodes (the policy's mean action) of a learner checkpoint "
-                    "and print the distance the runner's pelvis travelled in each. Distances to compare "
+                    "and print the score of each: the distance the runner's pelvis travelled, or the return "
+                    "on another task (--env-id Hopper-v5). Distances to compare "
                     "with the 2017 challenge's are stated with --env-id l2r/RunOpenSim-v0: the episodes "
                     "then run on OpenSim 4.6, the simulator of 2017, rather than on the MuJoCo port.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -33,13 +38,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=5, help="episodes to run, on seeds S, S+1, ...")
     p.add_argument("--seed", type=int, default=0, help="seed S of the first episode")
     p.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0,
-                   help="0 flat, 1 obstacles, 2 obstacles and random psoas strengths")
+                   help="the runner's: 0 flat, 1 obstacles, 2 obstacles and random psoas strengths")
     p.add_argument("--action-repeat", type=int,
-                   help="0.01 s steps per action; default: what the checkpoint says training used "
-                        f"({DEFAULT_ACTION_REPEAT} for checkpoints that do not say)")
+                   help="env steps per action (of 0.01 s on the runner); default: what the checkpoint says training "
+                        f"used ({DEFAULT_ACTION_REPEAT} for checkpoints that do not say)")
     p.add_argument("--env-id", default="l2r/Run-v0",
-                   help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or l2r/RunOpenSim-v0 "
-                        "(OpenSim 4.6 as in 2017: about 100 steps/s, 10 s for 1000 steps; pip install 'l2r[opensim]')")
+                   help="gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port), l2r/RunOpenSim-v0 "
+                        "(OpenSim 4.6 as in 2017: about 100 steps/s, 10 s for 1000 steps; pip install 'l2r[opensim]'), "
+                        "or the task another checkpoint was trained on (`l2r up --env-id`), such as Hopper-v5")
     p.add_argument("--progress-every", type=float, default=10.0, metavar="SECONDS",
                    help="print on stderr how far the episodes have come every this many seconds (0: never)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of lines")
@@ -60,7 +66,7 @@ class Progress:
         now = time.monotonic()
         if self.every > 0 and now - self._shown >= self.every:
             self._shown = now
-            print(f"l2r eval: {self.ended} of {self.episodes} episodes done, {self.steps} steps of 0.01 s "
+            print(f"l2r eval: {self.ended} of {self.episodes} episodes done, {self.steps} env steps "
                   f"in {now - self._start:.0f} s", file=sys.stderr, flush=True)
 
 
@@ -77,16 +83,27 @@ class Counted(gymnasium.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+class WrongTask(ValueError):
+    """A policy whose widths are not the task's: a checkpoint of another task."""
+
+
 def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: int,
              env_id: str = "l2r/Run-v0", progress_every: float = 0.0) -> list[tuple[float, float, int]]:
-    """(return, distance, steps) of ``episodes`` deterministic episodes, all stepped as one batch;
-    progress on stderr every ``progress_every`` seconds (0: none)."""
+    """(return, distance, steps) of ``episodes`` deterministic episodes, all stepped as one batch
+    as an evaluator of `l2r up` steps them; progress on stderr every ``progress_every`` seconds (0: none)."""
     progress = Progress(episodes, progress_every)
-    envs = [Counted(gymnasium.make(env_id, difficulty=difficulty), progress) for _ in range(episodes)]
+    envs = [Counted(make_task(env_id, difficulty), progress) for _ in range(episodes)]
     if action_repeat > 1:
         envs = [ActionRepeat(env, action_repeat) for env in envs]
     try:
-        return run_deterministic(policy, envs, [seed + i for i in range(episodes)])
+        widths = (int(np.prod(envs[0].observation_space.shape)), int(np.prod(envs[0].action_space.shape)))
+        policy_widths = (policy.spec["obs_dim"], policy.spec["act_dim"])
+        if widths != policy_widths:
+            raise WrongTask(f"the policy takes {policy_widths[0]} observations and gives {policy_widths[1]} actions, "
+                            f"{env_id} has {widths[0]} and {widths[1]}: --env-id names the task it trained on")
+        # The runner's blow-up check, as in training; `l2r up` turns it off on other tasks.
+        max_speed = ActorConfig.max_speed if family_of(env_id) == RUNNER else 0.0
+        return run_deterministic(policy, envs, [seed + i for i in range(episodes)], max_speed=max_speed)
     finally:
         for env in envs:
             env.close()
@@ -117,18 +134,26 @@ def cli(argv: list[str] | None = None) -> int:
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
-    distances = [r[1] for r in results]
+    except WrongTask as e:
+        print(f"l2r eval: {checkpoint.path}: {e}", file=sys.stderr)
+        return 1
+    score = score_of(args.env_id)
+    episodes = [SimpleNamespace(episode_return=ret, distance=distance, length=length)
+                for ret, distance, length in results]
+    mean = sum(map(score.of, episodes)) / len(episodes)
     if args.json:
         print(json.dumps({
             "checkpoint": str(checkpoint.path), "version": checkpoint.version, "updates": checkpoint.updates,
             "env_id": args.env_id, "difficulty": args.difficulty, "action_repeat": action_repeat, "seeds": [args.seed + i for i in range(args.episodes)],
-            "distances": distances, "returns": [r[0] for r in results], "lengths": [r[2] for r in results],
-            "mean_distance": sum(distances) / len(distances),
+            "distances": [e.distance for e in episodes], "returns": [e.episode_return for e in episodes],
+            "lengths": [e.length for e in episodes], "score": score.name, f"mean_{score.name}": mean,
         }))
         return 0
+    runner = family_of(args.env_id) == RUNNER
     print(f"{checkpoint.path}: policy version {checkpoint.version}, {checkpoint.updates} updates, "
-          f"{args.env_id}, difficulty {args.difficulty}, action repeat {action_repeat}")
-    for i, (ret, distance, length) in enumerate(results):
-        print(f"episode {i} (seed {args.seed + i}): distance {distance:7.3f} m  return {ret:8.3f}  steps {length}")
-    print(f"mean distance {sum(distances) / len(distances):.3f} m over {len(distances)} episodes")
+          f"{args.env_id}{f', difficulty {args.difficulty}' if runner else ''}, action repeat {action_repeat}")
+    for i, e in enumerate(episodes):
+        also = "" if score.name == "return" else f"  return {e.episode_return:8.3f}"
+        print(f"episode {i} (seed {args.seed + i}): {score.text(score.of(e), '7.3f')}{also}  steps {e.length}")
+    print(f"mean {score.text(mean, '.3f')} over {len(episodes)} episodes")
     return 0

@@ -14,6 +14,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from l2r.families import Score
 from l2r.supervise import FAILED, RUNNING, WAITING, Child
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -24,13 +25,15 @@ def _num(x, fmt: str) -> str:
     return "-" if x is None else format(x, fmt)
 
 
-def status_line(s: dict) -> str:
-    """The figures of RunMetrics.snapshot in one line."""
+def status_line(s: dict, score: Score) -> str:
+    """The figures of RunMetrics.snapshot in one line, evaluations in the terms of the task's `score`."""
+    opensim = s.get(f"opensim_eval_{score.name}")
     return (f"[{s['time']:6.0f}s] env {s['env_steps_per_s']:7.0f} steps/s ({s['env_steps']:,})"
             f" | learner {s['updates_per_s']:5.1f} upd/s ({s['updates']:,}, v{s['version']})"
-            f" | return {_num(s['recent_return'], '.2f')} distance {_num(s['recent_distance'], '.2f')} m"
-            f" | eval {_num(s['eval_distance'], '.2f')} m"
-            + ("" if s.get("opensim_eval_distance") is None else f" (OpenSim {s['opensim_eval_distance']:.2f} m)")
+            f" | return {_num(s['recent_return'], '.2f')}"
+            + ("" if score.name == "return" else f" {score.text(s[f'recent_{score.name}'])}")
+            + f" | eval {score.text(s[f'eval_{score.name}'])}"
+            + ("" if opensim is None else f" (OpenSim {score.shown(opensim)})")
             + f" | lag {s['policy_lag']:.0f}"
             f" | replay {s['replay_size']:,}")
 
@@ -45,7 +48,8 @@ def restarts_note(children: list[Child]) -> str:
 class StatusDisplay:
     """Shows the status; a context manager around the job's main loop."""
 
-    def __init__(self, out: TextIO | None = None):
+    def __init__(self, score: Score, out: TextIO | None = None):
+        self.score = score  # what evaluations are judged by
         self.out = out or sys.stdout
         self.interactive = self.out.isatty()
         self.console = Console(file=self.out) if self.interactive else None
@@ -68,7 +72,7 @@ class StatusDisplay:
         return self
 
     def update(self, figures: dict, children: list[Child]) -> None:
-        line = status_line(figures)
+        line = status_line(figures, self.score)
         if self._live is None:
             note = restarts_note(children)
             print(line + (f" | {note}" if note else ""), file=self.out, flush=True)

@@ -1,8 +1,8 @@
 """Training recipes of `l2r up`: every hyperparameter of a job, per task family and algorithm.
 
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
-comes from the task: `runner` for the Learning to Run runner (ids starting with ``l2r/``),
-`standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
+comes from the task (l2r.families): `runner` for the Learning to Run runner (ids starting with
+``l2r/``), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
 family's recipe, and each setting has an `l2r up` flag of its own name that replaces the
 recipe's value.
 
@@ -20,11 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
+from l2r.families import RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS
 from l2r.policy import ACTIVATIONS
-
-RUNNER, STANDARD = "runner", "standard"
-FAMILIES = (RUNNER, STANDARD)
 
 Value = bool | int | float | str
 
@@ -144,10 +142,6 @@ REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per
 ACTOR_SETTINGS = ("random_steps", "envs_per_actor", "action_repeat")
 # Settings that read the runner's body (its x coordinates, its legs): off on any other task.
 RUNNER_BODY = ("relative_x", "mirror")
-
-
-def family_of(env_id: str) -> str:
-    return RUNNER if env_id.startswith("l2r/") else STANDARD
 
 
 @dataclass(frozen=True)

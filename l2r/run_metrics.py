@@ -6,9 +6,9 @@ writes them to `<run_dir>/metrics/`:
 
     events.out.tfevents.*   TensorBoard (`tensorboard --logdir runs/`): learner/* by updates;
                             actor/<id>/*, evaluator/<id>/*, replay/<shard>/*, train/* (episodes)
-                            and eval/* (evaluation episodes) by env steps; episodes of another
-                            simulator than the port under train/<env>/ and eval/<env>/, e.g.
-                            eval/RunOpenSim-v0/distance
+                            and eval/* (evaluation episodes: return, length and the task's
+                            score) by env steps; episodes of another simulator than the actors'
+                            task under train/<env>/ and eval/<env>/, e.g. eval/RunOpenSim-v0/distance
     learner.csv, actors.csv, replay.csv     one row per stats message
     episodes.csv, evaluation.csv            one row per training / evaluation episode
     status.csv                              the status line's figures, every status interval
@@ -19,6 +19,10 @@ epoch), `env_steps` and `updates` (of the run), then the message's own values (a
 counter of the same name as `process_env_steps`). The run's
 counters continue across `l2r up --resume`: time and env steps start from the last row of
 status.csv, and the learner counts its updates on from its checkpoint.
+
+Evaluations are judged by the task family's score (l2r.families), and the status figures that
+speak of it take its name: `eval_distance` and `best_eval_distance` on the runner,
+`eval_return` and `best_eval_return` on a standard task.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
+from l2r.families import RUNNER, family_of, score_of
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Stats, watched
 from l2r.sim import OPENSIM_ID, PORT_ID
 
@@ -161,14 +166,17 @@ class RunMetrics:
     """Collects what the daemons publish, writes the metrics files, and gives the status figures."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, directory: Path, recent: int = 20,
-                 simulators: dict[int, str] | None = None):
+                 env_id: str = PORT_ID, simulators: dict[int, str] | None = None):
         directory.mkdir(parents=True, exist_ok=True)
+        self.env_id = env_id  # the actors' task
+        self.score = score_of(env_id)
         self.simulators = simulators or {}  # actor id -> env id, for the episodes of other simulators
         self._lock = threading.Lock()
         self.before = RunCounters.read(directory)  # the sessions before a --resume
         self._start = time.monotonic()
         self._stopped: float | None = None
-        self.best_eval = max(read_rows(directory / "evaluation.csv"), key=lambda r: float(r["distance"]), default=None)
+        # The evaluation episode with the best score, as its row of evaluation.csv.
+        self.best_eval = max(read_rows(directory / "evaluation.csv"), key=self._score_of_row, default=None)
 
         self._tensorboard = ScalarEvents(directory)
         self._csv = {name: CsvLog(directory / f"{name}.csv", columns) for name, columns in {
@@ -219,6 +227,9 @@ class RunMetrics:
             counter = self._counters.get((role, instance, name))
             return counter.rises if counter else 0
 
+    def _score_of_row(self, row: dict) -> float:
+        return float(row[self.score.name])
+
     def _count(self, role: str, instance: str, name: str, value: float) -> None:
         self._counters.setdefault((role, instance, name), Counter()).report(value)
 
@@ -262,17 +273,18 @@ class RunMetrics:
         with self._lock:
             self.episodes += 1
             (self.evals if ep.evaluation else self.train).append(ep)
-            simulator = self.simulators.get(ep.actor_id, PORT_ID)
+            simulator = self.simulators.get(ep.actor_id, self.env_id)
             row = self._leading() | {
                 "actor": ep.actor_id, "env": ep.env_id, "simulator": simulator, "return": ep.episode_return,
                 "distance": ep.distance,
                 "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty}
-            if ep.evaluation and (self.best_eval is None or ep.distance > float(self.best_eval["distance"])):
+            if ep.evaluation and (self.best_eval is None
+                                  or self._score_of_row(row) > self._score_of_row(self.best_eval)):
                 self.best_eval = row
             self._csv["evaluation" if ep.evaluation else "episodes"].write(row)
-            # The port's episodes under eval/ and train/, another simulator's under eval/<its name>/.
-            prefix = ("eval" if ep.evaluation else "train") + ("" if simulator == PORT_ID else f"/{simulator.split('/')[-1]}")
-            for name in ("return", "distance", "length"):
+            # The actors' task's episodes under eval/ and train/, another simulator's under eval/<its name>/.
+            prefix = ("eval" if ep.evaluation else "train") + ("" if simulator == self.env_id else f"/{simulator.split('/')[-1]}")
+            for name in dict.fromkeys(("return", self.score.name, "length")):
                 self._tensorboard.add(f"{prefix}/{name}", float(row[name]), row["env_steps"], ep.time)
 
     def _on_version(self, sample: zenoh.Sample) -> None:
@@ -301,12 +313,13 @@ class RunMetrics:
             def total(rows, key):
                 return sum(float(v.get(key, 0.0)) for v in rows)
 
-            def mean(eps, attr):
-                return sum(getattr(e, attr) for e in eps) / len(eps) if eps else None
+            def mean(eps, value=self.score.of):
+                return sum(map(value, eps)) / len(eps) if eps else None
 
             def evals_in(simulator):
-                return [e for e in self.evals if self.simulators.get(e.actor_id, PORT_ID) == simulator]
+                return [e for e in self.evals if self.simulators.get(e.actor_id, self.env_id) == simulator]
 
+            name = self.score.name
             return {
                 "time": self.time,
                 "env_steps": self._env_steps(),
@@ -318,11 +331,12 @@ class RunMetrics:
                 "actor_staleness": max([float(v.get("staleness", 0.0)) for v in actors] or [0.0]),
                 "replay_size": int(total(replays, "size")),
                 "episodes": self.before.episodes + self.episodes,
-                "recent_return": mean(self.train, "episode_return"),
-                "recent_distance": mean(self.train, "distance"),
-                "eval_distance": mean(evals_in(PORT_ID), "distance"),
-                "opensim_eval_distance": mean(evals_in(OPENSIM_ID), "distance"),
-                "best_eval_distance": None if self.best_eval is None else float(self.best_eval["distance"]),
+                "recent_return": mean(self.train, lambda e: e.episode_return),
+                f"recent_{name}": mean(self.train),
+                f"eval_{name}": mean(evals_in(self.env_id)),
+                # OpenSim, the runner's second simulator
+                **({f"opensim_eval_{name}": mean(evals_in(OPENSIM_ID))} if family_of(self.env_id) == RUNNER else {}),
+                f"best_eval_{name}": None if self.best_eval is None else self._score_of_row(self.best_eval),
             }
 
     def record_status(self) -> dict:

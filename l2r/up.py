@@ -18,7 +18,8 @@ The run directory `runs/<name>-<timestamp>/` keeps:
     episodes/             MCAP logs of every Nth training episode and of evaluation episodes
     metrics/              TensorBoard event files and CSV files (see l2r.run_metrics)
     summary.json          how the job ended, the final figures, restarts, the best evaluation
-                          episode (by distance) and the best evaluated policy
+                          episode (by the task family's score, l2r.families) and the best
+                          evaluated policy
     best_eval.rrd         a Rerun recording of that same best evaluation episode
 """
 
@@ -45,14 +46,12 @@ import zenoh
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
+from l2r.families import FAMILIES, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
-from l2r.recipes import (
-    ACTOR_SETTINGS, CHOICES, FAMILIES, RECIPES, REPLAY_FLAGS, RUNNER, SETTINGS, Recipe, family_of, resolve,
-    shown_values,
-)
+from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values
 from l2r.replay.queue import QueueConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
@@ -473,8 +472,11 @@ def simulator_of_each_actor(children: list[Child]) -> dict[int, str]:
 def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: ProcessGroup, outcome: str,
               code: int) -> dict:
     """summary.json, and best_eval.rrd: a Rerun recording of the evaluation episode that
-    summary.json names as the best (the longest distance)."""
-    summary = {"outcome": outcome, "exit_code": code, **metrics.snapshot()}
+    summary.json names as the best (by the task's score)."""
+    figures = metrics.snapshot()
+    score = metrics.score.name  # best_eval_distance on the runner, best_eval_return on a standard task
+    summary = {"outcome": outcome, "exit_code": code, **figures,
+               "score": score, "best_eval_score": figures[f"best_eval_{score}"]}
     summary["restarts_by_process"] = {c.name: c.restarts for c in group.children if c.restarts}
     summary["last_exit_by_process"] = {c.name: c.last_exit for c in group.children if c.last_exit}
     summary["failing"] = [group.failure(c) for c in group.failing()]
@@ -505,13 +507,19 @@ LONGER_RUN = ("a longer run: l2r up --seconds 7200 --evaluators 2 --eval-env-id 
               "27 minutes); later policies ran 24-29 m in the port but 1-3 m in OpenSim (docs/training.md)")
 
 
+def eval_command(checkpoint: Path | str, env_id: str) -> str:
+    """The `l2r eval` command line for a checkpoint trained on `env_id` (it runs the port unless told)."""
+    return f"l2r eval {checkpoint}" + ("" if env_id == PORT_ID else f" --env-id {env_id}")
+
+
 def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates_before: int) -> list[str]:
-    """What the last lines say: what happened, and only the commands that have something to show."""
-    best = summary["best_eval_distance"]
+    """What the last lines say, evaluations in the terms of the task's score: what happened, and
+    only the commands that have something to show."""
+    score = score_of(args.env_id)
     lines = [failure for failure in summary["failing"] if failure not in summary["outcome"]]
     lines += [f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates "
-             f"({summary['updates'] - updates_before:,} in this session), best evaluation distance "
-             f"{'-' if best is None else f'{best:.2f} m'}", f"run directory: {run_dir}",
+             f"({summary['updates'] - updates_before:,} in this session), best evaluation "
+             f"{score.text(summary['best_eval_score'])}", f"run directory: {run_dir}",
              f"metrics: tensorboard --logdir {run_dir / 'metrics'}  (CSV files beside)"]
     if summary["updates"] == 0:
         min_replay = recipe_of(args).values.get("min_replay", 0)
@@ -522,14 +530,14 @@ def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates
     elif not checkpoint_path(run_dir).exists():
         lines.append("no learner checkpoint was written")
     else:
-        lines.append(f"evaluate the newest checkpoint: l2r eval {run_dir}")
+        lines.append(f"evaluate the newest checkpoint: {eval_command(run_dir, args.env_id)}")
     if summary["best_policy"]:
         bp = summary["best_policy"]
-        lines.append(f"evaluate the best evaluated policy (v{bp['version']}, mean distance {bp['mean_distance']:.2f} m): "
-                     f"l2r eval {bp['path']}")
+        lines.append(f"evaluate the best evaluated policy (v{bp['version']}, mean "
+                     f"{score.text(bp[f'mean_{score.name}'])}): {eval_command(bp['path'], args.env_id)}")
     if "best_eval_recording" in summary:
         lines.append(f"watch the best evaluation episode: rerun {summary['best_eval_recording']}")
-    if summary["time"] < LONGER_RUN_SECONDS:
+    if family_of(args.env_id) == RUNNER and summary["time"] < LONGER_RUN_SECONDS:
         lines.append(LONGER_RUN)
     return lines
 
@@ -544,7 +552,7 @@ def cli(argv: list[str] | None = None) -> int:
         return 0
     run_dir = make_run_dir(args)
     (run_dir / "logs").mkdir(exist_ok=True)
-    display = StatusDisplay()
+    display = StatusDisplay(score_of(args.env_id))
     file_handler = logging.FileHandler(run_dir / "logs" / "up.log")
     file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, display.log_handler()],
@@ -575,9 +583,10 @@ def cli(argv: list[str] | None = None) -> int:
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
         simulators = simulator_of_each_actor(children)
-        metrics = RunMetrics(session, Keys(run), run_dir / "metrics", simulators=simulators)
+        metrics = RunMetrics(session, Keys(run), run_dir / "metrics", env_id=args.env_id, simulators=simulators)
         judge = args.eval_env_id[0] if args.eval_env_id else None
-        best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, args.action_repeat,
+        best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, recipe.values["action_repeat"],
+                          score_of(args.env_id),
                           judges={i for i, env_id in simulators.items() if judge is None or env_id == judge})
         group = ProcessGroup(children, run_dir / "logs", progress=metrics.rises, max_restarts=args.max_restarts,
                              resume=args.resume is not None,

@@ -29,6 +29,7 @@ from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.weights import WeightFollower
 from l2r.episodes.live import LiveFrames
+from l2r.families import RUNNER, family_of, score_of
 from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ProtocolError, Rejections, ReplayAck, Stats,
@@ -98,15 +99,20 @@ class ActorConfig:
         return "evaluator" if self.evaluate else "actor"
 
 
-def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
+def make_task(env_id: str, difficulty: int = 0, seed: int | None = None) -> gymnasium.Env:
     """The runner (l2r/...) with its difficulty and seed, or any other gymnasium env with Box actions,
     rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
-    if config.env_id.startswith("l2r/"):
-        env = gymnasium.make(config.env_id, difficulty=config.difficulty, seed=seed)
-    else:
-        env = gymnasium.make(config.env_id)
-        if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
-            env = RescaleAction(env, 0.0, 1.0)
+    if family_of(env_id) == RUNNER:
+        return gymnasium.make(env_id, difficulty=difficulty, seed=seed)
+    env = gymnasium.make(env_id)
+    if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
+        env = RescaleAction(env, 0.0, 1.0)
+    return env
+
+
+def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
+    """The actor's task (`make_task`), each action repeated as configured."""
+    env = make_task(config.env_id, config.difficulty, seed)
     return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
 
 
@@ -313,22 +319,24 @@ class Actor:
 
     def run_round(self, stop: threading.Event) -> None:
         """`eval_episodes` deterministic episodes with one policy version, spread over the envs."""
-        version, n, distances = self.weights.version, len(self.slots), []
+        version, n, scores = self.weights.version, len(self.slots), []
+        score = score_of(self.config.env_id)
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
             results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
                                         self.record_evaluation if self.episode_logger is not None else None,
                                         self.config.max_speed)
             for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
-                self.summaries.put(encode(EpisodeSummary(
+                summary = EpisodeSummary(
                     actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
                     length=length, policy_version=version, difficulty=self.config.difficulty, seed=seed,
-                    evaluation=True, time=time.time())))
+                    evaluation=True, time=time.time())
+                self.summaries.put(encode(summary))
                 self.episodes += 1
-                distances.append(distance)
-        if distances:
-            log.info("evaluation of policy v%d: mean distance %.2f m over %d episodes",
-                     version, float(np.mean(distances)), len(distances))
+                scores.append(score.of(summary))
+        if scores:
+            log.info("evaluation of policy v%d: mean %s over %d episodes",
+                     version, score.text(float(np.mean(scores))), len(scores))
 
     # -- stats -------------------------------------------------------------------------------
 

@@ -21,7 +21,8 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
                     extra; a policy checkpoint holds only actor, updates and version
     action_repeat   0.01 s steps per action the actors trained with (None: not known, as in
                     files from before it was stored)
-    evaluation      policy checkpoints: how the policy did ({"mean_distance", "episodes", ...})
+    evaluation      policy checkpoints: how the policy did ({"score": "distance", "mean_distance",
+                    "episodes", ...}; "mean_return" on a standard task, see l2r.best_policy)
     saved_at        wall-clock time of the save (s since the epoch)
 
 The files of a run, in `<run_dir>/learner/`:
@@ -29,9 +30,9 @@ The files of a run, in `<run_dir>/learner/`:
     checkpoint-<updates>.pt  the newest `keep` checkpoints (the learner's --keep-checkpoints)
     checkpoint.pt            the newest of them under a second name (a hard link: no extra disk);
                              what `--resume` and `l2r eval RUN_DIR` read
-    best.pt                  the policy with the best mean evaluation distance, written by
-                             `l2r up` (no critic or optimizer state: `l2r eval` reads it, a
-                             learner cannot resume from it)
+    best.pt                  the policy with the best mean evaluation score (the task family's:
+                             distance, return), written by `l2r up` (no critic or optimizer
+                             state: `l2r eval` reads it, a learner cannot resume from it)
 
 Each is written to a temporary file in the same directory, flushed to disk, made readable by
 everyone (mode 0644: results are shared, temporary files are private), renamed over the old
@@ -85,7 +86,7 @@ def checkpoint_path(run_dir: str | Path) -> Path:
 
 
 def best_policy_path(run_dir: str | Path) -> Path:
-    """Where `l2r up` keeps the policy with the best evaluation distance of a run."""
+    """Where `l2r up` keeps the policy with the best evaluation score of a run."""
     return Path(run_dir) / BEST_RELATIVE_PATH
 
 
