@@ -1,7 +1,8 @@
 """Task families, and what each scores an episode by.
 
-A task's family comes from its id: `runner` for the Learning to Run runner (ids starting with
-``l2r/``), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). The family picks the
+A task's family comes from its id: `runner` for the Learning to Run runner (`l2r/Run-v0` and
+`l2r/RunOpenSim-v0`), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5; the camera
+tasks of `l2r.control` score by return too). The family picks the
 recipe a job trains with (l2r.recipes) and its score: what `l2r up` keeps `learner/best.pt` by and
 names the best evaluation episode by, and what the status line, the final report, summary.json,
 the evaluators' log and `l2r eval` speak of.
@@ -17,8 +18,11 @@ RUNNER, STANDARD = "runner", "standard"
 FAMILIES = (RUNNER, STANDARD)
 
 
+RUNNER_IDS = "l2r/Run"  # the prefix of the runner's ids (l2r.sim's PORT_ID and OPENSIM_ID), no other l2r/ task's
+
+
 def family_of(env_id: str) -> str:
-    return RUNNER if env_id.startswith("l2r/") else STANDARD
+    return RUNNER if env_id.startswith(RUNNER_IDS) else STANDARD
 
 
 @dataclass(frozen=True)

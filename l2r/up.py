@@ -43,6 +43,7 @@ import gymnasium
 import numpy as np
 import zenoh
 
+import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id can name them)
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
@@ -326,6 +327,11 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--hidden takes widths such as 256,256 (got {recipe['hidden']!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
+    if family_of(args.env_id) != RUNNER:
+        try:
+            task_widths(args.env_id)
+        except ValueError as e:
+            parser.error(f"--env-id {args.env_id}: {e}")
     return args
 
 
@@ -364,9 +370,18 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
 
 
 def task_widths(env_id: str) -> tuple[int, int]:
-    """The observation and action widths of a gymnasium task."""
-    env = gymnasium.make(env_id)
+    """The observation and action widths of a gymnasium task; ValueError, saying why, for a task
+    whose observations or actions are not one Box (camera tasks: docs/observations.md)."""
     try:
+        env = gymnasium.make(env_id)
+    except gymnasium.error.Error as e:
+        raise ValueError(str(e)) from None
+    try:
+        spaces = {"observations": env.observation_space, "actions": env.action_space}
+        for what, space in spaces.items():
+            if not isinstance(space, gymnasium.spaces.Box):
+                raise ValueError(f"its {what} are {space}, and l2r up trains on vectors alone so far "
+                                 f"(docs/observations.md)")
         return int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
     finally:
         env.close()
@@ -416,7 +431,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     else:
         tables, in_flight = ["--capacity", str(args.capacity)], []
     task = []  # another task than the runner: its widths
-    if not args.env_id.startswith("l2r/"):
+    if family_of(args.env_id) != RUNNER:
         obs_dim, act_dim = task_widths(args.env_id)
         task = ["--obs-dim", str(obs_dim), "--act-dim", str(act_dim)]
     children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
@@ -435,9 +450,9 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     acting = ["--env-id", args.env_id, "--num-envs", str(recipe["envs_per_actor"]),
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
               "--seed", str(args.seed),
-              *([] if args.env_id.startswith("l2r/") else ["--max-speed", "0"])]  # a runner's speed limit
+              *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"])]  # a runner's speed limit
     # MCAP episode logs record the runner's body: none for another task
-    logs = [] if args.no_episode_logs or not args.env_id.startswith("l2r/") else [
+    logs = [] if args.no_episode_logs or family_of(args.env_id) != RUNNER else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.

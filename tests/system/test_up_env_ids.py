@@ -9,6 +9,7 @@ import pytest
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
+from l2r.families import RUNNER, STANDARD, family_of
 from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
@@ -118,3 +119,14 @@ def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_opt
     for name in ("actor-0", "evaluator-0"):
         actor = actor_settings(children[name])
         assert (actor.env_id, actor.max_speed, actor.episode_log_dir) == ("Hopper-v5", 0, None)
+
+
+def test_a_task_without_vector_observations_or_unknown_is_refused_in_one_line(capsys):
+    # The camera tasks are l2r/ ids but not the runner: neither its recipe nor a crash at planning.
+    assert family_of("l2r/dmc-cartpole-swingup-v0") == STANDARD and family_of("l2r/RunOpenSim-v0") == RUNNER
+    for env_id, why in (("l2r/dmc-cartpole-swingup-v0", "trains on vectors alone"), ("Nope-v0", "doesn't exist")):
+        with pytest.raises(SystemExit) as exit_:
+            parse_args(["--env-id", env_id])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert err.startswith(f"l2r up: --env-id {env_id}: ") and why in err, err
