@@ -1,9 +1,10 @@
-"""PPO and SAC through `l2r up` on gymnasium's MuJoCo tasks, for comparison with published curves.
+"""PPO, SAC and TD3 through `l2r up` on gymnasium's MuJoCo tasks, against published curves and SB3.
 
     python bench/standard_tasks.py                          # Hopper-v5 and Walker2d-v5, PPO and SAC, 1M env steps each
     python bench/standard_tasks.py --tasks Hopper-v5 --algos ppo --env-steps 300000
     python bench/standard_tasks.py --quick                  # every job for 30 s: does it run at all
     python bench/standard_tasks.py --algos sac --env-steps 100000 --sb3
+    python bench/standard_tasks.py --tasks Hopper-v5,Walker2d-v5,HalfCheetah-v5 --algos sac,td3 --env-steps 100000 --sb3
     python bench/standard_tasks.py --algos sac --env-steps 100000 --up-arg=--recipe=runner   # the runner's recipe
     python bench/standard_tasks.py --plot docs/standard_tasks.png --results out.jsonl RUN_DIR ...   # curves only
 
@@ -48,7 +49,7 @@ MILESTONES = (100_000, 300_000, 1_000_000)
 # benchmark pages: ppo_continuous_action on the v4 tasks, sac_continuous_action on the v2 tasks).
 PUBLISHED = {("Hopper", "ppo"): (2382.86, 271.74), ("Walker2d", "ppo"): (2287.95, 571.78),
              ("Hopper", "sac"): (2310.46, 342.82), ("Walker2d", "sac"): (3591.45, 911.33)}
-COLOURS = {"ppo": "tab:blue", "sac": "tab:green"}
+COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple"}
 
 
 def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path, up_args: list[str]) -> Path:
@@ -131,6 +132,8 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
             evaluations = read_rows(d / "metrics" / "evaluation.csv")
             ax.scatter([r["env_steps"] for r in evaluations], [r["return"] for r in evaluations], s=6,
                        color=colour, alpha=0.5, label=f"l2r {algo}, evaluations")
+            if (task.split("-")[0], algo) not in PUBLISHED:
+                continue
             mean, std = PUBLISHED[(task.split("-")[0], algo)]
             ax.errorbar([1_000_000], [mean], [std], fmt="s", color=colour, capsize=4,
                         label=f"CleanRL {algo} at 1M (published)")
@@ -150,7 +153,7 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="Hopper-v5,Walker2d-v5", help="gymnasium ids, comma-separated")
-    p.add_argument("--algos", default="ppo,sac", help="comma-separated")
+    p.add_argument("--algos", default="ppo,sac", help="comma-separated, of ppo, sac and td3")
     p.add_argument("--env-steps", type=int, default=MILESTONES[-1], help="env steps of each job")
     p.add_argument("--seconds", type=float, default=0, help="wall-clock limit of each job (0: none)")
     p.add_argument("--runs-dir", type=Path, help="where the jobs' run directories go (default: a temporary one)")
