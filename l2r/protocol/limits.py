@@ -22,12 +22,15 @@ MAX_BATCH_SIZE = 2**20
 MAX_BATCHES_PER_QUERY = 64
 MAX_N_STEP = 20
 """Longest n-step return a replay shard builds."""
+MAX_FRAME_STACK = 16
+"""Most observations a replay shard stacks into one (``sample_request.frame_stack``)."""
 
 INTEGER_LIMITS: dict[str, dict[str, tuple[int, int]]] = {
     "experience": {"actor_id": ID, "env_id": ID, "epoch": COUNT, "seq": COUNT, "policy_version": VERSION},
     "weights": {"version": VERSION},
     "sample_request": {"batch_size": (1, MAX_BATCH_SIZE), "count": (1, MAX_BATCHES_PER_QUERY),
-                       "learner_version": VERSION, "n_step": (1, MAX_N_STEP)},
+                       "learner_version": VERSION, "n_step": (1, MAX_N_STEP),
+                       "frame_stack": (1, MAX_FRAME_STACK)},
     "sample_batch": {"shard": ID, "size": COUNT},
     "not_ready": {"shard": ID, "size": COUNT},
     "replay_ack": {"shard": ID},

@@ -151,7 +151,7 @@ class SampleRequest(Message):
     KIND: ClassVar[str] = "sample_request"
     SCHEMA: ClassVar[dict[str, str]] = {"batch_size": "int", "count": "int", "prioritized": "bool",
                                         "learner_version": "int", "table": "str?", "n_step": "int?",
-                                        "gamma": "float?"}
+                                        "gamma": "float?", "frame_stack": "int?"}
     batch_size: int = 256
     count: int = 1  # batches in one reply, each a separate reply sample
     prioritized: bool = False
@@ -162,6 +162,10 @@ class SampleRequest(Message):
     """Steps of the return each transition of the batch carries, 1 to 20 (limits.MAX_N_STEP; None: 1)."""
     gamma: float | None = None
     """The discount of those returns, in [0, 1]; needed when n_step > 1."""
+    frame_stack: int | None = None
+    """Observations stacked into each transition's observation, 1 to 16 (limits.MAX_FRAME_STACK).
+    Set, the batch comes in the frames form; None asks for the version-1 form of the float32
+    vector, which a shard of any other observation refuses (``frames_only``)."""
 
     def validate(self) -> None:
         if self.gamma is not None and not 0.0 <= self.gamma <= 1.0:

@@ -38,6 +38,8 @@ MAX_FIELD_DIMS = 3
 MAX_FIELD_BYTES = 4 * 2**20
 """Bytes of one field of one observation: a 1024 x 1024 RGB photo is 3 MiB."""
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
+_TEXT_FIELD = re.compile(r"\s*([^:,\s]+)\s*:\s*(\w+)\s*\[([^\]]*)\]\s*")
+"""One field of the text form: ``pixels: uint8[3, 84, 84]``."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,40 @@ class ObservationSpec:
 
     def __repr__(self) -> str:
         return f"ObservationSpec({self})"
+
+    @classmethod
+    def parse(cls, text: str) -> ObservationSpec:
+        """The spec written as ``str(spec)`` prints it, braces optional: ``pixels: uint8[3, 84, 84],
+        state: float32[24]``. ProtocolError (``bad_spec`` for text of another form, else the
+        reason of the bad field) with a message that quotes what could not be read."""
+        body = text.strip()
+        if body.startswith("{") and body.endswith("}"):
+            body = body[1:-1]
+        fields, at = {}, 0
+        while at < len(body) or not fields:
+            match = _TEXT_FIELD.match(body, at)
+            if match is None:
+                raise ProtocolError(f"observation {text!r:.80}: cannot read {body[at:]!r:.40}; expected fields as "
+                                    "'name: dtype[d1, d2, ...]' separated by commas", "bad_spec")
+            name, dtype, dims = match.groups()
+            if name in fields:
+                raise ProtocolError(f"observation {text!r:.80}: field {name!r} comes twice", "bad_field")
+            if dtype not in DTYPES:
+                raise ProtocolError(f"observation.{name}: dtype {dtype!r:.20}, expected one of {', '.join(DTYPES)}",
+                                    "wrong_dtype")
+            try:
+                shape = tuple(int(d) for d in dims.split(","))
+            except ValueError:
+                raise ProtocolError(f"observation.{name}: shape [{dims:.40}] is not whole numbers separated by "
+                                    "commas", "wrong_shape") from None
+            fields[name] = FieldSpec(DTYPES[dtype], shape)
+            at = match.end()
+            if at < len(body):
+                if body[at] != ",":
+                    raise ProtocolError(f"observation {text!r:.80}: expected a comma before {body[at:]!r:.40}",
+                                        "bad_spec")
+                at += 1
+        return cls(fields)
 
     @classmethod
     def vector(cls, width: int) -> ObservationSpec:

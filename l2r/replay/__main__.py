@@ -9,7 +9,8 @@ from typing import Literal, Sequence
 from l2r.config import (
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
-from l2r.protocol import DaemonSettings, configure_logging
+from l2r.protocol import DaemonSettings, ProtocolError, configure_logging
+from l2r.protocol.observations import ObservationSpec
 from l2r.replay.queue import QueueConfig
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS
@@ -30,7 +31,12 @@ class ReplaySettings(DaemonSettings):
     capacity: int = setting(1_000_000, "transitions the replay table keeps, oldest evicted first, at most "
                             "2^31 - 1 (trajectory links are 32-bit); 0: no replay table (a shard with the queue "
                             "alone)", group=STORAGE, ge=0, lt=2**31)
-    obs_dim: int = setting(41, "observation width; other widths are rejected", group=STORAGE, ge=1)
+    obs_dim: int = setting(41, "width of the float32 vector observation (the field state), when --observation is "
+                           "not given; chunks of another width are rejected", group=STORAGE, ge=1)
+    observation: str | None = setting(
+        None, "the observation stored, as fields 'name: dtype[shape]' separated by commas, dtype uint8 or float32, "
+        "images channels first, e.g. 'pixels: uint8[3, 84, 84], state: float32[24]'; chunks of other fields, "
+        "dtypes or shapes are rejected. Default: 'state: float32[<obs-dim>]'", group=STORAGE, metavar="SPEC")
     act_dim: int = setting(18, "action width; other widths are rejected", group=STORAGE, ge=1)
     side_fraction: float = setting(0.125, "rows for next observations at chunk and episode ends, as a fraction "
                                    "of capacity", group=STORAGE, gt=0, le=1)
@@ -66,6 +72,18 @@ class ReplaySettings(DaemonSettings):
         if self.capacity == 1 or not (self.capacity or self.queue_capacity):
             raise UsageError(f"--capacity {self.capacity}: the replay table needs at least 2 transitions, and a "
                              f"shard with --capacity 0 needs a queue (--queue-capacity)")
+        observation = self.observation_spec()
+        if self.queue_capacity and observation.vector_width is None:
+            raise UsageError(f"--queue-capacity {self.queue_capacity}: the queue table keeps the float32 vector "
+                             f"alone, not --observation {observation}")
+
+    def observation_spec(self) -> ObservationSpec:
+        if self.observation is None:
+            return ObservationSpec.vector(self.obs_dim)
+        try:
+            return ObservationSpec.parse(self.observation)
+        except ProtocolError as e:
+            raise UsageError(f"--observation: {e}") from None
 
 
 def build_parser() -> CommandParser:
@@ -99,7 +117,8 @@ def cli(argv: Sequence[str] | None = None) -> int:
 
 def serve(s: ReplaySettings) -> int:
     configure_logging(s.log_level)
-    storage = StorageConfig(s.capacity, s.obs_dim, s.act_dim, s.side_fraction, s.priority_exponent, s.seed)
+    storage = StorageConfig(s.capacity, s.obs_dim, s.act_dim, s.side_fraction, s.priority_exponent, s.seed,
+                            s.observation_spec())
     # The storage is allocated and touched at start: more than the free memory is an OOM kill, not an error.
     needed, available = storage_bytes(storage), available_memory()
     if needed > available:

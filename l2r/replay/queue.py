@@ -85,6 +85,9 @@ class QueueTable:
 
     def check(self, chunk: ExperienceChunk) -> None:
         """Raise ChunkRejected if ``chunk`` cannot enter this queue."""
+        if not isinstance(chunk.obs, np.ndarray):  # fields (docs/observations.md): version 2's map
+            raise ChunkRejected(f"experience with observation fields {sorted(chunk.obs)}; the queue table keeps the "
+                                "float32 vector observation alone", "unknown_field")
         if chunk.obs.shape[1] != self.obs_dim or chunk.actions.shape[1] != self.act_dim:
             raise ChunkRejected(f"experience widths obs {chunk.obs.shape[1]}, actions {chunk.actions.shape[1]}; "
                                 f"this queue takes obs {self.obs_dim}, actions {self.act_dim}", "wrong_width")

@@ -33,7 +33,8 @@ from l2r.replay.actor_ids import ActorIds
 from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
-from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig
+from l2r.protocol.observations import ObservationSpec
+from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig, observation_bytes
 from l2r.replay.wal import WriteAheadLog
 
 log = logging.getLogger("l2r.replay")
@@ -41,11 +42,17 @@ log = logging.getLogger("l2r.replay")
 REPLY_OVERHEAD = 4096  # bytes of a sample_batch reply beyond its arrays' data (msgpack framing, names)
 
 
-def reply_bytes_per_transition(obs_dim: int, act_dim: int, queue: bool = False, n_step: bool = False) -> int:
-    """What one transition adds to a sample_batch: obs and next_obs, action and reward (float32),
-    two flags, index, generation, probability and policy version (8 bytes each); from the queue
-    also a log-probability (float32) and a flag; with n-step returns a discount (float32)."""
-    return 4 * (2 * obs_dim + act_dim + 1) + 2 + 4 * 8 + (5 if queue else 0) + (4 if n_step else 0)
+def reply_bytes_per_transition(observation: ObservationSpec, act_dim: int, queue: bool = False, n_step: int = 1,
+                               frame_stack: int | None = None) -> int:
+    """The most one transition adds to a sample_batch: obs and next_obs, or in the frames form
+    (stacks of ``frame_stack``) at most min(2k, k + n) distinct frames and two int64 indices per
+    frame of its stacks; action and reward (float32), two flags, index, generation, probability
+    and policy version (8 bytes each); from the queue also a log-probability (float32) and a flag;
+    with n-step returns a discount (float32)."""
+    rest = 4 * (act_dim + 1) + 2 + 4 * 8 + (5 if queue else 0) + (4 if n_step > 1 else 0)
+    if frame_stack is None:
+        return 2 * observation_bytes(observation) + rest
+    return min(2 * frame_stack, frame_stack + n_step) * observation_bytes(observation) + 16 * frame_stack + rest
 
 
 @dataclass
@@ -113,9 +120,6 @@ class ReplayServer:
 
     def _check(self, payload: bytes) -> ExperienceChunk:
         chunk = decode(payload, ExperienceChunk)
-        if not isinstance(chunk.obs, np.ndarray):  # version 2's observation fields (docs/observations.md)
-            raise ProtocolError(f"experience: observation fields {sorted(chunk.obs)}; this l2r-replay stores the "
-                                f"float32 vector observation alone", "unknown_field")
         if self.storage is not None:
             self.storage.check(chunk)
         if self.queue is not None and (self.storage is None or chunk.log_probs is not None):
@@ -199,16 +203,23 @@ class ReplayServer:
         if table not in ("replay", "queue"):
             raise ProtocolError(f"sample_request: unknown table {table!r}; l2r-replay keeps 'replay' and 'queue'",
                                 "no_table")
-        queue, n_step = table == "queue", (request.n_step or 1) > 1
+        queue, n_step = table == "queue", request.n_step or 1
         if (self.queue if queue else self.storage) is None:
             raise ProtocolError(f"sample_request: shard {self.config.shard} keeps no {table} table "
                                 f"({'--queue-capacity' if queue else '--capacity'} 0)", "no_table")
-        if queue and n_step:
-            raise ProtocolError(f"sample_request: n_step {request.n_step} from the queue table; n-step returns "
-                                "come from the replay table (queue batches are whole trajectory pieces)", "invalid")
-        obs_dim, act_dim = (self.queue.obs_dim, self.queue.act_dim) if queue else (
-            self.storage.config.obs_dim, self.storage.config.act_dim)
-        largest = (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // reply_bytes_per_transition(obs_dim, act_dim, queue, n_step)
+        if queue and (n_step > 1 or request.frame_stack is not None):
+            raise ProtocolError(f"sample_request: n_step {request.n_step} or frame_stack {request.frame_stack} from "
+                                "the queue table; n-step returns and frame stacks come from the replay table (queue "
+                                "batches are whole trajectory pieces of the vector)", "invalid")
+        if queue:
+            observation, act_dim = ObservationSpec.vector(self.queue.obs_dim), self.queue.act_dim
+        else:
+            observation, act_dim = self.storage.config.observation, self.storage.config.act_dim
+        if request.frame_stack is None and observation.vector_width is None:
+            raise ProtocolError(f"sample_request without frame_stack asks for the float32 vector; this shard stores "
+                                f"{observation}, sent only in the frames form (set frame_stack)", "frames_only")
+        per_transition = reply_bytes_per_transition(observation, act_dim, queue, n_step, request.frame_stack)
+        largest = (MAX_MESSAGE_BYTES - REPLY_OVERHEAD) // per_transition
         if queue and self.queue.capacity < largest:
             largest = self.queue.capacity
         if request.batch_size > largest:
@@ -226,7 +237,7 @@ class ReplayServer:
             return [], reason, size, delay
         self.limiter.sampled += wanted
         return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, request.n_step or 1,
-                                    request.gamma) for _ in range(request.count)], "", size, 0.0
+                                    request.gamma, request.frame_stack) for _ in range(request.count)], "", size, 0.0
 
     def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
         """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""
@@ -500,9 +511,10 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
     server = ReplayServer(config, storage, limiter, wal, queue)
     actor_ids = ActorIds(config.snapshot_dir, server.rejections) if config.shard == 0 else None
     if storage is not None:
-        log.info("replay shard %d/%d of run %r: capacity %d transitions, %.1f MiB preallocated (%.0f bytes/"
-                 "transition)", config.shard, config.num_shards, config.run, storage.capacity, storage.nbytes / 2**20,
-                 storage.nbytes / storage.capacity)
+        log.info("replay shard %d/%d of run %r: capacity %d transitions of observation %s, %.1f MiB preallocated "
+                 "(%.0f bytes/transition, of which %d bytes a stored observation)", config.shard, config.num_shards,
+                 config.run, storage.capacity, storage_config.observation, storage.nbytes / 2**20,
+                 storage.nbytes / storage.capacity, observation_bytes(storage_config.observation))
     if queue is not None:
         log.info("replay shard %d/%d of run %r: a queue table of %d transitions (%s when full), dropping data more "
                  "than %d versions behind the learner", config.shard, config.num_shards, config.run, queue.capacity,

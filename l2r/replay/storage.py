@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from l2r.protocol import ExperienceChunk, ProtocolError, SampleBatch
+from l2r.protocol.observations import VECTOR_FIELD, ObservationSpec, as_fields
 from l2r.replay.sumtree import SumTree
 
 log = logging.getLogger("l2r.replay")
@@ -51,7 +52,7 @@ class StorageConfig:
     capacity: int = 1_000_000
     """Transitions kept; the oldest are evicted first. Below 2**31 (links are int32)."""
     obs_dim: int = 41
-    """Observation width; chunks of another width are rejected."""
+    """Width of the float32 vector observation, when ``observation`` is not given."""
     act_dim: int = 18
     """Action width; chunks of another width are rejected."""
     side_fraction: float = 0.125
@@ -59,16 +60,31 @@ class StorageConfig:
     priority_exponent: float = 0.6
     """alpha of prioritized replay: stored priority = (priority + eps) ** alpha."""
     seed: int = 0
+    observation: ObservationSpec | None = None
+    """The fields each stored observation has; None: the float32 vector of ``obs_dim``. Chunks
+    of another observation are rejected."""
+
+    def __post_init__(self) -> None:
+        if self.observation is None:
+            self.observation = ObservationSpec.vector(self.obs_dim)
+        elif self.observation.vector_width is not None:
+            self.obs_dim = self.observation.vector_width
 
 
 def storage_bytes(config: StorageConfig) -> int:
     """Bytes a `Storage` of ``config`` allocates (its ``nbytes``), known before allocating."""
     c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
+    frame = observation_bytes(config.observation)
     # per slot: obs, actions, reward, terminated and truncated flags, version, generation, next row,
     # next and previous trajectory links
-    per_slot = 4 * config.obs_dim + 4 * config.act_dim + 4 + 2 + 3 * 8 + 2 * 4
-    per_side_row = 4 * config.obs_dim + 2 * 8  # next obs, owner and its generation
+    per_slot = frame + 4 * config.act_dim + 4 + 2 + 3 * 8 + 2 * 4
+    per_side_row = frame + 2 * 8  # next obs, owner and its generation
     return c * per_slot + s * per_side_row + SumTree.nbytes_for(c)
+
+
+def observation_bytes(spec: ObservationSpec) -> int:
+    """Bytes of one observation: one row of every field."""
+    return sum(field.nbytes for field in spec.fields.values())
 
 
 class ChunkRejected(ProtocolError):
@@ -78,16 +94,19 @@ class ChunkRejected(ProtocolError):
 class Storage:
     """See the module docstring. Not thread-safe: the server serialises access."""
 
-    ARRAYS = ("obs", "actions", "rewards", "terminated", "truncated", "versions", "generation",
-              "next_row", *LINKS, "side_obs", "side_owner", "side_owner_generation")
+    ARRAYS = ("actions", "rewards", "terminated", "truncated", "versions", "generation", "next_row", *LINKS,
+              "side_owner", "side_owner_generation")
+    """The arrays beside the observation fields, by attribute; those of the side ring start with "side_"."""
 
     def __init__(self, config: StorageConfig):
         c, s = config.capacity, max(1, int(config.capacity * config.side_fraction))
         self.config = config
         self.capacity, self.side_capacity = c, s
-        # ring rows [0, c) then side rows [c, c + s): one gather fetches any next observation
-        self.all_obs = np.zeros((c + s, config.obs_dim), np.float32)
-        self.obs, self.side_obs = self.all_obs[:c], self.all_obs[c:]
+        # per field, ring rows [0, c) then side rows [c, c + s): one gather fetches any next observation
+        self.all_obs = {name: np.zeros((c + s, *field.shape), field.dtype)
+                        for name, field in config.observation.fields.items()}
+        self.obs = {name: rows[:c] for name, rows in self.all_obs.items()}
+        self.side_obs = {name: rows[c:] for name, rows in self.all_obs.items()}
         self.actions = np.zeros((c, config.act_dim), np.float32)
         self.rewards = np.zeros(c, np.float32)
         self.terminated = np.zeros(c, bool)
@@ -110,19 +129,33 @@ class Storage:
         self.side_written = 0
         self.live = 0  # slots holding a sampleable transition
         self.max_priority = 1.0
-        for name in ("all_obs", "actions", "rewards", "terminated", "truncated", "versions"):
-            getattr(self, name).fill(0)  # fault the pages in now: no stalls on first writes, no late OOM
+        for array in (*self.all_obs.values(), self.actions, self.rewards, self.terminated, self.truncated,
+                      self.versions):
+            array.fill(0)  # fault the pages in now: no stalls on first writes, no late OOM
+
+    def named_arrays(self) -> dict[str, np.ndarray]:
+        """Everything a snapshot keeps of the rows, by its name there: field f's observations are
+        ``obs.f`` (ring) and ``side_obs.f`` (side rows); side-ring names start with "side_"."""
+        return ({f"obs.{name}": rows for name, rows in self.obs.items()}
+                | {f"side_obs.{name}": rows for name, rows in self.side_obs.items()}
+                | {name: getattr(self, name) for name in self.ARRAYS})
 
     @property
     def nbytes(self) -> int:
-        return sum(getattr(self, name).nbytes for name in self.ARRAYS) + self.tree.tree.nbytes
+        return sum(array.nbytes for array in self.named_arrays().values()) + self.tree.tree.nbytes
 
     def check(self, chunk: ExperienceChunk) -> None:
-        """Raise ChunkRejected if ``chunk`` does not fit this storage."""
-        if chunk.obs.shape[1] != self.config.obs_dim or chunk.actions.shape[1] != self.config.act_dim:
-            raise ChunkRejected(f"experience widths obs {chunk.obs.shape[1]}, actions {chunk.actions.shape[1]}; "
-                                f"this replay stores obs {self.config.obs_dim}, actions {self.config.act_dim}",
-                                "wrong_width")
+        """Raise ChunkRejected if ``chunk`` does not fit this storage: the reasons of
+        ``ObservationSpec.check`` for its observations, ``wrong_width`` for its actions."""
+        spec = self.config.observation
+        try:
+            spec.check(as_fields(chunk.obs), "experience.obs")
+            spec.check(as_fields(chunk.final_obs), "experience.final_obs")
+        except ProtocolError as e:
+            raise ChunkRejected(f"{e}; this replay stores {spec}", e.reason) from None
+        if chunk.actions.shape[1] != self.config.act_dim:
+            raise ChunkRejected(f"experience actions of width {chunk.actions.shape[1]}; this replay stores "
+                                f"{self.config.act_dim}", "wrong_width")
         if chunk.size > self.capacity or len(chunk.final_obs) + 1 > self.side_capacity:
             raise ChunkRejected(f"chunk of {chunk.size} transitions exceeds capacity {self.capacity} "
                                 f"or side rows {self.side_capacity}", "too_large")
@@ -130,6 +163,7 @@ class Storage:
     def insert(self, chunk: ExperienceChunk) -> int:
         """Store all transitions of ``chunk``; return how many."""
         self.check(chunk)
+        obs, final_obs = as_fields(chunk.obs), as_fields(chunk.final_obs)
         t, start = chunk.size, self.written % self.capacity
         first = min(t, self.capacity - start)
         # at most two contiguous pieces of the ring: slices are cheaper than index arrays
@@ -138,7 +172,8 @@ class Storage:
                 continue
             at = slice(ring, ring + hi - lo)
             self.live -= int(np.count_nonzero(self.generation[at] >= 0))
-            self.obs[at] = chunk.obs[lo:hi]
+            for name, rows in obs.items():
+                self.obs[name][at] = rows[lo:hi]
             self.actions[at] = chunk.actions[lo:hi]
             self.rewards[at] = chunk.rewards[lo:hi]
             self.terminated[at] = chunk.terminated[lo:hi]
@@ -151,7 +186,8 @@ class Storage:
             self.tree.set_range(ring, hi - lo, self.max_priority)
 
         ends = np.flatnonzero((chunk.terminated | chunk.truncated)[:-1])
-        side_values = np.concatenate([chunk.final_obs, chunk.obs[-1:]]) if len(ends) else chunk.obs[-1:]
+        side_values = {name: np.concatenate([final_obs[name], rows[-1:]]) if len(ends) else rows[-1:]
+                       for name, rows in obs.items()}
         side_slots = (start + np.append(ends, t - 1)) % self.capacity
         rows = self._side_write(side_values, side_slots)
         self.next_row[side_slots] = rows
@@ -161,13 +197,13 @@ class Storage:
         self.prev_link[start] = 0
         if len(ends):
             self.prev_link[(start + ends + 1) % self.capacity] = 0
-        self._extend_stream(chunk, self.written)
+        self._extend_stream(chunk, self.written, {name: rows[0] for name, rows in obs.items()})
         self.written += t
         self.live += t
         self._forget_streams()
         return t
 
-    def _extend_stream(self, chunk: ExperienceChunk, first: int) -> None:
+    def _extend_stream(self, chunk: ExperienceChunk, first: int, first_obs: dict[str, np.ndarray]) -> None:
         """Join the chunk just stored from generation ``first`` on to its stream's newest chunk,
         and make it the newest. A late chunk (resent after a loss) is older than the newest: it
         stays unlinked and leaves the newest as it is, so the stream's next chunk still joins."""
@@ -177,16 +213,17 @@ class Storage:
             self.stream_ends[key] = newest
             return
         if newest is not None:
-            self._join(newest[1], first, chunk.obs[0])
+            self._join(newest[1], first, first_obs)
         self.stream_ends[key] = (chunk.seq, first + chunk.size - 1)
 
-    def _join(self, end: int, first: int, first_obs: np.ndarray) -> None:
+    def _join(self, end: int, first: int, first_obs: dict[str, np.ndarray]) -> None:
         """Link generation ``end`` (a chunk's last step) to ``first`` if that step is still stored,
         ended no episode, and its true next observation is ``first_obs``."""
         slot = end % self.capacity  # (item() and bytes: numpy scalars and an array comparison took 4x as long)
         if self.generation.item(slot) != end or self.terminated.item(slot) or self.truncated.item(slot):
             return  # overwritten or evicted meanwhile, or the episode ended there: nothing to join
-        if self.side_obs[self.next_row.item(slot)].tobytes() != first_obs.tobytes():
+        row = self.next_row.item(slot)
+        if any(self.side_obs[name][row].tobytes() != value.tobytes() for name, value in first_obs.items()):
             self.link_mismatches += 1  # a chunk in between was lost (or the stream is not what it claims)
             return
         self.next_link[slot] = first - end
@@ -212,8 +249,8 @@ class Storage:
         self.live -= int(np.count_nonzero(self.generation[slots] >= 0))
         self.generation[slots] = -1
 
-    def _side_write(self, values: np.ndarray, owners: np.ndarray) -> np.ndarray:
-        n = len(values)
+    def _side_write(self, values: dict[str, np.ndarray], owners: np.ndarray) -> np.ndarray:
+        n = len(owners)
         rows = (self.side_written + np.arange(n)) % self.side_capacity
         old_owner, old_gen = self.side_owner[rows], self.side_owner_generation[rows]
         valid = old_owner >= 0
@@ -222,15 +259,19 @@ class Storage:
             victims = old_owner[stale]
             self._evict(victims)
             self.tree.set(victims, np.zeros(len(victims)))
-        self.side_obs[rows] = values
+        for name, rows_of_field in values.items():
+            self.side_obs[name][rows] = rows_of_field
         self.side_owner[rows] = owners
         self.side_written += n
         return rows
 
     def sample(self, batch_size: int, prioritized: bool, shard: int = 0, n_step: int = 1,
-               gamma: float | None = None) -> SampleBatch:
+               gamma: float | None = None, frame_stack: int | None = None) -> SampleBatch:
         """A batch of live transitions; requires ``live > 0``. With ``n_step`` > 1, each carries
-        the return of up to ``n_step`` steps of its trajectory discounted by ``gamma`` (``_n_step``)."""
+        the return of up to ``n_step`` steps of its trajectory discounted by ``gamma`` (``_n_step``).
+        With ``frame_stack`` k, observations come in the frames form (``_frames``), stacks of k;
+        without, as ``obs`` and ``next_obs`` of the float32 vector, the only observation that has
+        that form."""
         if prioritized:
             slots, probabilities = self._sample_prioritized(batch_size)
         else:
@@ -242,12 +283,43 @@ class Storage:
             last, rewards, discounts = slots, self.rewards.take(slots), None
         side = self.next_row[last]
         next_rows = np.where(side < 0, (last + 1) % self.capacity, self.capacity + side)
-        return SampleBatch(
-            shard=shard, size=self.live, prioritized=prioritized, obs=self.all_obs.take(slots, axis=0),
-            actions=self.actions.take(slots, axis=0), rewards=rewards,
-            next_obs=self.all_obs.take(next_rows, axis=0), terminated=self.terminated.take(last),
+        batch = SampleBatch(
+            shard=shard, size=self.live, prioritized=prioritized, obs=None, actions=self.actions.take(slots, axis=0),
+            rewards=rewards, next_obs=None, terminated=self.terminated.take(last),
             truncated=self.truncated.take(last), indices=slots, generations=self.generation.take(slots),
             probabilities=probabilities, policy_versions=self.versions.take(slots), discounts=discounts)
+        if frame_stack is None:
+            vector = self.all_obs[VECTOR_FIELD]
+            batch.obs, batch.next_obs = vector.take(slots, axis=0), vector.take(next_rows, axis=0)
+        else:
+            batch.frames, batch.obs_frames, batch.next_obs_frames = self._frames(slots, last, next_rows, frame_stack)
+        return batch
+
+    def _stacks(self, slots: np.ndarray, k: int) -> np.ndarray:
+        """(len(slots), k): the rows of each slot's observation and its k - 1 predecessors in its
+        trajectory, oldest first, the oldest found repeated where the previous links end (an
+        episode's start, a lost chunk, an overwritten slot): the padding an actor applies after
+        a reset, so stacks are the ones it acted on."""
+        stacks = np.empty((len(slots), k), np.int64)
+        at = slots
+        for column in range(k - 1, -1, -1):
+            stacks[:, column] = at
+            if column:
+                back, holds = self.follow(at, self.prev_link.take(at))
+                at = np.where(holds, back, at)
+        return stacks
+
+    def _frames(self, slots: np.ndarray, last: np.ndarray, next_rows: np.ndarray,
+                k: int) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+        """The frames form of a batch with stacks of ``k``: each distinct row its stacks use once
+        (field -> rows), and for every transition the indices into them, oldest first, of its
+        observation (the stack ending at ``slots``) and next observation (``next_rows``, preceded
+        by the stack ending at the window's ``last`` slot)."""
+        obs_rows = self._stacks(slots, k)
+        next_obs_rows = np.concatenate([self._stacks(last, k - 1), next_rows[:, None]], axis=1)
+        rows, indices = np.unique(np.concatenate([obs_rows.ravel(), next_obs_rows.ravel()]), return_inverse=True)
+        frames = {name: field.take(rows, axis=0) for name, field in self.all_obs.items()}
+        return frames, indices[:obs_rows.size].reshape(obs_rows.shape), indices[obs_rows.size:].reshape(obs_rows.shape)
 
     def _n_step(self, slots: np.ndarray, n: int, gamma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For windows of up to ``n`` steps from ``slots``, following next links (which stop at
@@ -310,15 +382,21 @@ class Storage:
     def restore(self, state: dict[str, np.ndarray]) -> None:
         """Load a ``state()``; raise ValueError if it was taken with other dimensions."""
         written, side_written, live, capacity, side_capacity, obs_dim, act_dim = (int(x) for x in state["counters"])
-        mine = (self.capacity, self.side_capacity, self.config.obs_dim, self.config.act_dim)
-        if (capacity, side_capacity, obs_dim, act_dim) != mine:
-            raise ValueError(f"snapshot has capacity/side rows/obs/action dims {(capacity, side_capacity, obs_dim, act_dim)}, "
-                             f"this server is configured for {mine}")
-        for name in self.ARRAYS:
+        if "observation" in state:
+            observation = ObservationSpec.parse(str(state["observation"]))
+        else:  # from before observation fields: the float32 vector, as the field "state"
+            observation = ObservationSpec.vector(obs_dim)
+            state = state | {f"obs.{VECTOR_FIELD}": state["obs"], f"side_obs.{VECTOR_FIELD}": state["side_obs"]}
+        mine = (self.capacity, self.side_capacity, str(self.config.observation), self.config.act_dim)
+        if (capacity, side_capacity, str(observation), act_dim) != mine:
+            raise ValueError(f"snapshot has capacity/side rows/observation/action width "
+                             f"{(capacity, side_capacity, str(observation), act_dim)}, this server is configured for "
+                             f"{mine}")
+        for name, array in self.named_arrays().items():
             if name in LINKS and name not in state:
                 continue  # a snapshot from before trajectory links: its transitions stay unlinked
             values = state[name]
-            getattr(self, name)[:len(values)] = values
+            array[:len(values)] = values
         if len(state["priorities"]):
             self.tree.set_range(0, len(state["priorities"]), state["priorities"])
         self.written, self.side_written, self.live = written, side_written, live
@@ -349,19 +427,19 @@ class StateCopy:
     faster than the copy), ``step`` raises Overtaken.
     """
 
-    SIDE = ("side_obs", "side_owner", "side_owner_generation")
-
     def __init__(self, storage: Storage):
         self.storage = storage
         self.written, self.side_written = storage.written, storage.side_written
         filled = min(storage.written, storage.capacity)
         side_filled = min(storage.side_written, storage.side_capacity)
-        self.arrays = {name: np.empty((side_filled if name in self.SIDE else filled, *getattr(storage, name).shape[1:]),
-                                      getattr(storage, name).dtype) for name in Storage.ARRAYS}
+        self.sources = storage.named_arrays()
+        self.arrays = {name: np.empty((side_filled if name.startswith("side_") else filled, *array.shape[1:]),
+                                      array.dtype) for name, array in self.sources.items()}
         self.arrays["priorities"] = np.empty(filled, np.float64)
         self.arrays["counters"] = np.array([storage.written, storage.side_written, storage.live, storage.capacity,
                                             storage.side_capacity, storage.config.obs_dim, storage.config.act_dim], np.int64)
         self.arrays["max_priority"] = np.array(storage.max_priority)
+        self.arrays["observation"] = np.array(str(storage.config.observation))
         self.arrays["stream_keys"] = np.array(list(storage.stream_ends), np.int64).reshape(-1, 3)
         self.arrays["stream_ends"] = np.array(list(storage.stream_ends.values()), np.int64).reshape(-1, 2)
         # offsets from each ring's write head: rows [capacity - filled, capacity) hold data
@@ -369,15 +447,16 @@ class StateCopy:
 
     def touch(self) -> None:
         """Fault in the copy's memory (call outside the lock, so steps only copy)."""
-        for name in Storage.ARRAYS:
+        for name in self.sources:
             self.arrays[name].fill(0)
         self.arrays["priorities"].fill(0)
 
     def step(self, block: int = 1 << 14) -> bool:
         """Copy the next ``block`` rows of each ring; True when the copy is complete."""
         st = self.storage
-        rings = ((0, st.capacity, self.written, st.written, [n for n in Storage.ARRAYS if n not in self.SIDE]),
-                 (1, st.side_capacity, self.side_written, st.side_written, list(self.SIDE)))
+        rings = ((0, st.capacity, self.written, st.written, [n for n in self.sources if not n.startswith("side_")]),
+                 (1, st.side_capacity, self.side_written, st.side_written,
+                  [n for n in self.sources if n.startswith("side_")]))
         for ring, capacity, head0, head, names in rings:
             offset = self._next[ring]
             if offset >= capacity:
@@ -387,7 +466,7 @@ class StateCopy:
             end = min(capacity, offset + block)
             rows = (head0 + np.arange(offset, end)) % capacity
             for name in names:
-                self.arrays[name][rows] = getattr(st, name)[rows]
+                self.arrays[name][rows] = self.sources[name][rows]
             if ring == 0:
                 self.arrays["priorities"][rows] = st.tree.get(rows)
             self._next[ring] = end

@@ -60,8 +60,12 @@ def test_side_ring_overflow_evicts_instead_of_corrupting():
 
 def test_wrong_widths_are_rejected():
     storage = Storage(StorageConfig(capacity=100, obs_dim=41, act_dim=18))
-    with pytest.raises(ChunkRejected, match="this replay stores obs 41"):
+    with pytest.raises(ChunkRejected, match=r"shape \[11, 40\], expected \[rows, 41\]") as rejected:
         storage.insert(make_chunk(obs_dim=40))
+    assert rejected.value.reason == "wrong_shape"  # the observation spec's check, as for any field
+    with pytest.raises(ChunkRejected, match="actions of width 17") as rejected:
+        storage.insert(make_chunk(act_dim=17))
+    assert rejected.value.reason == "wrong_width"
     with pytest.raises(ChunkRejected, match="exceeds capacity"):
         storage.insert(make_chunk(steps=101))
     assert storage.live == 0
@@ -97,8 +101,8 @@ def test_state_round_trip():
         storage.insert(make_chunk(seq=seq, steps=9, ends=(3,)))
     copy = Storage(StorageConfig(capacity=40, side_fraction=0.5))
     copy.restore(storage.state())
-    for name in Storage.ARRAYS:
-        np.testing.assert_array_equal(getattr(copy, name), getattr(storage, name))
+    for name, array in storage.named_arrays().items():
+        np.testing.assert_array_equal(copy.named_arrays()[name], array)
     np.testing.assert_array_equal(copy.tree.tree, storage.tree.tree)
     with pytest.raises(ValueError, match="configured for"):
         Storage(StorageConfig(capacity=41)).restore(storage.state())

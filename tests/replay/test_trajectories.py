@@ -102,9 +102,9 @@ def test_previous_links_lead_back_across_chunks_until_the_slot_is_overwritten():
     storage = storage_of(steps(0, 4, seq=0), steps(0, 3, seq=1, env_id=1), steps(4, 4, seq=2), capacity=12)
     first = np.array([7])  # step 4: the first of its chunk
     back, holds = storage.follow(first, storage.prev_link[first])
-    assert holds.all() and storage.obs[back, 0] == 3
+    assert holds.all() and storage.obs['state'][back, 0] == 3
     back, holds = storage.follow(back, storage.prev_link[back])
-    assert holds.all() and storage.obs[back, 0] == 2
+    assert holds.all() and storage.obs['state'][back, 0] == 2
     storage.insert(steps(0, 5, seq=3, env_id=2))  # wraps round onto steps 0..3
     assert not storage.follow(first, storage.prev_link[first])[1].any()
 
@@ -112,10 +112,10 @@ def test_previous_links_lead_back_across_chunks_until_the_slot_is_overwritten():
 def test_previous_links_stop_at_an_episode_start_and_at_another_stream():
     storage = storage_of(steps(0, 4, seq=0), steps(0, 6, seq=1, env_id=1, ends=(2,)))
     starts = np.array([4, 7])  # the other stream's first step, and the step after its episode end
-    assert list(storage.obs[starts, 0]) == [1000, 1003]
+    assert list(storage.obs['state'][starts, 0]) == [1000, 1003]
     assert not storage.follow(starts, storage.prev_link[starts])[1].any()
     back, holds = storage.follow(np.array([6]), storage.prev_link[[6]])
-    assert holds.all() and storage.obs[back, 0] == 1001
+    assert holds.all() and storage.obs['state'][back, 0] == 1001
 
 
 def test_streams_are_forgotten_once_overwritten_or_beyond_the_cap(monkeypatch):
