@@ -28,12 +28,12 @@ from l2r.protocol import (
     ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
     PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
 )
+from l2r.protocol.observations import ObservationSpec
 from l2r.replay import snapshot
 from l2r.replay.actor_ids import ActorIds
 from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
-from l2r.protocol.observations import ObservationSpec
 from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig, observation_bytes
 from l2r.replay.wal import WriteAheadLog
 

@@ -147,16 +147,17 @@ class Storage:
     def check(self, chunk: ExperienceChunk) -> None:
         """Raise ChunkRejected if ``chunk`` does not fit this storage: the reasons of
         ``ObservationSpec.check`` for its observations, ``wrong_width`` for its actions."""
-        spec = self.config.observation
+        spec, final_obs = self.config.observation, as_fields(chunk.final_obs)
         try:
             spec.check(as_fields(chunk.obs), "experience.obs")
-            spec.check(as_fields(chunk.final_obs), "experience.final_obs")
+            spec.check(final_obs, "experience.final_obs")
         except ProtocolError as e:
             raise ChunkRejected(f"{e}; this replay stores {spec}", e.reason) from None
         if chunk.actions.shape[1] != self.config.act_dim:
             raise ChunkRejected(f"experience actions of width {chunk.actions.shape[1]}; this replay stores "
                                 f"{self.config.act_dim}", "wrong_width")
-        if chunk.size > self.capacity or len(chunk.final_obs) + 1 > self.side_capacity:
+        final_rows = len(final_obs[next(iter(spec.fields))])
+        if chunk.size > self.capacity or final_rows + 1 > self.side_capacity:
             raise ChunkRejected(f"chunk of {chunk.size} transitions exceeds capacity {self.capacity} "
                                 f"or side rows {self.side_capacity}", "too_large")
 

@@ -132,6 +132,15 @@ def test_a_chunk_of_other_fields_is_rejected_with_its_reason(change, reason):
     assert storage.live == 0 and storage.written == 0
 
 
+def test_a_chunk_with_more_episode_ends_than_side_rows_is_too_large():
+    storage = Storage(StorageConfig(capacity=10, act_dim=1, side_fraction=0.3, observation=PIXELS))  # 3 side rows
+    with pytest.raises(ChunkRejected) as rejected:
+        storage.insert(frame_chunk(0, 6, seq=0, ends=(0, 1, 2)))  # 3 final frames and the last next frame
+    assert rejected.value.reason == "too_large" and storage.side_written == 0
+    storage.insert(frame_chunk(0, 6, seq=0, ends=(0, 1)))
+    assert storage.side_written == 3
+
+
 def test_a_missing_field_is_rejected():
     storage = Storage(StorageConfig(capacity=10, act_dim=1, observation=ObservationSpec.parse(
         "pixels: uint8[3, 2, 2], state: float32[1]")))
