@@ -20,8 +20,11 @@ chunk is joined to the first of its next chunk when that last step ended no epis
 next chunk's first observation equals the true next observation stored for it (else a chunk
 was lost in between: counted in ``link_mismatches``). Where each stream's newest chunk ended is
 remembered for at most ``MAX_STREAMS`` streams and only while that slot is not overwritten.
-n-step returns (``sample(n_step=...)``) follow the next links; stacks of past frames can
-follow the previous ones.
+n-step returns (``sample(n_step=...)``) follow the next links; stacks of frames
+(``sample(frame_stack=...)``) follow the previous ones.
+
+Observations are stored per field of the storage's observation spec, one array each in the
+field's own dtype (docs/observations.md); the float32 vector is the one field "state".
 """
 
 from __future__ import annotations
@@ -88,7 +91,8 @@ def observation_bytes(spec: ObservationSpec) -> int:
 
 
 class ChunkRejected(ProtocolError):
-    """A well-formed chunk this storage cannot hold (wrong widths, longer than capacity)."""
+    """A well-formed chunk this storage cannot hold (other observation fields or action width,
+    longer than capacity or its side rows)."""
 
 
 class Storage:

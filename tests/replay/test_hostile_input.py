@@ -91,7 +91,7 @@ def test_what_was_quietly_accepted_is_rejected_with_its_reason(start_replay, con
         for raw in raws:
             put_raw(session, keys.experience(4), raw)
     put_raw(session, keys.experience(5), chunk)  # actor 4's chunk under actor 5's key
-    image = msgpack.unpackb(encode(make_image_chunk()), raw=False)  # camera frames, not stored yet
+    image = msgpack.unpackb(encode(make_image_chunk()), raw=False)  # camera frames, to a shard of the vector
     put_raw(session, keys.experience(image["actor_id"]), image)
     stats = wait_for(lambda: (values := ask_stats(session)) and values["rejected"] >= 8 and values)
     assert stats["size"] == 0 and stats["rejected"] == 8, stats
