@@ -34,8 +34,9 @@ def chunk_payloads(count: int) -> list[bytes]:
         ends = steps % EPISODE == EPISODE - 1
         inner = np.flatnonzero(ends[:-1])
         payloads.append(encode(ExperienceChunk(
-            0, 0, 1, seq, 0, {"pixels": frames[seq * STEPS:(seq + 1) * STEPS + 1]}, rng.random((STEPS, ACT), np.float32),
-            rng.random(STEPS, np.float32), ends, np.zeros(STEPS, bool), {"pixels": frames[inner + 1]})))
+            0, 0, 1, seq, 0, {"pixels": frames[seq * STEPS:(seq + 1) * STEPS + 1]},
+            rng.random((STEPS, ACT), np.float32), rng.random(STEPS, np.float32), ends, np.zeros(STEPS, bool),
+            {"pixels": frames[seq * STEPS + inner + 1]})))
     return payloads
 
 
