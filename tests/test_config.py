@@ -78,6 +78,20 @@ def test_a_bad_environment_value_names_the_variable(environ, message):
     assert str(error.value).startswith(message)
 
 
+def test_the_replays_observation_is_its_text_form_and_defaults_to_the_vector_of_obs_dim():
+    assert str(replay_settings(["--obs-dim", "24"]).observation_spec()) == "{state: float32[24]}"
+    camera = replay_settings(["--observation", "pixels: uint8[3, 84, 84], state: float32[24]"])
+    assert str(camera.observation_spec()) == "{pixels: uint8[3, 84, 84], state: float32[24]}"
+    for argv, message in (
+            (["--observation", "pixels: int8[3]"], "--observation: observation.pixels: dtype 'int8', expected one"),
+            (["--observation", "pixels uint8[3]"], "--observation: observation 'pixels uint8[3]': cannot read"),
+            (["--observation", "pixels: uint8[3, 8, 8]", "--queue-capacity", "100"],
+             "--queue-capacity 100: the queue table keeps the float32 vector alone")):
+        with pytest.raises(UsageError) as error:
+            replay_settings(argv)
+        assert str(error.value).startswith(message), error.value
+
+
 def test_torchruns_variables_come_below_flags_and_l2r_variables():
     def place(argv: list[str], environ: dict[str, str]) -> tuple[int, int]:
         settings = learner_settings(argv, environ)

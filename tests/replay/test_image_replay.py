@@ -1,7 +1,8 @@
 """A real l2r-replay of camera observations over loopback Zenoh: chunks of observation fields
 stored and sampled as stacks of frames (values worked out by hand from ``make_image_chunk``:
 pixel row t is all t, the final observation after step t all 200 + t), chunks of other fields
-rejected and counted, and image fields kept through a snapshot, kill -9 and restore."""
+rejected and counted, image fields kept through a snapshot, kill -9 and restore, and a vector
+snapshot from before observation fields restored."""
 
 from __future__ import annotations
 
@@ -12,8 +13,12 @@ import pytest
 import zenoh
 
 from l2r.protocol import EXPERIENCE_QOS, Keys, NotReady, SampleBatch, SampleRequest, decode, encode
+from l2r.replay import snapshot
+from l2r.replay.rate_limiter import RateLimiter
+from l2r.replay.server import ReplayServer, ServerConfig
+from l2r.replay.storage import Storage, StorageConfig
 from tests.conftest import wait_for
-from tests.protocol.factories import make_chunk, make_image_chunk
+from tests.protocol.factories import make_chunk, make_image_chunk, stream_chunk
 
 pytestmark = pytest.mark.slow
 
@@ -119,3 +124,21 @@ def test_image_fields_survive_a_snapshot_and_the_log_through_kill_9(start_replay
     second = {pixel + 50: ((a + 50, b + 50, c + 50), (d + 50, e + 50, f + 50))
               for pixel, ((a, b, c), (d, e, f)) in FIRST_CHUNK.items()}
     assert stacks(session, run_name, stored=12) == FIRST_CHUNK | second, last.log()
+
+
+def test_a_vector_snapshot_from_before_fields_restores(start_replay, connect, ask_stats, run_name, tmp_path):
+    server = ReplayServer(ServerConfig(), Storage(StorageConfig(capacity=10000, obs_dim=2, act_dim=1)), RateLimiter())
+    server._store(stream_chunk(0, 8, seq=0, ends=(3,)), None)
+    arrays, meta = server.capture()
+    # the arrays such a snapshot held: the vector as "obs" and "side_obs", no "observation"
+    old = {name: values for name, values in arrays.items() if not name.startswith(("obs.", "side_obs.", "observation"))}
+    old |= {"obs": arrays["obs.state"], "side_obs": arrays["side_obs.state"]}
+    snapshot.write(snapshot.snapshot_path(tmp_path, 0), old, meta)
+
+    replay = start_replay("--obs-dim", "2", "--act-dim", "1", "--snapshot-dir", str(tmp_path))
+    session = connect(replay)
+    assert ask_stats(session)["size"] == 8, replay.log()
+    batch = ask(session, run_name, SampleRequest(batch_size=64))
+    assert isinstance(batch, SampleBatch), batch
+    np.testing.assert_array_equal(batch.next_obs[:, 0], np.where(batch.obs[:, 0] == 3, -4, batch.obs[:, 0] + 1))
+    np.testing.assert_array_equal(batch.rewards, batch.obs[:, 0] + 1)
