@@ -276,7 +276,9 @@ class Storage:
         the return of up to ``n_step`` steps of its trajectory discounted by ``gamma`` (``_n_step``).
         With ``frame_stack`` k, observations come in the frames form (``_frames``), stacks of k;
         without, as ``obs`` and ``next_obs`` of the float32 vector, the only observation that has
-        that form."""
+        that form (ValueError for another)."""
+        if frame_stack is None and self.config.observation.vector_width is None:
+            raise ValueError(f"a batch of {self.config.observation} comes in the frames form alone: give frame_stack")
         if prioritized:
             slots, probabilities = self._sample_prioritized(batch_size)
         else:

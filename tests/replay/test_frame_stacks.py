@@ -101,6 +101,13 @@ def test_each_frame_is_sent_once_however_many_stacks_use_it():
     assert batch.obs_frames.dtype == np.int64
 
 
+def test_frames_have_no_version_1_form():
+    storage = Storage(StorageConfig(capacity=10, act_dim=1, observation=ObservationSpec.parse(
+        "pixels: uint8[3, 2, 2], state: float32[1]")))  # a state beside the frames is not the vector alone
+    with pytest.raises(ValueError, match="frames form alone"):
+        storage.sample(4, False)
+
+
 def test_fields_are_stored_in_their_own_dtype_and_counted_per_field():
     spec = ObservationSpec.parse("{pixels: uint8[3, 84, 84], state: float32[24]}")
     config = StorageConfig(capacity=64, act_dim=6, side_fraction=0.125, observation=spec)
