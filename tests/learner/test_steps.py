@@ -24,8 +24,10 @@ COMPILER = pytest.mark.skipif(not (shutil.which("c++") or shutil.which("g++")),
     pytest.param("cuda", "inductor-graphs", marks=[CUDA, pytest.mark.compile]),
 ])
 def test_compiled_steps_train_as_the_eager_ones(device, mode):
-    # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once.
-    config = small_config(hidden=(16,), batch_size=32, tau=0.25, actor_lr=1e-2, critic_lr=1e-2, alpha_lr=1e-2)
+    # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once;
+    # normalised inputs, whose statistics change outside the update (in prepare) between calls.
+    config = small_config(hidden=(16,), batch_size=32, tau=0.25, actor_lr=1e-2, critic_lr=1e-2, alpha_lr=1e-2,
+                          normalize_obs=True)
     eager_state = sac.init_state(config, OBS, ACT, device, seed=0)
     compiled_state = copy.deepcopy(eager_state)
     eager = GradientSteps(sac.update, config, "off", device, repeat=2)
@@ -36,9 +38,10 @@ def test_compiled_steps_train_as_the_eager_ones(device, mode):
         batch = sac.batch_from_numpy(rng.normal(size=(32, OBS)), rng.random((32, ACT)), rng.normal(size=32),
                                      rng.normal(size=(32, OBS)), rng.random(32) < 0.2, rng.random(32), device)
         torch.manual_seed(call)
-        expected = {name: value.clone() for name, value in eager(eager_state, batch).items()}
+        expected = eager(eager_state, sac.prepare(eager_state, batch, config))
+        expected = {name: value.clone() for name, value in expected.items()}  # a graph's outputs are overwritten
         torch.manual_seed(call)
-        got = compiled(compiled_state, batch)
+        got = compiled(compiled_state, sac.prepare(compiled_state, batch, config))
         for name in expected:
             torch.testing.assert_close(got[name], expected[name], rtol=1e-4, atol=1e-5, msg=f"{name}, call {call}")
     assert compiled_state.updates == eager_state.updates == 2 * (WARMUP_CALLS + 3)
