@@ -158,8 +158,10 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
-    # Data-parallel ranks run the update eagerly: their gradient all-reduce is not captured.
-    config = replace(config, compile=resolve_mode("off" if config.world_size > 1 else config.compile, device))
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), and
+    # PPO loops over its own minibatches.
+    eager = config.world_size > 1 or isinstance(algo, PPOConfig)
+    config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     stop = threading.Event()
 
     def on_signal(signum: int, _frame) -> None:
