@@ -140,7 +140,8 @@ class ObservationFilter(nn.Module):
         if not self.normalize:
             return
         x = self._relative(obs).double()
-        moments = torch.cat([x.new_tensor([len(x)]), x.sum(0), x.pow(2).sum(0)])
+        count = torch.full((1,), len(x), dtype=x.dtype, device=x.device)  # a fill: no copy that waits for a GPU
+        moments = torch.cat([count, x.sum(0), x.pow(2).sum(0)])
         if reduce is not None:
             reduce(moments)
         n, total, squares = moments[0], moments[1:1 + x.shape[1]], moments[1 + x.shape[1]:]

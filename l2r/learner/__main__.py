@@ -21,6 +21,7 @@ from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
 from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
+from l2r.learner.steps import COMPILE_MODES  # noqa: E402
 from l2r.learner.td3 import TD3Config  # noqa: E402
 from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
 
@@ -44,6 +45,12 @@ class LearnerSettings(DaemonSettings):
                            "optimizers, alpha, version, counters)", group=PROCESS)
     device: Literal["auto", "cpu", "cuda"] = setting("auto", "where to train; auto = CUDA if available", group=PROCESS)
     threads: int = setting(0, "torch CPU threads; 0 = torch's default", group=PROCESS, ge=0)
+    compile: Literal[COMPILE_MODES] = setting(
+        "auto", "how SAC's and TD3's update runs: off (eager, one kernel launch per operation); graphs (its "
+        "update-repeat updates captured as one CUDA graph, replayed per batch; CUDA only, needs no compiler); inductor "
+        "(torch.compile's fused kernels; a C++ compiler on CPU, Triton on CUDA; compiles for a minute or more at "
+        "start); inductor-graphs (both, CUDA); auto = graphs on CUDA, off on CPU and for data-parallel ranks",
+        group=PROCESS)
     obs_dim: int = setting(41, "observation width", group=PROCESS, ge=1)
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)
     in_flight: int = setting(4, "sample requests kept in flight (PPO: a batch fetched ahead comes from an older "
@@ -151,6 +158,11 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
             raise UsageError("--layer-norm and --no-layer-norm contradict each other")
+        if self.compile not in ("auto", "off") and (self.algo == "ppo" or self.world_size > 1):
+            raise UsageError(f"--compile {self.compile} is for one SAC or TD3 learner: PPO loops over its own "
+                             "minibatches, and data-parallel ranks all-reduce their gradients eagerly")
+        if self.compile.endswith("graphs") and self.device == "cpu":
+            raise UsageError(f"--compile {self.compile} captures CUDA graphs: it needs --device cuda or auto")
         if self.algo == "ppo" and (self.mirror or self.prioritized):
             raise UsageError("--mirror and --prioritized are SAC's: PPO learns from the actors' own actions, in "
                              "order (their log-probabilities are of the actions as taken)")
@@ -202,6 +214,7 @@ class LearnerSettings(DaemonSettings):
     def learner(self) -> LearnerConfig:
         return LearnerConfig(
             run=self.run, run_dir=self.run_dir, resume=self.resume, device=self.device, threads=self.threads,
+            compile=self.compile,
             obs_dim=self.obs_dim, act_dim=self.act_dim, prioritized=self.prioritized,
             priority_beta=self.priority_beta, in_flight=self.in_flight, publish_every=self.publish_every,
             checkpoint_interval=self.checkpoint_interval, keep_checkpoints=self.keep_checkpoints,

@@ -20,8 +20,19 @@ def policy_spec(config, obs_dim: int, act_dim: int, kind: str = GAUSSIAN) -> dic
 
 
 def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.optim.Adam:
-    # The fused kernel exists on CPU and CUDA; it is the fastest Adam on both.
-    return torch.optim.Adam(params, lr=lr, eps=eps, fused=device.type in ("cpu", "cuda"))
+    # The fused kernel exists on CPU and CUDA; it is the fastest Adam on both. Capturable on CUDA:
+    # its step count and bias correction stay on the GPU, so a CUDA graph can hold the step.
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=device.type in ("cpu", "cuda"),
+                            capturable=device.type == "cuda")
+
+
+def load_adam_state(opt: torch.optim.Adam, saved: dict) -> None:
+    """Load a saved Adam state, keeping this optimizer's `capturable` (a saved one carries its own):
+    a checkpoint from a CPU then resumes on a GPU with an Adam a CUDA graph can hold."""
+    capturable = [group["capturable"] for group in opt.param_groups]
+    opt.load_state_dict(saved)
+    for group, flag in zip(opt.param_groups, capturable):
+        group["capturable"] = flag
 
 
 def bfloat16_pays(device: torch.device) -> bool:
@@ -47,5 +58,9 @@ class Transitions:
 
 def float_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
     """A float32 tensor of a replay array on `device`. Decoded messages are read-only views;
-    torch wants memory it may write, so those are copied once."""
-    return torch.from_numpy(np.require(a, np.float32, "W")).to(device, non_blocking=True)
+    torch wants memory it may write, so those are copied once. For a GPU the array goes through
+    pinned memory, so the copy is queued behind the device's work without the host waiting for it."""
+    tensor = torch.from_numpy(np.require(a, np.float32, "W"))
+    if torch.device(device).type == "cuda":
+        tensor = tensor.pin_memory()
+    return tensor.to(device, non_blocking=True)

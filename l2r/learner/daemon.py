@@ -3,9 +3,9 @@
 The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo`; this module
 only hosts them. Steady state:
 
-    replay client (sample queries in flight) -> batch -> the algorithm's step:
-        SAC, TD3: update x update_repeat on a batch from the replay table, priorities back
-                  (prioritized only)
+    replay client (sample queries in flight) -> batch, staged on the device -> the algorithm's step:
+        SAC, TD3: update x update_repeat on a batch from the replay table (eager, compiled or one
+                  CUDA graph: --compile), priorities back (prioritized only)
         PPO: one update (epochs x minibatches) on a batch from the queue table
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
            PPO after every batch (its data must come from the newest policy)
@@ -22,7 +22,8 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,7 @@ from l2r.learner.checkpoint import (
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
+from l2r.learner.steps import GradientSteps, resolve_mode
 from l2r.learner.td3 import TD3Config
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
@@ -59,6 +61,8 @@ class LearnerConfig:
     device: str = "auto"
     threads: int = 0
     """torch CPU threads; 0 keeps torch's default."""
+    compile: str = "auto"
+    """How SAC's and TD3's update runs: off, graphs, inductor, inductor-graphs or auto (l2r.learner.steps)."""
     obs_dim: int = 41
     act_dim: int = 18
     prioritized: bool = False
@@ -156,6 +160,10 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), and
+    # PPO loops over its own minibatches.
+    eager = config.world_size > 1 or isinstance(algo, PPOConfig)
+    config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     stop = threading.Event()
 
     def on_signal(signum: int, _frame) -> None:
@@ -168,9 +176,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
         state = _initial_state(config, algo, device)
         ALGORITHMS[algorithm_of(algo)][1].broadcast_state(state)
         bfloat16 = getattr(state, "bfloat16", False)  # PPO's state has no such option: it runs float32
-        log.info("%s rank %d on %s (%s matmuls, %d threads), version %d, %d updates so far", algorithm_of(algo).upper(),
-                 config.rank, device, "bfloat16" if bfloat16 else "float32", torch.get_num_threads(), state.version,
-                 state.updates)
+        log.info("%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
+                 algorithm_of(algo).upper(), config.rank, device, "bfloat16" if bfloat16 else "float32",
+                 torch.get_num_threads(), config.compile, state.version, state.updates)
         _serve(config, algo, state, conf, device, stop)
         return 0
     except CheckpointError as e:
@@ -232,41 +240,107 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
     return state
 
 
-def _replay_step(state: sac.TrainState | td3.TrainState, batch: SampleBatch, algo: SACConfig | TD3Config,
-                 config: LearnerConfig, replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
+def _replay_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> sac.Batch:
+    return sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
+                                batch.importance_weights(config.priority_beta) if batch.prioritized else None,
+                                device, batch.discounts)
+
+
+def _replay_step(state: sac.TrainState | td3.TrainState, tensors: sac.Batch, batch: SampleBatch,
+                 algo: SACConfig | TD3Config, replay: ReplayClient, steps: GradientSteps) -> dict[str, torch.Tensor]:
     """SAC's and TD3's step: update_repeat updates on one batch from the replay table."""
     algorithm = ALGORITHMS[algorithm_of(algo)][1]
-    tensors = sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
-                                   batch.importance_weights(config.priority_beta) if batch.prioritized else None,
-                                   device, batch.discounts)
-    tensors = algorithm.prepare(state, tensors, algo)
-    for _ in range(algo.update_repeat):
-        metrics = algorithm.update(state, tensors, algo)
+    metrics = steps(state, algorithm.prepare(state, tensors, algo))
     if batch.prioritized:
         replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
     return metrics
 
 
-def _ppo_step(state: ppo.TrainState, batch: SampleBatch, algo: PPOConfig, config: LearnerConfig,
-              replay: ReplayClient, device: torch.device) -> dict[str, torch.Tensor]:
-    return ppo.update(state, ppo.batch_from_sample(batch, device), algo)
+def _td3_step(state: td3.TrainState, tensors: sac.Batch, batch: SampleBatch, algo: TD3Config,
+              replay: ReplayClient, steps: GradientSteps) -> dict[str, torch.Tensor]:
+    """The replay step, then the exploration std the schedule gives at the new update count: set
+    here, outside the update, so that no compiled or captured update holds it."""
+    metrics = _replay_step(state, tensors, batch, algo, replay, steps)
+    td3.follow_exploration_schedule(state, algo)
+    return metrics
 
 
-# One batch's training, and whether weights go out after every batch (else every --publish-every updates).
-STEPS = {"sac": (_replay_step, False), "td3": (_replay_step, False), "ppo": (_ppo_step, True)}
+def _ppo_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> ppo.Batch:
+    return ppo.batch_from_sample(batch, device)
+
+
+def _ppo_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
+              replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
+    return ppo.update(state, tensors, algo)
+
+
+# Per algorithm: its batch as tensors on the device (staged while the update before it runs), its
+# training on one batch, the update its GradientSteps run (None: it loops over its own steps), and
+# whether weights go out after every batch (else every --publish-every updates).
+STEPS = {"sac": (_replay_batch, _replay_step, sac.update, False),
+         "td3": (_replay_batch, _td3_step, td3.update, False),
+         "ppo": (_ppo_batch, _ppo_step, None, True)}
+
+
+class Staging:
+    """Batches from replay, each converted and copied to the training device while the update
+    before it runs. On CUDA an update runs on the device after the host has queued it, so the
+    host takes the next batch meanwhile (pinned memory, a copy that does not wait for the device);
+    on CPU the update has run by then, and the conversion is all that comes ahead.
+
+    Waiting is counted only while the device has nothing to do: with no batch ready, the update
+    in flight is finished first, then the wait for replay is timed. At most two updates are
+    queued on the device, so the host never runs far ahead of it.
+    """
+
+    def __init__(self, replay: ReplayClient, config: LearnerConfig, stop: threading.Event, to_device,
+                 device: torch.device, meter: Meter):
+        self._replay, self._config, self._stop, self._to_device = replay, config, stop, to_device
+        self._device, self._meter = device, meter
+        self._staged: tuple[SampleBatch, object] | None = None
+        self._in_flight: deque[torch.cuda.Event] = deque()
+
+    def take(self) -> tuple[SampleBatch, object] | None:
+        """The next batch and its tensors: the staged one, else one waited for (None after 0.5 s)."""
+        if self._staged is None:
+            self._finish(0)
+            asked = time.monotonic()
+            batch = _next_batch(self._replay, self._config, self._stop, timeout=0.5)
+            self._meter.waited += time.monotonic() - asked
+            self._stage(batch)
+        self._finish(1)
+        staged, self._staged = self._staged, None
+        return staged
+
+    def ahead(self) -> None:
+        """After an update is queued: stage the next batch if replay has one ready."""
+        if self._device.type == "cuda":
+            self._in_flight.append(torch.cuda.Event())
+            self._in_flight[-1].record()
+        self._stage(_next_batch(self._replay, self._config, self._stop, timeout=0.0))
+
+    def _stage(self, batch: SampleBatch | None) -> None:
+        if batch is not None:
+            self._staged = batch, self._to_device(batch, self._config, self._device)
+
+    def _finish(self, keep: int) -> None:
+        """Wait until at most `keep` updates are still running on the device."""
+        while len(self._in_flight) > keep:
+            self._in_flight.popleft().synchronize()
 
 
 def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, replay: ReplayClient,
            outlet: WeightsOutlet | None, metrics_out: zenoh.Publisher, device: torch.device,
            stop: threading.Event) -> None:
-    step, publish_each_batch = STEPS[algorithm_of(algo)]
+    to_device, step, update, publish_each_batch = STEPS[algorithm_of(algo)]
+    steps = update and GradientSteps(update, algo, config.compile, device, algo.update_repeat,
+                                     policy_delay=getattr(algo, "policy_delay", None))
     meter = Meter()
+    staging = Staging(replay, config, stop, to_device, device, meter)
     last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None
     while True:
-        asked = time.monotonic()
-        batch = _next_batch(replay, config, stop)
-        meter.waited += time.monotonic() - asked
-        if batch is None and not stop.is_set():
+        staged = staging.take()
+        if staged is None and not stop.is_set():
             now = time.monotonic()
             waiting_since = waiting_since or now
             if now - waiting_since > 10.0:
@@ -279,8 +353,9 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
         done = config.max_updates and state.updates >= config.max_updates
         if any_rank(stop.is_set() or bool(done), device):
             return
+        batch, tensors = staged
         updates_before = state.updates
-        metrics = step(state, batch, algo, config, replay, device)
+        metrics = step(state, tensors, batch, algo, replay, steps)
         lag = float(state.version - np.mean(batch.policy_versions))
         meter.add(metrics, state.updates - updates_before, len(batch.obs), lag)
 
@@ -295,6 +370,8 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
                 outlet.publish(state)
                 replay.learner_version = state.version
             last_publish = state.updates
+        # After a publication, so that PPO's next batch is asked for once the actors have its weights.
+        staging.ahead()
         if now - meter.since >= config.metrics_interval:
             _report(config, state, meter.report(now), metrics_out)
         if outlet and now - last_checkpoint >= config.checkpoint_interval:
@@ -302,12 +379,13 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
             last_checkpoint = now
 
 
-def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Event) -> SampleBatch | None:
-    """The next well-shaped batch, or None after a short wait (so stop requests are seen)."""
+def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Event,
+                timeout: float) -> SampleBatch | None:
+    """The next well-shaped batch, or None after `timeout` seconds (short, so stop requests are seen)."""
     if stop.is_set():
         return None
     try:
-        batch = replay.sample(timeout=0.5)
+        batch = replay.sample(timeout=timeout)
     except queue.Empty:
         return None
     if batch.obs.shape[1] != config.obs_dim or batch.actions.shape[1] != config.act_dim:

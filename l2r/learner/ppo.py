@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from l2r.learner.common import Transitions, adam, float_tensor, policy_spec
+from l2r.learner.common import Transitions, adam, float_tensor, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, LOG_STD_MAX, LOG_STD_MIN, Policy, mlp_trunk, to_tanh_space
 from l2r.protocol import SampleBatch
@@ -149,7 +149,7 @@ class TrainState:
     def load_state_dict(self, saved: Mapping) -> None:
         self.actor.load_state_dict(saved["actor"])
         self.value.load_state_dict(saved["value"])
-        self.optimizer.load_state_dict(saved["optimizer"])
+        load_adam_state(self.optimizer, saved["optimizer"])
         self.updates, self.version = int(saved["updates"]), int(saved["version"])
         self.extra = dict(saved.get("extra", {}))
 

@@ -2,18 +2,21 @@
 
 `update(state, batch, config)` is the whole algorithm, in CleanRL's order: soft Bellman target,
 twin-critic loss and step, actor loss and step, temperature (alpha) loss and step, Polyak copy
-of the target critics. The learner daemon and the tests call this same function.
+of the target critics. The learner daemon and the tests call this same function, the daemon
+through `steps.GradientSteps`, which counts the updates and may compile the update or capture it
+as a CUDA graph: so it never reads a value back to the host and branches only on the config.
 
 Where the speed comes from: both critics run as one batched network; the actor loss
 differentiates the critics with respect to the action only (their weights are detached, so no
 weight gradients are computed there); hidden-layer matmuls run in bfloat16 where the hardware
 does it natively (`precision`); the optimizers use the fused Adam kernels; and nothing here
-reads a value back to Python (metrics stay tensors).
+reads a value back to Python (metrics stay tensors), so a GPU never waits for the host.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import re
 from dataclasses import asdict, dataclass, field, replace
@@ -24,7 +27,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.learner.common import Transitions, adam, bfloat16_pays, float_tensor, policy_spec
+from l2r.learner.common import Transitions, adam, bfloat16_pays, float_tensor, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
 from l2r.sim import layout
@@ -168,20 +171,22 @@ class TrainState:
         return torch.autocast(self.log_alpha.device.type, dtype=torch.bfloat16, enabled=self.bfloat16)
 
     def state_dict(self) -> dict:
-        return {name: getattr(self, name).state_dict() for name in _MODULES} | {
+        return {name: getattr(self, name).state_dict() for name in (*_MODULES, *_OPTIMIZERS)} | {
             "log_alpha": self.log_alpha.detach().cpu().clone(),
             "updates": self.updates, "version": self.version, "extra": dict(self.extra)}
 
     def load_state_dict(self, saved: Mapping) -> None:
         for name in _MODULES:
             getattr(self, name).load_state_dict(saved[name])
+        for name in _OPTIMIZERS:
+            load_adam_state(getattr(self, name), saved[name])
         with torch.no_grad():
             self.log_alpha.copy_(saved["log_alpha"])
         self.updates, self.version = int(saved["updates"]), int(saved["version"])
         self.extra = dict(saved.get("extra", {}))
 
 
-_MODULES = ("actor", "critic", "target_critic", "actor_opt", "critic_opt", "alpha_opt")
+_MODULES, _OPTIMIZERS = ("actor", "critic", "target_critic"), ("actor_opt", "critic_opt", "alpha_opt")
 
 
 def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
@@ -234,13 +239,19 @@ def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, ne
                  None if discounts is None else float_tensor(discounts, device).reshape(-1))
 
 
+@functools.cache
+def _mirror_permutations(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """layout's leg-swapping permutations on `device`, made once: a copy from host memory to a GPU
+    would wait for the device's queued work on every batch."""
+    return torch.as_tensor(layout.MIRROR_OBS, device=device), torch.as_tensor(layout.MIRROR_ACTION, device=device)
+
+
 def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
     """Once per sampled batch, before its gradient steps: mirror a random half of it (config.mirror)
     and add its observations to the running statistics the networks' inputs are standardised by."""
     if config.mirror:
         swap = torch.rand(len(batch.obs), 1, device=batch.obs.device) < 0.5
-        obs_mirror = torch.as_tensor(layout.MIRROR_OBS, device=batch.obs.device)
-        action_mirror = torch.as_tensor(layout.MIRROR_ACTION, device=batch.obs.device)
+        obs_mirror, action_mirror = _mirror_permutations(batch.obs.device)
         batch = replace(batch, obs=torch.where(swap, batch.obs[:, obs_mirror], batch.obs),
                         action=torch.where(swap, batch.action[:, action_mirror], batch.action),
                         next_obs=torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs))
@@ -249,7 +260,8 @@ def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
 
 
 def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torch.Tensor]:
-    """One SAC gradient step. Returns detached metrics tensors and `priorities` (|TD error|, per sample)."""
+    """One SAC gradient step. Returns detached metrics tensors and `priorities` (|TD error|, per sample).
+    `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
     alpha = state.log_alpha.detach().exp()
     # The critics see observations through the policy's filter; the policy applies it itself.
     with torch.no_grad():
@@ -297,7 +309,6 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     with torch.no_grad():
         torch._foreach_lerp_(list(state.target_critic.parameters()), list(state.critic.parameters()),
                              config.tau)
-    state.updates += 1
 
     return {
         "critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(),

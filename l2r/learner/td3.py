@@ -1,22 +1,24 @@
 """Twin Delayed DDPG (TD3): settings, training state and the update, apart from any process.
 
-`update(state, batch, config)` is the whole algorithm, in CleanRL's order: the clipped double-Q
-target of a smoothed target action, the twin-critic loss and step, and on every `policy_delay`-th
-update the deterministic actor's step and the Polyak copy of target actor and target critics.
-The learner daemon and the tests call this same function.
+`update(state, batch, config, actor_step)` is the whole algorithm, in CleanRL's order: the clipped
+double-Q target of a smoothed target action, the twin-critic loss and step, and, on the updates
+whose `actor_step` is True (every `policy_delay`-th), the deterministic actor's step and the Polyak
+copy of target actor and target critics. The learner daemon and the tests call this same function
+through `steps.GradientSteps`, which counts the updates, decides `actor_step` from the count, and
+may compile the update or capture it as CUDA graphs.
 
 Two additions to Fujimoto et al.'s algorithm, both off by default:
 - n-step returns (`n_step`): the replay server sums the rewards of n steps and gives each sample
   its bootstrap's discount (`Batch.discounts`), so the target needs no knowledge of the window.
 - a linear schedule of the exploration noise (`exploration_std_*`), as DrQ-v2 decays it. The
-  std is a buffer of the policy (`DeterministicPolicy.exploration_std`): set after every update,
-  it goes out with every weights message and checkpoint, and the actors explore with it.
+  std is a buffer of the policy (`DeterministicPolicy.exploration_std`): set after every batch's
+  updates (`follow_exploration_schedule`), it goes out with every weights message and checkpoint,
+  and the actors explore with it.
 
 The critics, the batches, the precision options and the speed measures are SAC's
 (`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; its one
-branch (the policy delay) is taken on the Python update counter, not on a tensor, so steps 1-3
-make two graphs, with and without the actor step; step 4 writes the next exploration std from
-Python and stays outside them (the target noise reads the std's buffer, not a Python float).
+branch is on the `actor_step` bool, never on a tensor or a counter; the exploration std is written
+from Python outside it (the target noise reads the std's buffer, not a Python float).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from typing import Mapping
 import torch
 
 from l2r.learner import sac
-from l2r.learner.common import adam, bfloat16_pays, policy_spec
+from l2r.learner.common import adam, bfloat16_pays, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast
 from l2r.learner.sac import Batch, TwinCritic
 from l2r.policy import ACTIVATIONS, DETERMINISTIC, DeterministicPolicy
@@ -146,17 +148,19 @@ class TrainState:
         return torch.autocast(self.actor.head.weight.device.type, dtype=torch.bfloat16, enabled=self.bfloat16)
 
     def state_dict(self) -> dict:
-        return {name: getattr(self, name).state_dict() for name in _MODULES} | {
+        return {name: getattr(self, name).state_dict() for name in (*_MODULES, *_OPTIMIZERS)} | {
             "updates": self.updates, "version": self.version, "extra": dict(self.extra)}
 
     def load_state_dict(self, saved: Mapping) -> None:
         for name in _MODULES:
             getattr(self, name).load_state_dict(saved[name])
+        for name in _OPTIMIZERS:
+            load_adam_state(getattr(self, name), saved[name])
         self.updates, self.version = int(saved["updates"]), int(saved["version"])
         self.extra = dict(saved.get("extra", {}))
 
 
-_MODULES = ("actor", "target_actor", "critic", "target_critic", "actor_opt", "critic_opt")
+_MODULES, _OPTIMIZERS = ("actor", "target_actor", "critic", "target_critic"), ("actor_opt", "critic_opt")
 
 
 def init_state(config: TD3Config, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
@@ -184,9 +188,17 @@ def init_state(config: TD3Config, obs_dim: int, act_dim: int, device: str | torc
 prepare = sac.prepare
 
 
-def update(state: TrainState, batch: Batch, config: TD3Config) -> dict[str, torch.Tensor]:
-    """One TD3 gradient step. Returns detached metrics tensors (`actor_loss` on actor updates only)
-    and `priorities` (|TD error|, per sample)."""
+def follow_exploration_schedule(state: TrainState, config: TD3Config) -> None:
+    """Set the exploration std the schedule gives after `state.updates` updates: what the next
+    publication carries. Called after each batch's updates, outside them, so that no compiled or
+    captured update holds the Python float."""
+    state.actor.exploration_std.fill_(exploration_std(config, state.updates))
+
+
+def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool) -> dict[str, torch.Tensor]:
+    """One TD3 gradient step: the critics', and the actor's and the targets' if `actor_step`.
+    Returns detached metrics tensors (`actor_loss` on actor steps only) and `priorities`
+    (|TD error|, per sample). `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
     # The critics see observations through the policy's filter; the policies apply it themselves.
     with torch.no_grad():
         critic_obs = state.actor.observation_filter(batch.obs)
@@ -218,8 +230,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config) -> dict[str, torc
 
     # 3. Delayed: the actor ascends Q1 of its own action against the updated critics (their
     #    weights detached: only dQ/da is needed), then the targets follow by Polyak averaging.
-    state.updates += 1
-    if state.updates % config.policy_delay == 0:
+    if actor_step:
         with state.autocast():
             q_pi = state.critic(critic_obs, state.actor(batch.obs), detach_weights=True, critics=1)[0]
         actor_loss = -q_pi.mean()
@@ -232,8 +243,6 @@ def update(state: TrainState, batch: Batch, config: TD3Config) -> dict[str, torc
                                  [*state.actor.parameters(), *state.critic.parameters()], config.tau)
         metrics["actor_loss"] = actor_loss.detach()
 
-    # 4. The exploration std of the schedule's next step: what the next publication carries.
-    state.actor.exploration_std.fill_(exploration_std(config, state.updates))
     return metrics | {"exploration_std": state.actor.exploration_std.clone()}
 
 

@@ -15,6 +15,7 @@ from l2r.learner.checkpoint import (
 )
 from l2r.learner.distributed import DeviceUnavailable, select_device
 from l2r.learner.sac import SACConfig, batch_from_numpy, init_state, update
+from l2r.learner.steps import GradientSteps
 from l2r.policy import act, policy_state
 
 OBS, ACT = 5, 3
@@ -29,8 +30,9 @@ def batch(seed: int):
 def test_round_trip_is_exact_and_training_continues_identically(tmp_path):
     config = SACConfig(hidden=(16, 16), precision="float32")
     state = init_state(config, OBS, ACT, seed=0)
+    steps = GradientSteps(update, config)
     for step in range(3):
-        update(state, batch(step), config)
+        steps(state, batch(step))
     state.version, state.extra = 7, {"samples": 96}
     save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
 
@@ -49,6 +51,19 @@ def test_round_trip_is_exact_and_training_continues_identically(tmp_path):
         assert torch.equal(value, restored.actor.state_dict()[key])
     obs = np.random.default_rng(2).normal(size=(4, OBS))
     np.testing.assert_array_equal(act(saved.policy(), obs, True), act(state.actor.eval(), obs, True))
+
+
+def test_loading_keeps_the_optimizers_own_capturable_flag(tmp_path):
+    # On CUDA the optimizers are capturable (common.adam), which a CUDA graph of the update needs;
+    # a checkpoint saved on a CPU says capturable=False and must not turn it off when resumed there.
+    config = SACConfig(hidden=(8,), precision="float32")
+    saved = init_state(config, OBS, ACT, seed=0).state_dict()
+    state = init_state(config, OBS, ACT)
+    optimizers = (state.actor_opt, state.critic_opt, state.alpha_opt)
+    for group in (group for opt in optimizers for group in opt.param_groups):
+        group["capturable"] = True  # as on a GPU
+    state.load_state_dict(saved)
+    assert all(group["capturable"] for opt in optimizers for group in opt.param_groups)
 
 
 def test_save_replaces_atomically_and_leaves_no_temporary_files(tmp_path):

@@ -10,7 +10,8 @@ def test_help_explains_and_exits_zero(capsys):
         cli(["--help"])
     assert exit_.value.code == 0
     out = capsys.readouterr().out
-    for flag in ("--resume", "--device", "--world-size", "--update-repeat", "--publish-every", "--precision"):
+    for flag in ("--resume", "--device", "--world-size", "--update-repeat", "--publish-every", "--precision",
+                 "--compile"):
         assert flag in out
 
 
@@ -20,6 +21,9 @@ def test_help_explains_and_exits_zero(capsys):
     (["--world-size", "2", "--rank", "2"], "--rank 2 must be below --world-size 2"),
     (["--in-flight", "0"], "--in-flight 0: should be greater than or equal to 1"),
     (["--device", "tpu"], "--device tpu: should be 'auto', 'cpu' or 'cuda'"),
+    (["--compile", "graphs", "--device", "cpu"], "--compile graphs captures CUDA graphs: it needs --device cuda"),
+    (["--compile", "inductor", "--algo", "ppo"], "--compile inductor is for one SAC or TD3 learner"),
+    (["--compile", "graphs", "--world-size", "2"], "--compile graphs is for one SAC or TD3 learner"),
 ])
 def test_bad_arguments_are_usage_errors(argv, message, capsys):
     assert cli(argv) == 2
@@ -44,6 +48,9 @@ def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(capsys, monkeypatch)
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     assert cli(["--device", "cuda", "--run", "nothing-here"]) == 1
     assert "no CUDA device" in capsys.readouterr().err
+    assert cli(["--compile", "graphs", "--run", "nothing-here"]) == 1  # --device auto found no GPU
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--compile graphs captures CUDA graphs: it needs a CUDA device" in err, err
 
 
 def test_config_file_supplies_defaults(tmp_path):

@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import act, build_policy, load_policy_state
@@ -82,6 +83,29 @@ def test_learner_waits_through_a_replay_restart(network, tmp_path):
         watcher.wait(lambda v: len(v) >= seen + 3, 60, "training after the restart", learner)
         assert learner.stop() == 0
         assert all("rejected message" not in daemon.log() for daemon in (learner, network.replay, replay))
+    finally:
+        feeder.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_gpu_learner_trains_with_its_updates_as_one_cuda_graph(network, tmp_path):
+    # Batches staged ahead on the GPU, prioritized (priorities read back each batch), mirrored and
+    # normalised (both change the batch and the statistics outside the graph), the graph replayed.
+    run_dir = tmp_path / "run"
+    feeder = Feeder(network.session, network.run)
+    watcher = WeightsWatcher(network.session, network.run)
+    try:
+        learner = network.start("l2r.learner", *learner_args(network, run_dir, "--device", "cuda", "--compile",
+                                                             "graphs", "--prioritized", "--mirror", "--normalize-obs"),
+                                name="learner")
+        watcher.wait(lambda v: len(v) >= 6 and any(m["updates_per_s"] > 0 for m in watcher.metrics), 90,
+                     "versions and a metrics report from the graphed learner", learner)
+        assert learner.stop() == 0, learner.log()
+        assert "compile graphs" in learner.log()
+        assert load_checkpoint(run_dir).updates >= 100
+        reports = [m for m in watcher.metrics if m["updates_per_s"] > 0]
+        assert reports and all(np.isfinite(m["critic_loss"]) and 0 <= m["wait_fraction"] <= 1 for m in reports)
     finally:
         feeder.stop()
 

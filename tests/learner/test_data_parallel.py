@@ -23,6 +23,7 @@ def worker(rank: int, world_size: int, url: str, out: str, device: str = "cpu", 
     from l2r.learner.checkpoint import ALGORITHMS
     from l2r.learner.distributed import close_distributed, init_distributed
     from l2r.learner.sac import batch_from_numpy
+    from l2r.learner.steps import GradientSteps
 
     torch.set_num_threads(1)
     init_distributed(world_size, rank, url, torch.device(device), timeout_s=60)
@@ -30,6 +31,7 @@ def worker(rank: int, world_size: int, url: str, out: str, device: str = "cpu", 
     config = config_class(hidden=(16, 16), precision="float32")
     state = algorithm.init_state(config, 5, 3, device, seed=100 + rank)  # different on purpose
     algorithm.broadcast_state(state)
+    steps = GradientSteps(algorithm.update, config, policy_delay=getattr(config, "policy_delay", None))  # as the daemon
     targets = [state.target_critic, *([state.target_actor] if algo == "td3" else [])]
     rng = np.random.default_rng(rank)  # each rank samples its own batches
     records = []
@@ -39,7 +41,7 @@ def worker(rank: int, world_size: int, url: str, out: str, device: str = "cpu", 
         records.append(flat.tolist())
         batch = batch_from_numpy(rng.normal(size=(32, 5)), rng.random((32, 3)), rng.normal(size=32),
                                  rng.normal(size=(32, 5)), rng.random(32) < 0.1, device=device)
-        algorithm.update(state, batch, config)
+        steps(state, batch)
     Path(out).write_text(json.dumps(records))
     close_distributed()
 

@@ -38,7 +38,6 @@ def test_update_gives_finite_metrics_and_moves_every_network(precision, layer_no
     after = [state.actor.state_dict(), state.critic.state_dict(), state.target_critic.state_dict()]
     for old, new in zip(before, after):
         assert any(not torch.equal(old[k], new[k]) for k in old)
-    assert state.updates == 1
 
 
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])

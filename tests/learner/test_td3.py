@@ -15,7 +15,8 @@ from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkp
 from l2r.learner.daemon import Meter
 from l2r.learner.sac import SACConfig, batch_from_numpy
 from l2r.learner.sac import init_state as init_sac_state
-from l2r.learner.td3 import TD3Config, exploration_std, init_state, update
+from l2r.learner.steps import GradientSteps
+from l2r.learner.td3 import TD3Config, exploration_std, follow_exploration_schedule, init_state, update
 from l2r.policy import (
     DeterministicPolicy, Policy, act, act_with_log_prob, build_policy, check_spec, load_policy_state, policy_state,
     to_excitation,
@@ -29,6 +30,14 @@ OBS, ACT = 5, 3
 def small_config(**overrides) -> TD3Config:
     base = dict(hidden=(32, 32), batch_size=64, precision="float32")
     return TD3Config(**(base | overrides))
+
+
+def train_step(state, batch, config: TD3Config) -> dict[str, torch.Tensor]:
+    """One update as the learner takes it: counted, its actor step decided by the count, the
+    exploration std set after it."""
+    metrics = GradientSteps(update, config, policy_delay=config.policy_delay)(state, batch)
+    follow_exploration_schedule(state, config)
+    return metrics
 
 
 def random_batch(n: int = 64, seed: int = 0, terminated=0.0, discounts=None):
@@ -57,7 +66,7 @@ def test_two_updates_give_finite_metrics_and_move_every_network(precision):
     networks = ("actor", "critic", "target_actor", "target_critic")
     before = {name: copy.deepcopy(getattr(state, name).state_dict()) for name in networks}
     for step in range(2):
-        metrics = update(state, random_batch(seed=step), config)
+        metrics = train_step(state, random_batch(seed=step), config)
     assert {"critic_loss", "actor_loss", "q_mean", "target_mean", "exploration_std"} <= set(metrics)
     for name, value in metrics.items():
         assert torch.isfinite(value).all(), name
@@ -72,7 +81,7 @@ def trained_state(config: TD3Config, seed: int):
     """A state a few updates in, its target networks well apart from the online ones (tau 0.5)."""
     state = init_state(replace(config, tau=0.5, policy_delay=1), OBS, ACT, seed=seed)
     for step in range(4):
-        update(state, random_batch(seed=100 + step), replace(config, tau=0.5, policy_delay=1))
+        train_step(state, random_batch(seed=100 + step), replace(config, tau=0.5, policy_delay=1))
     return state
 
 
@@ -85,7 +94,7 @@ def test_the_n_step_target_bootstraps_with_the_batch_s_discounts():
     batch = random_batch(n=4, seed=2, terminated=np.array([0.0, 1.0, 0.0, 0.0]), discounts=discounts)
     expected = hand_target(state, batch, config, torch.as_tensor(discounts))
     expected_priorities = priorities_for(state, batch, expected)
-    metrics = update(state, batch, config)
+    metrics = train_step(state, batch, config)
     torch.testing.assert_close(metrics["target_mean"], expected.mean())
     torch.testing.assert_close(metrics["priorities"], expected_priorities)
     # gamma * (1 - terminated) would have bootstrapped the second sample and discounted the rest by 0.9.
@@ -99,7 +108,7 @@ def test_the_one_step_target_is_cut_by_a_termination_only():
     batch = random_batch(n=6, seed=4, terminated=np.array([1.0, 0.0, 1.0, 0.0, 0.0, 1.0]))
     expected = hand_target(state, batch, config, 0.5 * (1.0 - batch.terminated))
     expected_priorities = priorities_for(state, batch, expected)
-    metrics = update(state, batch, config)
+    metrics = train_step(state, batch, config)
     torch.testing.assert_close(metrics["priorities"], expected_priorities)
     torch.testing.assert_close(metrics["target_mean"], expected.mean())
 
@@ -114,7 +123,7 @@ def recorded_target_actions(config: TD3Config, target_action: float, n: int = 51
     seen = []
     forward = state.target_critic.forward
     state.target_critic.forward = lambda obs, action, **kw: seen.append(action) or forward(obs, action, **kw)
-    update(state, random_batch(n=n, seed=6), config)
+    train_step(state, random_batch(n=n, seed=6), config)
     (actions,) = seen
     return actions
 
@@ -147,8 +156,8 @@ def test_the_exploration_schedule_is_linear_then_constant_and_the_weights_carry_
     for updates in range(11):
         published = policy_state(state.actor)["exploration_std"]  # what WeightsOutlet sends
         assert float(published) == pytest.approx(exploration_std(config, updates)), updates
-        metrics = update(state, random_batch(seed=updates), config)
-        assert float(metrics["exploration_std"]) == pytest.approx(exploration_std(config, updates + 1))
+        metrics = train_step(state, random_batch(seed=updates), config)
+        assert float(metrics["exploration_std"]) == pytest.approx(exploration_std(config, updates)), updates
 
 
 def test_the_actor_and_the_targets_move_on_every_policy_delay_th_update_only():
@@ -157,7 +166,7 @@ def test_the_actor_and_the_targets_move_on_every_policy_delay_th_update_only():
     networks = {name: getattr(state, name) for name in ("actor", "critic", "target_actor", "target_critic")}
     for updates in range(1, 7):
         before = {name: [p.detach().clone() for p in net.parameters()] for name, net in networks.items()}
-        metrics = update(state, random_batch(seed=updates), config)
+        metrics = train_step(state, random_batch(seed=updates), config)
         moved = {name: any(not torch.equal(old, new) for old, new in zip(before[name], net.parameters()))
                  for name, net in networks.items()}
         delayed = updates % 3 == 0
@@ -165,11 +174,30 @@ def test_the_actor_and_the_targets_move_on_every_policy_delay_th_update_only():
         assert ("actor_loss" in metrics) == delayed
 
 
+def test_with_several_updates_a_batch_the_actor_steps_on_every_policy_delay_th_update_of_the_run():
+    config = small_config(policy_delay=3, update_repeat=2)
+    state = init_state(config, OBS, ACT, seed=14)
+    state.updates = 1  # as resumed: the delay counts over the run, not from this process's start
+    actor_moved = []
+
+    def recorded(state, batch, config, actor_step):
+        before = [p.detach().clone() for p in state.actor.parameters()]
+        metrics = update(state, batch, config, actor_step)
+        actor_moved.append(any(not torch.equal(old, new) for old, new in zip(before, state.actor.parameters())))
+        return metrics
+
+    steps = GradientSteps(recorded, config, repeat=config.update_repeat, policy_delay=config.policy_delay)
+    for call in range(5):
+        steps(state, random_batch(seed=call))
+        assert state.updates == 1 + 2 * (call + 1)
+    assert actor_moved == [index % 3 == 0 for index in range(2, 12)]
+
+
 def test_the_actor_loss_is_minus_q1_of_its_own_action_against_the_updated_critics():
     config = small_config(policy_delay=1)
     state = trained_state(config, seed=12)
     actor_before, batch = copy.deepcopy(state.actor), random_batch(seed=13)
-    metrics = update(state, batch, config)
+    metrics = train_step(state, batch, config)
     with torch.no_grad():  # the critic step came first; the actor step changes no critic
         q = state.critic(state.actor.observation_filter(batch.obs), actor_before(batch.obs))
     torch.testing.assert_close(metrics["actor_loss"], -q[0].mean())
@@ -180,7 +208,7 @@ def test_targets_follow_by_polyak_averaging_on_actor_updates():
     config = small_config(tau=0.25, policy_delay=1)
     state = init_state(config, OBS, ACT, seed=9)
     old = [copy.deepcopy(m.state_dict()) for m in (state.target_actor, state.target_critic)]
-    update(state, random_batch(), config)
+    train_step(state, random_batch(), config)
     for target, online, before in zip((state.target_actor, state.target_critic), (state.actor, state.critic), old):
         for name, value in online.named_parameters():
             torch.testing.assert_close(target.state_dict()[name], 0.75 * before[name] + 0.25 * value.detach())
@@ -191,7 +219,7 @@ def test_a_checkpoint_restores_training_exactly_and_eval_reads_its_policy(tmp_pa
                           normalize_obs=True, target_noise=None)
     state = init_state(config, OBS, ACT, seed=10)
     for step in range(3):
-        update(state, random_batch(seed=step), config)
+        train_step(state, random_batch(seed=step), config)
     state.version, state.extra = 4, {"samples": 192}
     save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
     actor_as_saved = copy.deepcopy(state.actor).eval()
@@ -204,9 +232,9 @@ def test_a_checkpoint_restores_training_exactly_and_eval_reads_its_policy(tmp_pa
     assert restored.target_actor.observation_filter is restored.actor.observation_filter
     for step in (3, 4):  # update 4 is an actor update
         torch.manual_seed(step)
-        metrics_a = update(state, random_batch(seed=step), config)
+        metrics_a = train_step(state, random_batch(seed=step), config)
         torch.manual_seed(step)
-        metrics_b = update(restored, random_batch(seed=step), config)
+        metrics_b = train_step(restored, random_batch(seed=step), config)
         for name in metrics_a:  # networks, targets, optimizer moments, statistics, schedule: the same step
             torch.testing.assert_close(metrics_a[name], metrics_b[name], rtol=0, atol=0)
     for a, b in zip(state.parameters(), restored.parameters()):

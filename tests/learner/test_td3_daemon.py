@@ -32,7 +32,9 @@ def test_td3_trains_on_an_actor_s_experience_publishes_its_schedule_and_checkpoi
     actor = network.start("l2r.actors", "--run", network.run, "--connect", network.endpoint, "--env-id",
                           "tests.actors.standin:StandIn-v0", "--num-envs", "4", "--chunk-size", "16",
                           "--random-steps", "0", name="actor")
-    watcher.wait(lambda v: v and v[-1] >= 7, 90, "version 7", learner)
+    # A metrics report of training too: a fast learner reaches version 7 before its first report.
+    watcher.wait(lambda v: v and v[-1] >= 7 and any(m["updates_per_s"] > 0 for m in watcher.metrics), 90,
+                 "version 7 and a report of training", learner)
     assert learner.stop(signal.SIGTERM) == 0, learner.log()
     assert actor.stop(signal.SIGTERM) == 0, actor.log()
 

@@ -1,0 +1,93 @@
+"""Gradient steps eager, compiled and captured: the same training, counted outside the update."""
+
+import copy
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.learner import sac, td3
+from l2r.learner.distributed import DeviceUnavailable
+from l2r.learner.steps import WARMUP_CALLS, GradientSteps, resolve_mode
+from tests.learner.test_sac import ACT, OBS, random_batch, small_config
+from tests.learner.test_td3 import small_config as td3_config
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+COMPILER = pytest.mark.skipif(not (shutil.which("c++") or shutil.which("g++")),
+                              reason="inductor needs a C++ compiler on CPU")
+
+
+def sac_setup():
+    return sac, small_config(hidden=(16,), batch_size=32, tau=0.25, actor_lr=1e-2, critic_lr=1e-2, alpha_lr=1e-2,
+                             normalize_obs=True, update_repeat=2)
+
+
+def td3_setup():
+    # The target noise at the scheduled exploration std, which changes outside the update between calls;
+    # 3 updates a batch with an actor step every 2nd: two patterns of actor steps, alternating.
+    return td3, td3_config(hidden=(16,), batch_size=32, tau=0.25, actor_lr=1e-2, critic_lr=1e-2,
+                           normalize_obs=True, update_repeat=3, policy_delay=2, target_noise=None,
+                           exploration_std_start=1.0, exploration_std_end=0.1, exploration_std_updates=60)
+
+
+@pytest.mark.parametrize("setup", [sac_setup, td3_setup])
+@pytest.mark.parametrize("device, mode", [
+    pytest.param("cpu", "inductor", marks=[COMPILER, pytest.mark.compile]),
+    pytest.param("cuda", "graphs", marks=CUDA),
+    pytest.param("cuda", "inductor", marks=[CUDA, pytest.mark.compile]),
+    pytest.param("cuda", "inductor-graphs", marks=[CUDA, pytest.mark.compile]),
+])
+def test_compiled_steps_train_as_the_eager_ones(device, mode, setup):
+    # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once;
+    # normalised inputs, whose statistics change outside the update (in prepare) between calls;
+    # n-step discounts, a batch field the graphs must copy in too.
+    algorithm, config = setup()
+    delay = getattr(config, "policy_delay", None)
+    eager_state = algorithm.init_state(config, OBS, ACT, device, seed=0)
+    compiled_state = copy.deepcopy(eager_state)
+    eager = GradientSteps(algorithm.update, config, "off", device, config.update_repeat, delay)
+    compiled = GradientSteps(algorithm.update, config, mode, device, config.update_repeat, delay)
+    # Past the warm-up of every pattern of actor steps, so that each graph is captured, then replayed.
+    calls = (WARMUP_CALLS + 3) * (delay or 1)
+    for call in range(calls):
+        rng = np.random.default_rng(call)
+        batch = sac.batch_from_numpy(rng.normal(size=(32, OBS)), rng.random((32, ACT)), rng.normal(size=32),
+                                     rng.normal(size=(32, OBS)), rng.random(32) < 0.2, rng.random(32), device,
+                                     rng.random(32))
+        results = []
+        for state, steps in ((eager_state, eager), (compiled_state, compiled)):
+            torch.manual_seed(call)
+            metrics = steps(state, algorithm.prepare(state, batch, config))
+            results.append({name: value.clone() for name, value in metrics.items()})  # a graph's are overwritten
+            if algorithm is td3:
+                td3.follow_exploration_schedule(state, config)
+        expected, got = results
+        assert got.keys() == expected.keys(), call
+        for name in expected:
+            torch.testing.assert_close(got[name], expected[name], rtol=1e-4, atol=1e-5, msg=f"{name}, call {call}")
+    assert compiled_state.updates == eager_state.updates == config.update_repeat * calls
+    torch.testing.assert_close(compiled_state.state_dict(), eager_state.state_dict(), rtol=1e-4, atol=1e-5)
+
+
+def test_steps_count_the_updates_of_their_one_state():
+    config = small_config()
+    state = sac.init_state(config, OBS, ACT, seed=0)
+    steps = GradientSteps(sac.update, config, repeat=3)
+    before = copy.deepcopy(state.critic.state_dict())
+    steps(state, random_batch())
+    assert state.updates == 3
+    assert any(not torch.equal(before[k], v) for k, v in state.critic.state_dict().items())
+    with pytest.raises(ValueError, match="state it first ran on"):
+        steps(sac.init_state(config, OBS, ACT, seed=1), random_batch())
+
+
+def test_auto_is_graphs_on_cuda_and_off_on_cpu_and_graphs_need_cuda():
+    assert resolve_mode("auto", torch.device("cuda")) == "graphs"
+    assert resolve_mode("auto", torch.device("cpu")) == "off"
+    assert resolve_mode("inductor", torch.device("cpu")) == "inductor"
+    for mode in ("graphs", "inductor-graphs"):
+        with pytest.raises(DeviceUnavailable, match="needs a CUDA device"):
+            resolve_mode(mode, torch.device("cpu"))
+    with pytest.raises(ValueError, match="compile mode must be one of"):
+        resolve_mode("fast", torch.device("cpu"))
