@@ -49,7 +49,7 @@ class LearnerSettings(DaemonSettings):
         "auto", "how SAC's and TD3's update runs: off (eager, one kernel launch per operation); graphs (its "
         "update-repeat updates captured as one CUDA graph, replayed per batch; CUDA only, needs no compiler); inductor "
         "(torch.compile's fused kernels; a C++ compiler on CPU, Triton on CUDA; compiles for a minute or more at "
-        "start); inductor-graphs (both, CUDA); auto = graphs on CUDA, off on CPU and for data-parallel ranks",
+        "start); inductor-graphs (both, CUDA); auto = off (graphs on CUDA once they have run on a GPU: docs/learner.md)",
         group=PROCESS)
     obs_dim: int = setting(41, "observation width", group=PROCESS, ge=1)
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)

@@ -82,8 +82,8 @@ def test_steps_count_the_updates_of_their_one_state():
         steps(sac.init_state(config, OBS, ACT, seed=1), random_batch())
 
 
-def test_auto_is_graphs_on_cuda_and_off_on_cpu_and_graphs_need_cuda():
-    assert resolve_mode("auto", torch.device("cuda")) == "graphs"
+def test_auto_is_off_until_graphs_have_run_on_a_gpu_and_graphs_need_cuda():
+    assert resolve_mode("auto", torch.device("cuda")) == "off"
     assert resolve_mode("auto", torch.device("cpu")) == "off"
     assert resolve_mode("inductor", torch.device("cpu")) == "inductor"
     for mode in ("graphs", "inductor-graphs"):
