@@ -1,8 +1,8 @@
 """Training recipes of `l2r up`: every hyperparameter of a job, per task family and algorithm.
 
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
-comes from the task (l2r.families): `runner` for the Learning to Run runner (ids starting with
-``l2r/``), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
+comes from the task (l2r.families): `runner` for the Learning to Run runner (`l2r/Run-v0`,
+`l2r/RunOpenSim-v0`), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
 family's recipe, and each setting has an `l2r up` flag of its own name that replaces the
 recipe's value.
 

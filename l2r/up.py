@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc = p.add_argument_group("recipe: every hyperparameter of the job, from the recipe of the task's family and "
                               "algorithm (docs/training.md, \"Recipes\") unless its flag is given")
     rc.add_argument("--recipe", choices=FAMILIES,
-                    help="train with this family's recipe (unset: the family of --env-id: runner for l2r/ ids, "
+                    help="train with this family's recipe (unset: the family of --env-id: runner for the runner's l2r/Run ids, "
                          "standard for any other task), e.g. --recipe runner on Hopper-v5 to set the two against "
                          "each other")
     for name, text in SETTINGS.items():
