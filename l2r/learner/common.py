@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from l2r.policy import GAUSSIAN, check_spec
+from l2r.policy import ACTIVATIONS, GAUSSIAN, check_spec
 
 
 def policy_spec(config, obs_dim: int, act_dim: int, kind: str = GAUSSIAN) -> dict:
@@ -17,6 +17,17 @@ def policy_spec(config, obs_dim: int, act_dim: int, kind: str = GAUSSIAN) -> dic
     return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
                        "activation": config.activation, "layer_norm": config.layer_norm,
                        "relative_x": config.relative_x, "normalize_obs": config.normalize_obs, "kind": kind})
+
+
+def check_off_policy(config) -> None:
+    """The checks SACConfig and TD3Config share (their networks, discount, Polyak rate and precision);
+    ValueError saying what is wrong."""
+    if config.activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {config.activation!r}")
+    if not 0.0 <= config.gamma <= 1.0 or not 0.0 < config.tau <= 1.0:
+        raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {config.gamma}, {config.tau}")
+    if config.precision not in ("auto", "float32", "bfloat16"):
+        raise ValueError(f"precision must be auto, float32 or bfloat16, got {config.precision!r}")
 
 
 def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.optim.Adam:

@@ -27,7 +27,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.learner.common import Transitions, adam, bfloat16_pays, float_tensor, load_adam_state, policy_spec
+from l2r.learner.common import (
+    Transitions, adam, bfloat16_pays, check_off_policy, float_tensor, load_adam_state, policy_spec,
+)
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
 from l2r.sim import layout
@@ -82,12 +84,7 @@ class SACConfig:
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
-        if not 0.0 <= self.gamma <= 1.0 or not 0.0 < self.tau <= 1.0:
-            raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {self.gamma}, {self.tau}")
-        if self.precision not in ("auto", "float32", "bfloat16"):
-            raise ValueError(f"precision must be auto, float32 or bfloat16, got {self.precision!r}")
+        check_off_policy(self)
         if self.batch_size < 1 or self.update_repeat < 1 or self.initial_alpha <= 0:
             raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
 

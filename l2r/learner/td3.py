@@ -30,10 +30,10 @@ from typing import Mapping
 import torch
 
 from l2r.learner import sac
-from l2r.learner.common import adam, bfloat16_pays, load_adam_state, policy_spec
+from l2r.learner.common import adam, bfloat16_pays, check_off_policy, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast
 from l2r.learner.sac import Batch, TwinCritic
-from l2r.policy import ACTIVATIONS, DETERMINISTIC, DeterministicPolicy
+from l2r.policy import DETERMINISTIC, DeterministicPolicy
 
 
 @dataclass
@@ -89,12 +89,7 @@ class TD3Config:
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
-        if not 0.0 <= self.gamma <= 1.0 or not 0.0 < self.tau <= 1.0:
-            raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {self.gamma}, {self.tau}")
-        if self.precision not in ("auto", "float32", "bfloat16"):
-            raise ValueError(f"precision must be auto, float32 or bfloat16, got {self.precision!r}")
+        check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
             raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
         stds = (self.exploration_std_start, self.exploration_std_end, self.noise_clip,
