@@ -19,7 +19,7 @@ Stable-Baselines3 and CleanRL ones docs/training.md names; this script does not 
 `--up-arg` hands a flag to every `l2r up` (`--up-arg=--recipe=runner`: the runner's recipe
 instead of the standard one; `--up-arg=--reward-scale=5`: one value of the recipe replaced).
 `--sb3` also trains Stable-Baselines3 (the dev extra) with its defaults for the same env steps in
-this process, one thread per core, evaluating 5 deterministic episodes at each milestone: the
+this process (TD3 given Gaussian exploration noise of 0.1, without which SB3's TD3 does not explore), one thread per core, evaluating 5 deterministic episodes at each milestone: the
 baseline in the same run, on the same machine.
 
 With `--plot`, draws the given run directories instead: return against env steps, one panel per
@@ -64,13 +64,19 @@ def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path
 def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     """Stable-Baselines3's own algorithm, its defaults, for the same env steps, evaluated at each milestone."""
     import gymnasium as gym
+    import numpy as np
     import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.noise import NormalActionNoise
 
     torch.set_num_threads(os.cpu_count() or 1)
-    model = getattr(stable_baselines3, algo.upper())("MlpPolicy", gym.make(task), seed=seed, device="cpu")
+    env = gym.make(task)
+    # SB3's TD3 explores with no noise unless given some; N(0, 0.1) is the TD3 paper's and RL Zoo's choice.
+    noise = {"action_noise": NormalActionNoise(np.zeros(env.action_space.shape), np.full(env.action_space.shape, 0.1))
+             } if algo == "td3" else {}
+    model = getattr(stable_baselines3, algo.upper())("MlpPolicy", env, seed=seed, device="cpu", **noise)
     eval_env, returns = gym.make(task), {}
 
     class AtMilestones(BaseCallback):
