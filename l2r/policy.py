@@ -30,6 +30,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from l2r import encoders
+from l2r.protocol.errors import ProtocolError
+from l2r.protocol.limits import MAX_FRAME_STACK
+from l2r.protocol.observations import VECTOR_FIELD, ObservationSpec
 from l2r.sim import layout
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -54,10 +58,15 @@ def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
 
 
 def check_spec(spec: Mapping) -> dict:
-    """Return a clean copy of an architecture spec, or raise ValueError saying what is wrong."""
+    """Return a clean copy of an architecture spec, or raise ValueError saying what is wrong.
+
+    A spec of the float32 vector `state` with no frame stack comes back in the form it has always
+    had ("obs_dim", no "observation"); any other observation comes with "observation" (its wire
+    form), "frame_stack" and "encoder" (`encoder_sizes`)."""
     if not isinstance(spec, Mapping):
         raise ValueError(f"policy spec must be a mapping, got {type(spec).__name__}")
-    missing = [k for k in SPEC_KEYS if k not in spec]
+    required = [k for k in SPEC_KEYS if k != "obs_dim" or "observation" not in spec]
+    missing = [k for k in required if k not in spec]
     if missing:
         raise ValueError(f"policy spec lacks {missing}")
     hidden = spec["hidden"]
@@ -65,7 +74,7 @@ def check_spec(spec: Mapping) -> dict:
             or not all(isinstance(h, int) and 0 < h <= 65536 for h in hidden)):
         raise ValueError(f"policy spec 'hidden' must be a non-empty list of widths, got {hidden!r}")
     for key in ("obs_dim", "act_dim"):
-        if not isinstance(spec[key], int) or not 0 < spec[key] <= 65536:
+        if key in required and (not isinstance(spec[key], int) or not 0 < spec[key] <= 65536):
             raise ValueError(f"policy spec {key!r} must be a positive int, got {spec[key]!r}")
     if spec["activation"] not in ACTIVATIONS:
         raise ValueError(f"policy spec 'activation' must be one of {sorted(ACTIVATIONS)}, "
@@ -74,11 +83,48 @@ def check_spec(spec: Mapping) -> dict:
     kind = spec.get("kind", GAUSSIAN)
     if not isinstance(kind, str) or kind not in POLICIES:
         raise ValueError(f"policy spec 'kind' must be one of {sorted(POLICIES)}, got {kind!r}")
-    if options["relative_x"] and spec["obs_dim"] != layout.OBS_SIZE:
-        raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
-                         f"got obs_dim {spec['obs_dim']}")
-    return {"obs_dim": spec["obs_dim"], "act_dim": spec["act_dim"], "hidden": list(hidden),
-            "activation": spec["activation"], "layer_norm": bool(spec["layer_norm"]), **options, "kind": kind}
+    common = {"act_dim": spec["act_dim"], "hidden": list(hidden), "activation": spec["activation"],
+              "layer_norm": bool(spec["layer_norm"]), **options, "kind": kind}
+    observation, frame_stack = _observation_of(spec)
+    if observation.vector_width is not None and frame_stack == 1:
+        if options["relative_x"] and observation.vector_width != layout.OBS_SIZE:
+            raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
+                             f"got obs_dim {observation.vector_width}")
+        return {"obs_dim": observation.vector_width, **common}
+    if options["relative_x"] or options["normalize_obs"]:
+        raise ValueError(f"policy spec 'relative_x' and 'normalize_obs' are for the float32 vector alone, not "
+                         f"observation {observation} stacked {frame_stack}")
+    return {"observation": observation.to_wire(), "frame_stack": frame_stack,
+            "encoder": encoder_sizes(spec.get("encoder", {})), **common}
+
+
+def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
+    """The observation and frame stack a spec's networks take; ValueError when they cannot."""
+    try:
+        observation = ObservationSpec.from_policy_spec(spec)
+    except ProtocolError as e:
+        raise ValueError(f"policy spec: {e}") from None
+    if "observation" in spec and "obs_dim" in spec and spec["obs_dim"] != observation.vector_width:
+        raise ValueError(f"policy spec 'obs_dim' {spec['obs_dim']!r} is not the width of observation {observation}")
+    frame_stack = spec.get("frame_stack", 1)
+    if type(frame_stack) is not int or not 1 <= frame_stack <= MAX_FRAME_STACK:
+        raise ValueError(f"policy spec 'frame_stack' must be an int from 1 to {MAX_FRAME_STACK}, got {frame_stack!r}")
+    if frame_stack > 1 and observation.vector_width is not None:
+        raise ValueError("policy spec 'frame_stack': frame stacks are for image observations, not the float32 vector")
+    encoders.check_observation(observation)
+    return observation, frame_stack
+
+
+def encoder_sizes(sizes: Mapping) -> dict:
+    """The image encoder's sizes of a spec ("encoder"), each at DrQ-v2's value when not given:
+    "channels" of every convolution, "features" out of each network's projection."""
+    if not isinstance(sizes, Mapping) or set(sizes) - {"channels", "features"}:
+        raise ValueError(f"policy spec 'encoder' must be a map of channels and features, got {sizes!r:.80}")
+    checked = {"channels": sizes.get("channels", encoders.CHANNELS), "features": sizes.get("features", encoders.FEATURES)}
+    for key, value in checked.items():
+        if type(value) is not int or not 0 < value <= 4096:
+            raise ValueError(f"policy spec encoder {key!r} must be an int from 1 to 4096, got {value!r}")
+    return checked
 
 
 def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: bool) -> nn.Sequential:
@@ -155,8 +201,14 @@ class ObservationFilter(nn.Module):
 
 
 class PolicyNetwork(nn.Module):
-    """What every policy kind is: the spec, the observation filter, the hidden layers and a
-    linear head of `outputs` values per action dimension."""
+    """What every policy kind is: the spec, what it sees of an observation, the hidden layers and
+    a linear head of `outputs` values per action dimension.
+
+    What it sees: the float32 vector through the `ObservationFilter`; an observation with image
+    fields through `encoder` (a `PixelEncoder`, which a learner's critics share) and the policy's
+    own `projection` (see l2r.encoders). The two steps are apart (`embed`, then `head_output_of`)
+    so a learner can embed a batch once for actor and critics. The vector's networks have neither
+    module: their state_dict keys are those they always had."""
 
     KIND = ""
     """The spec's "kind" of the subclass."""
@@ -166,20 +218,51 @@ class PolicyNetwork(nn.Module):
         self.spec = check_spec(spec)
         if self.spec["kind"] != self.KIND:
             raise ValueError(f"a {self.KIND} policy cannot be built from a {self.spec['kind']} spec")
-        self.observation_filter = ObservationFilter(self.spec["obs_dim"], self.spec["relative_x"],
-                                                    self.spec["normalize_obs"])
-        self.trunk = mlp_trunk(self.spec["obs_dim"], self.spec["hidden"],
-                               self.spec["activation"], self.spec["layer_norm"])
+        self.observation, self.frame_stack = _observation_of(self.spec)
+        if "encoder" in self.spec:
+            self.image_fields = encoders.image_fields(self.observation)
+            self.encoder = encoders.PixelEncoder(self.observation, self.frame_stack, self.spec["encoder"]["channels"])
+            self.projection = encoders.Projection(self.encoder.conv_dim, self.encoder.vector_dim,
+                                                  self.spec["encoder"]["features"])
+            features = self.projection.out_dim
+        else:
+            self.image_fields, self.encoder, self.projection = [], None, None
+            self.observation_filter = ObservationFilter(self.spec["obs_dim"], self.spec["relative_x"],
+                                                        self.spec["normalize_obs"])
+            features = self.spec["obs_dim"]
+        self.trunk = mlp_trunk(features, self.spec["hidden"], self.spec["activation"], self.spec["layer_norm"])
         self.head = nn.Linear(self.spec["hidden"][-1], outputs * self.spec["act_dim"])
 
-    def head_output(self, obs: torch.Tensor) -> torch.Tensor:
-        features = self.trunk(self.observation_filter(obs))
+    def embed(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """What the networks see of a batch of observations: the filtered vector, or the
+        encoder's embedding of the fields (images stacked, uint8)."""
+        return self.observation_filter(obs) if self.encoder is None else self.encoder(obs)
+
+    def head_output(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return self.head_output_of(self.embed(obs))
+
+    def head_output_of(self, embedding: torch.Tensor) -> torch.Tensor:
+        features = self.trunk(embedding if self.projection is None else self.projection(embedding))
         # The head stays in float32 under mixed precision: actions, means and log-stds need the bits.
-        with torch.autocast(obs.device.type, enabled=False):
+        with torch.autocast(embedding.device.type, enabled=False):
             return self.head(features.float())
 
+    def observation_tensors(self, obs: np.ndarray | Mapping[str, np.ndarray],
+                            device: torch.device) -> torch.Tensor | dict[str, torch.Tensor]:
+        """A batch of observations as the network takes them, on `device`: a float32 matrix of the
+        vector (given as an array, or as the field "state"), or the map of stacked fields, uint8
+        images as they are (see `act`)."""
+        if self.encoder is None:
+            vector = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
+            return torch.as_tensor(np.asarray(vector, dtype=np.float32), device=device)
+        if not isinstance(obs, Mapping):
+            raise ValueError(f"this policy takes observations of fields {self.observation}, stacked "
+                             f"{self.frame_stack}, as a map of arrays; got {type(obs).__name__}")
+        return {name: torch.as_tensor(np.asarray(obs[name], dtype=field.dtype), device=device)
+                for name, field in self.observation.fields.items()}
+
     @torch.no_grad()
-    def act(self, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act(self, obs_batch: np.ndarray | Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
         """Excitations in [0, 1] for a batch of observations, shape (n, obs_dim) -> (n, act_dim)."""
         return act(self, obs_batch, deterministic)
 
@@ -241,8 +324,12 @@ class DeterministicPolicy(PolicyNetwork):
         super().__init__(spec, outputs=1)
         self.register_buffer("exploration_std", torch.zeros(()))
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
         return torch.tanh(self.head_output(obs))
+
+    def action_of(self, embedding: torch.Tensor) -> torch.Tensor:
+        """The action of an embedded observation (`embed`)."""
+        return torch.tanh(self.head_output_of(embedding))
 
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self(obs)
@@ -275,20 +362,25 @@ def build_policy(spec: Mapping) -> PolicyNetwork:
 
 
 @torch.no_grad()
-def act(policy: PolicyNetwork, obs_batch: np.ndarray, deterministic: bool = False) -> np.ndarray:
-    """Excitations in [0, 1], float32, for a batch of observations (runs on the policy's device)."""
-    device = next(policy.parameters()).device
-    obs = torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device)
+def act(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray],
+        deterministic: bool = False) -> np.ndarray:
+    """Excitations in [0, 1], float32, for a batch of observations (runs on the policy's device).
+
+    The observations: a float32 array (n, width) of the vector, or a map of each field stacked
+    `frame_stack` deep along its first dimension, oldest first: an image field uint8
+    (n, k*C, H, W), a float32 field (n, k*width) (`ObservationSpec.from_policy_spec(policy.spec)`
+    and `policy.spec.get("frame_stack", 1)` say which)."""
+    obs = policy.observation_tensors(obs_batch, next(policy.parameters()).device)
     excitation = to_excitation(policy.mean_action(obs)) if deterministic else policy.explore(obs)[0]
     return excitation.cpu().numpy()
 
 
 @torch.no_grad()
-def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray]
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Exploring excitations in [0, 1] and the log-probability of each, float32 (see each kind's
-    `explore`)."""
-    device = next(policy.parameters()).device
-    excitation, log_prob = policy.explore(torch.as_tensor(np.asarray(obs_batch, dtype=np.float32), device=device))
+    `explore`; observations as `act` takes them)."""
+    excitation, log_prob = policy.explore(policy.observation_tensors(obs_batch, next(policy.parameters()).device))
     return excitation.cpu().numpy(), log_prob.cpu().numpy()
 
 

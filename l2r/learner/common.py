@@ -9,12 +9,18 @@ import numpy as np
 import torch
 
 from l2r.policy import ACTIVATIONS, GAUSSIAN, check_spec
+from l2r.protocol.observations import ObservationSpec
 
 
-def policy_spec(config, obs_dim: int, act_dim: int, kind: str = GAUSSIAN) -> dict:
+def policy_spec(config, observation: ObservationSpec | int, act_dim: int, kind: str = GAUSSIAN,
+                frame_stack: int = 1, encoder: dict | None = None) -> dict:
     """The architecture spec of the policy a config (SACConfig, PPOConfig, TD3Config) trains, sent
-    with the weights."""
-    return check_spec({"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(config.hidden),
+    with the weights. `observation`: the spec of the observation, or the width of the float32
+    vector; `frame_stack` and `encoder` (its sizes) count for image observations alone."""
+    if isinstance(observation, int):
+        observation = ObservationSpec.vector(observation)
+    return check_spec({**observation.policy_entries(), "frame_stack": frame_stack, "encoder": encoder or {},
+                       "act_dim": act_dim, "hidden": list(config.hidden),
                        "activation": config.activation, "layer_norm": config.layer_norm,
                        "relative_x": config.relative_x, "normalize_obs": config.normalize_obs, "kind": kind})
 
@@ -58,20 +64,28 @@ def bfloat16_pays(device: torch.device) -> bool:
 class Transitions:
     """Transitions as tensors, actions in the policy's (-1, 1) space; each algorithm's Batch adds its own."""
 
-    obs: torch.Tensor
+    obs: torch.Tensor | dict[str, torch.Tensor]
+    """The float32 vector (B, width), or observations of image fields: field name -> stacked field
+    (B, k*C, H, W) uint8 images, (B, k*width) float32 vectors (`sac.batch_from_frames`)."""
     action: torch.Tensor
     reward: torch.Tensor
-    next_obs: torch.Tensor
+    next_obs: torch.Tensor | dict[str, torch.Tensor]
     """The true next observation of each step (the final one where an episode ended)."""
     terminated: torch.Tensor
     """1.0 where the episode ended for real (no bootstrap); time-limit ends stay 0."""
 
 
 def float_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
-    """A float32 tensor of a replay array on `device`. Decoded messages are read-only views;
-    torch wants memory it may write, so those are copied once. For a GPU the array goes through
-    pinned memory, so the copy is queued behind the device's work without the host waiting for it."""
-    tensor = torch.from_numpy(np.require(a, np.float32, "W"))
+    """A float32 tensor of a replay array on `device` (see `device_tensor`)."""
+    return device_tensor(np.asarray(a, np.float32), device)
+
+
+def device_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
+    """A tensor of a replay array on `device`, in the array's dtype. Decoded messages are read-only
+    views; torch wants memory it may write, so those are copied once. For a GPU the array goes
+    through pinned memory, so the copy is queued behind the device's work without the host waiting
+    for it."""
+    tensor = torch.from_numpy(np.require(a, requirements="W"))
     if torch.device(device).type == "cuda":
         tensor = tensor.pin_memory()
     return tensor.to(device, non_blocking=True)

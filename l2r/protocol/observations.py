@@ -96,6 +96,9 @@ class ObservationSpec:
     def __repr__(self) -> str:
         return f"ObservationSpec({self})"
 
+    def __deepcopy__(self, memo: dict) -> ObservationSpec:
+        return self  # read-only: a copy of a network (a target network) shares its spec
+
     @classmethod
     def parse(cls, text: str) -> ObservationSpec:
         """The spec written as ``str(spec)`` prints it, braces optional: ``pixels: uint8[3, 84, 84],
