@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 
 # Set before torch loads OpenMP: idle OpenMP workers then sleep instead of spinning. The learner
@@ -10,6 +11,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import sys  # noqa: E402
+from functools import cached_property  # noqa: E402
 from typing import Literal, Sequence  # noqa: E402
 
 from pydantic import field_validator  # noqa: E402
@@ -23,7 +25,11 @@ from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.learner.steps import COMPILE_MODES  # noqa: E402
 from l2r.learner.td3 import TD3Config  # noqa: E402
-from l2r.protocol import DaemonSettings, configure_logging  # noqa: E402
+from l2r.protocol import DaemonSettings, ObservationSpec, ProtocolError, configure_logging  # noqa: E402
+from l2r.protocol.limits import MAX_FRAME_STACK  # noqa: E402
+
+IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
+"""DrQ-v2's frame stack and random shift, the defaults for image observations."""
 
 SAC_DEFAULTS, PPO_DEFAULTS, TD3_DEFAULTS = SACConfig(), PPOConfig(), TD3Config()
 PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
@@ -51,7 +57,16 @@ class LearnerSettings(DaemonSettings):
         "(torch.compile's fused kernels; a C++ compiler on CPU, Triton on CUDA; compiles for a minute or more at "
         "start); inductor-graphs (both, CUDA); auto = off (graphs on CUDA once they have run on a GPU: docs/learner.md)",
         group=PROCESS)
-    obs_dim: int = setting(41, "observation width", group=PROCESS, ge=1)
+    obs_dim: int = setting(41, "width of the float32 vector observation, when --observation and --env-id are not "
+                           "given", group=PROCESS, ge=1)
+    observation: str | None = setting(
+        None, "the observation the networks take, as l2r-replay's --observation: fields 'name: dtype[shape]' "
+        "separated by commas, e.g. 'pixels: uint8[3, 84, 84]'; image fields (uint8[C, H, W]) train with --algo td3 "
+        "through DrQ-v2's encoder, sampled as stacks of --frame-stack frames. Default: 'state: float32[<obs-dim>]'",
+        group=PROCESS, metavar="SPEC")
+    env_id: str | None = setting(None, "take the observation (as --observation) and --act-dim from the spaces of this "
+                                 "gymnasium environment, e.g. l2r/dmc-cartpole-swingup-v0 (it is made once, and "
+                                 "closed)", group=PROCESS)
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)
     in_flight: int = setting(4, "sample requests kept in flight (PPO: a batch fetched ahead comes from an older "
                              "policy; l2r up --algo ppo keeps 1)", group=PROCESS, ge=1)
@@ -129,6 +144,13 @@ class LearnerSettings(DaemonSettings):
     exploration_std_updates: int = setting(TD3_DEFAULTS.exploration_std_updates, "learner updates over which the "
                                            "exploration std goes linearly from start to end (at one gradient step "
                                            "per environment step: environment steps)", group=TD3, ge=0)
+    frame_stack: int | None = setting(None, f"image observations: frames stacked into each observation, oldest first "
+                                      f"(default: {IMAGE_FRAME_STACK} for images, 1 for the vector, which takes no "
+                                      "other)", group=TD3, ge=1, le=MAX_FRAME_STACK)
+    augment_pad: int | None = setting(None, "image observations: DrQ's random shift, each image of each update "
+                                      "padded by this many pixels that repeat its edge, then cropped back to its "
+                                      f"size at a random offset; 0: none (default: {IMAGE_AUGMENT_PAD} for images, "
+                                      "0 for the vector, which takes no other)", group=TD3, ge=0)
 
     epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)
     minibatches: int = setting(PPO_DEFAULTS.minibatches, "minibatches per pass, one gradient step each", group=PPO,
@@ -153,7 +175,35 @@ class LearnerSettings(DaemonSettings):
             raise ValueError("should be layer widths separated by commas, e.g. 512,512,512")
         return hidden
 
+    @cached_property
+    def spaces(self) -> tuple[ObservationSpec, int]:
+        """The observation the networks take and the action width: --env-id's, --observation's or the vector's."""
+        if self.env_id is not None:
+            if self.observation is not None:
+                raise UsageError("--env-id and --observation both give the observation: give one")
+            try:
+                return env_spaces(self.env_id)
+            except ValueError as e:
+                raise UsageError(f"--env-id {self.env_id}: {e}") from None
+        if self.observation is None:
+            return ObservationSpec.vector(self.obs_dim), self.act_dim
+        try:
+            return ObservationSpec.parse(self.observation), self.act_dim
+        except ProtocolError as e:
+            raise UsageError(f"--observation: {e}") from None
+
+    @property
+    def images(self) -> bool:
+        return self.spaces[0].vector_width is None
+
     def check(self) -> None:
+        observation = self.spaces[0]
+        if self.images and self.algo != "td3":
+            raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
+        if self.images and self.compile not in ("auto", "off"):
+            raise UsageError(f"--compile {self.compile}: the update of image observations runs eagerly")
+        if not self.images and ((self.frame_stack or 1) > 1 or self.augment_pad):
+            raise UsageError(f"--frame-stack and --augment-pad are for image observations, not {observation}")
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
@@ -204,7 +254,9 @@ class LearnerSettings(DaemonSettings):
                 update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
                 target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
-                exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision)
+                exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,
+                frame_stack=self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),
+                augment_pad=(IMAGE_AUGMENT_PAD if self.images else 0) if self.augment_pad is None else self.augment_pad)
         except ValueError as e:  # a combination TD3Config refuses
             raise UsageError(str(e)) from None
 
@@ -212,15 +264,36 @@ class LearnerSettings(DaemonSettings):
         return {"sac": self.sac, "td3": self.td3, "ppo": self.ppo}[self.algo]()
 
     def learner(self) -> LearnerConfig:
+        observation, act_dim = self.spaces
         return LearnerConfig(
             run=self.run, run_dir=self.run_dir, resume=self.resume, device=self.device, threads=self.threads,
-            compile=self.compile,
-            obs_dim=self.obs_dim, act_dim=self.act_dim, prioritized=self.prioritized,
+            compile=self.compile, obs_dim=observation.vector_width or 0,
+            observation=observation if self.images else None, act_dim=act_dim, prioritized=self.prioritized,
             priority_beta=self.priority_beta, in_flight=self.in_flight, publish_every=self.publish_every,
             checkpoint_interval=self.checkpoint_interval, keep_checkpoints=self.keep_checkpoints,
             action_repeat=self.action_repeat, metrics_interval=self.metrics_interval,
             max_updates=self.max_updates, seed=self.seed, world_size=self.world_size, rank=self.rank,
             dist_url=self.dist_url)
+
+
+def env_spaces(env_id: str) -> tuple[ObservationSpec, int]:
+    """The observation spec and action width of a gymnasium environment (l2r's own ids included);
+    ValueError, saying why, for one l2r cannot train on."""
+    import gymnasium
+
+    import l2r.control  # noqa: F401  (registers the camera tasks' ids)
+    import l2r.sim  # noqa: F401  (registers the runner's)
+
+    try:
+        env = gymnasium.make(env_id)
+    except gymnasium.error.Error as e:
+        raise ValueError(str(e)) from None
+    try:
+        if not isinstance(env.action_space, gymnasium.spaces.Box):
+            raise ValueError(f"its actions are {env.action_space}; l2r takes a Box")
+        return ObservationSpec.from_space(env.observation_space), int(math.prod(env.action_space.shape))
+    finally:
+        env.close()
 
 
 def build_parser() -> CommandParser:

@@ -11,7 +11,8 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
                     from before PPO take those for a policy checkpoint
     ppo_config      PPOConfig as a dict, in a PPO checkpoint
     td3_config      TD3Config as a dict, in a TD3 checkpoint
-    obs_dim, act_dim
+    obs_dim, act_dim  obs_dim 0 for observations other than the float32 vector (the policy spec's
+                    "observation" says which)
     policy_spec     the architecture spec of the policy (see l2r.policy; "kind" "deterministic"
                     for TD3's)
     train_state     the algorithm's TrainState.state_dict(): for SAC actor, critic, target_critic
@@ -57,6 +58,7 @@ from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
 from l2r.learner.td3 import TD3Config
 from l2r.policy import PolicyNetwork, build_policy
+from l2r.protocol.observations import ObservationSpec
 
 FORMAT = "l2r-learner-checkpoint"
 FORMAT_VERSION = 1
@@ -133,7 +135,7 @@ def save_policy_checkpoint(path: str | Path, policy_params: Mapping[str, Any], p
     message) as a checkpoint `l2r eval` reads, with how it did in `evaluation`."""
     return _write(Path(path), {
         "format": FORMAT, "format_version": FORMAT_VERSION, "sac_config": None,
-        "obs_dim": int(policy_spec["obs_dim"]), "act_dim": int(policy_spec["act_dim"]),
+        "obs_dim": int(policy_spec.get("obs_dim", 0)), "act_dim": int(policy_spec["act_dim"]),
         "policy_spec": dict(policy_spec), "action_repeat": action_repeat, "evaluation": dict(evaluation),
         "train_state": {"actor": {name: torch.tensor(value) for name, value in policy_params.items()},
                         "version": version, "updates": updates},
@@ -196,7 +198,9 @@ class Checkpoint:
         """The full training state (networks, optimizers, counters) on `device`."""
         if self.config is None:
             raise CheckpointError(f"{self.path} holds a policy alone, not a training state to resume")
-        state = ALGORITHMS[self.algo][1].init_state(self.config, self.obs_dim, self.act_dim, device)
+        # Image observations (TD3's) are saved with obs_dim 0: their spec is the policy spec's.
+        observation = self.obs_dim or ObservationSpec.from_policy_spec(self.policy_spec)
+        state = ALGORITHMS[self.algo][1].init_state(self.config, observation, self.act_dim, device)
         state.load_state_dict(self.train_state)
         return state
 

@@ -42,8 +42,8 @@ from l2r.learner.steps import GradientSteps, resolve_mode
 from l2r.learner.td3 import TD3Config
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
-    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, ReplayClient, SampleBatch, Stats,
-    Weights, encode,
+    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ObservationSpec, ProtocolError, ReplayClient,
+    SampleBatch, Stats, Weights, encode,
 )
 
 log = logging.getLogger("l2r.learner")
@@ -64,6 +64,10 @@ class LearnerConfig:
     compile: str = "auto"
     """How SAC's and TD3's update runs: off, graphs, inductor, inductor-graphs or auto (l2r.learner.steps)."""
     obs_dim: int = 41
+    """Width of the float32 vector observation, unless `observation` says otherwise."""
+    observation: ObservationSpec | None = None
+    """Observations with image fields (TD3): their spec, sampled from replay in the frames form
+    and stacked TD3Config.frame_stack deep; None: the float32 vector of obs_dim."""
     act_dim: int = 18
     prioritized: bool = False
     priority_beta: float = 0.4
@@ -160,9 +164,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
-    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), and
-    # PPO loops over its own minibatches.
-    eager = config.world_size > 1 or isinstance(algo, PPOConfig)
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), PPO
+    # loops over its own minibatches, and image batches (maps of fields) are not captured yet.
+    eager = config.world_size > 1 or isinstance(algo, PPOConfig) or config.observation is not None
     config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     stop = threading.Event()
 
@@ -204,8 +208,11 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
             table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
+            # The vector's requests stay version 1, as before the frames form.
+            frame_stack = None if config.observation is None else algo.frame_stack
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
-                              table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma) as replay:
+                              table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
+                              frame_stack=frame_stack) as replay:
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version
@@ -220,7 +227,7 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
     if config.seed is not None:
         torch.manual_seed(config.seed + config.rank)
     name = algorithm_of(algo)
-    state = ALGORITHMS[name][1].init_state(algo, config.obs_dim, config.act_dim, device)
+    state = ALGORITHMS[name][1].init_state(algo, config.observation or config.obs_dim, config.act_dim, device)
     if not config.resume:
         return state
     if not config.checkpoint.is_file():
@@ -230,6 +237,12 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
     if saved.algo != name or saved.config is None:
         raise CheckpointError(f"{saved.path} holds {'a policy alone' if saved.config is None else saved.algo.upper()}"
                               f", not a {name.upper()} training state: use --algo {saved.algo}, or a new run directory")
+    saved_observation = ObservationSpec.from_policy_spec(saved.policy_spec)
+    saved_stack = saved.policy_spec.get("frame_stack", 1)
+    if (saved_observation, saved_stack) != (state.actor.observation, state.actor.frame_stack):
+        raise CheckpointError(f"{saved.path} was trained on observations {saved_observation} stacked {saved_stack}, "
+                              f"this learner's are {state.actor.observation} stacked {state.actor.frame_stack}: use "
+                              "the same environment and --frame-stack, or a new run directory")
     if (check_spec(saved.policy_spec) != state.actor.spec or saved.config.hidden != algo.hidden
             or saved.config.layer_norm != algo.layer_norm or saved.config.activation != algo.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
@@ -241,8 +254,11 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
 
 
 def _replay_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> sac.Batch:
-    return sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated,
-                                batch.importance_weights(config.priority_beta) if batch.prioritized else None,
+    weights = batch.importance_weights(config.priority_beta) if batch.prioritized else None
+    if batch.frames is not None:
+        return sac.batch_from_frames(batch.frames, batch.obs_frames, batch.next_obs_frames, batch.actions,
+                                     batch.rewards, batch.terminated, weights, device, batch.discounts)
+    return sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated, weights,
                                 device, batch.discounts)
 
 
@@ -357,9 +373,9 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
         updates_before = state.updates
         metrics = step(state, tensors, batch, algo, replay, steps)
         lag = float(state.version - np.mean(batch.policy_versions))
-        meter.add(metrics, state.updates - updates_before, len(batch.obs), lag)
+        meter.add(metrics, state.updates - updates_before, len(batch.actions), lag)
 
-        state.extra["samples"] = state.extra.get("samples", 0) + len(batch.obs)
+        state.extra["samples"] = state.extra.get("samples", 0) + len(batch.actions)
 
         now = time.monotonic()
         if publish_each_batch or state.updates - last_publish >= config.publish_every:
@@ -388,10 +404,14 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
         batch = replay.sample(timeout=timeout)
     except queue.Empty:
         return None
-    if batch.obs.shape[1] != config.obs_dim or batch.actions.shape[1] != config.act_dim:
-        replay.rejections.add(ProtocolError(f"batch of obs {batch.obs.shape} / actions {batch.actions.shape}, this "
-                                            f"learner trains on {config.obs_dim} / {config.act_dim}", "wrong_width"),
-                              f"shard {batch.shard}")
+    try:
+        _check_observations(batch, config, replay.frame_stack)
+    except ProtocolError as e:
+        replay.rejections.add(e, f"shard {batch.shard}")
+        return None
+    if batch.actions.shape[1] != config.act_dim:
+        replay.rejections.add(ProtocolError(f"batch of actions {batch.actions.shape}, this learner trains on "
+                                            f"{config.act_dim}", "wrong_width"), f"shard {batch.shard}")
         return None
     if replay.table == "queue" and batch.log_probs is None:
         replay.rejections.add(ProtocolError("a replay-table batch in answer to a queue request: is the shard an "
@@ -399,6 +419,20 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
                               f"shard {batch.shard}")
         return None
     return batch
+
+
+def _check_observations(batch: SampleBatch, config: LearnerConfig, frame_stack: int | None) -> None:
+    """ProtocolError unless the batch's observations are what this learner trains on: the vector of
+    its width, or frames of its observation spec stacked `frame_stack` deep."""
+    if config.observation is None:
+        if batch.obs is None or batch.obs.shape[1] != config.obs_dim:
+            raise ProtocolError(f"batch of obs {None if batch.obs is None else batch.obs.shape}, this learner trains "
+                                f"on {config.obs_dim}", "wrong_width")
+        return
+    config.observation.check(batch.frames, "sample_batch.frames")  # the replay client asked for frames
+    if batch.obs_frames.shape[1] != frame_stack:
+        raise ProtocolError(f"sample_batch: stacks of {batch.obs_frames.shape[1]} frames, this learner asked for "
+                            f"{frame_stack}", "wrong_stack")
 
 
 # What the log line shows of each algorithm's metrics: (label, metric).
@@ -428,7 +462,7 @@ def _checkpoint(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState)
                   config.checkpoint)
         return
     started = time.monotonic()
-    path = save_checkpoint(config.checkpoint, state, algo, config.obs_dim, config.act_dim, config.action_repeat,
-                           config.keep_checkpoints)
+    path = save_checkpoint(config.checkpoint, state, algo, 0 if config.observation else config.obs_dim, config.act_dim,
+                           config.action_repeat, config.keep_checkpoints)
     log.info("checkpoint %s (version %d, %d updates) in %.2f s", path, state.version, state.updates,
              time.monotonic() - started)

@@ -27,8 +27,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from l2r.encoders import stack_frames
 from l2r.learner.common import (
-    Transitions, adam, bfloat16_pays, check_off_policy, float_tensor, load_adam_state, policy_spec,
+    Transitions, adam, bfloat16_pays, check_off_policy, device_tensor, float_tensor, load_adam_state, policy_spec,
 )
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
@@ -99,7 +100,7 @@ class TwinCritic(nn.Module):
     """
 
     def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...], activation: str,
-                 layer_norm: bool, n: int = 2):
+                 layer_norm: bool, n: int = 2, projection: nn.Module | None = None):
         super().__init__()
         dims = [obs_dim + act_dim, *hidden, 1]
         self.weights = nn.ParameterList()
@@ -113,6 +114,9 @@ class TwinCritic(nn.Module):
         self.norm_shifts = nn.ParameterList(
             [nn.Parameter(torch.zeros(n, 1, h)) for h in hidden] if layer_norm else [])
         self.activation = ACTIVATIONS[activation]()
+        self.projection = projection
+        """Image observations: the critics' own view of the embedding they are given (l2r.encoders.Projection,
+        one for both critics, as DrQ-v2's); None: they take it as it is."""
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_weights: bool = False,
                 critics: int | None = None) -> torch.Tensor:
@@ -121,6 +125,9 @@ class TwinCritic(nn.Module):
             return [(p.detach() if detach_weights else p)[:critics] for p in params]
 
         weights, biases, scales, shifts = map(used, (self.weights, self.biases, self.norm_scales, self.norm_shifts))
+        if self.projection is not None:
+            parameters = {name: p.detach() if detach_weights else p for name, p in self.projection.named_parameters()}
+            obs = torch.func.functional_call(self.projection, parameters, (obs,))
         x = torch.cat([obs, action], dim=-1).expand(len(weights[0]), -1, -1)
         for i, (w, b) in enumerate(zip(weights[:-1], biases[:-1])):
             x = torch.baddbmm(b, x, w)
@@ -229,8 +236,25 @@ def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, ne
                      terminated: np.ndarray, weights: np.ndarray | None = None,
                      device: str | torch.device = "cpu", discounts: np.ndarray | None = None) -> Batch:
     """A Batch from replay arrays; actions arrive as [0, 1] excitations."""
-    return Batch(float_tensor(obs, device), to_tanh_space(float_tensor(action, device)),
-                 float_tensor(reward, device).reshape(-1), float_tensor(next_obs, device),
+    return _batch(float_tensor(obs, device), float_tensor(next_obs, device), action, reward, terminated, weights,
+                  device, discounts)
+
+
+def batch_from_frames(frames: Mapping[str, np.ndarray], obs_frames: np.ndarray, next_obs_frames: np.ndarray,
+                      action: np.ndarray, reward: np.ndarray, terminated: np.ndarray,
+                      weights: np.ndarray | None = None, device: str | torch.device = "cpu",
+                      discounts: np.ndarray | None = None) -> Batch:
+    """A Batch from a sample batch's frames form: each field's distinct frames go to the device once,
+    in their own dtype (uint8 images stay uint8, a quarter of float32's bytes), and are gathered
+    into stacks there (`encoders.stack_frames`): obs and next_obs are maps of stacked fields."""
+    on_device = {name: device_tensor(rows, device) for name, rows in frames.items()}
+    obs, next_obs = (stack_frames(on_device, device_tensor(rows, device)) for rows in (obs_frames, next_obs_frames))
+    return _batch(obs, next_obs, action, reward, terminated, weights, device, discounts)
+
+
+def _batch(obs, next_obs, action: np.ndarray, reward: np.ndarray, terminated: np.ndarray,
+           weights: np.ndarray | None, device: str | torch.device, discounts: np.ndarray | None) -> Batch:
+    return Batch(obs, to_tanh_space(float_tensor(action, device)), float_tensor(reward, device).reshape(-1), next_obs,
                  float_tensor(terminated, device).reshape(-1),
                  None if weights is None else float_tensor(weights, device).reshape(-1),
                  None if discounts is None else float_tensor(discounts, device).reshape(-1))

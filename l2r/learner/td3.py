@@ -29,11 +29,14 @@ from typing import Mapping
 
 import torch
 
+from l2r import encoders
 from l2r.learner import sac
 from l2r.learner.common import adam, bfloat16_pays, check_off_policy, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast
 from l2r.learner.sac import Batch, TwinCritic
 from l2r.policy import DETERMINISTIC, DeterministicPolicy
+from l2r.protocol.limits import MAX_FRAME_STACK
+from l2r.protocol.observations import ObservationSpec
 
 
 @dataclass
@@ -86,12 +89,24 @@ class TD3Config:
     """Each sampled transition has its legs swapped with probability 1/2, as for SAC."""
     precision: str = "auto"
     """Hidden-layer matmul precision, as SAC's: 'bfloat16', 'float32' or 'auto'."""
+    frame_stack: int = 1
+    """Image observations: the frames stacked into each observation, oldest first (DrQ-v2: 3)."""
+    augment_pad: int = 0
+    """Image observations: DrQ's random shift, each image of each update padded by this many pixels
+    that repeat its edge and cropped back at a random offset (DrQ-v2: 4); 0: none."""
+    encoder_channels: int = encoders.CHANNELS
+    """Image observations: channels of each of the encoder's four convolutions."""
+    encoder_features: int = encoders.FEATURES
+    """Image observations: features out of the actor's and the critics' projections of the encoder's output."""
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
         check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
             raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
+        if not 1 <= self.frame_stack <= MAX_FRAME_STACK or self.augment_pad < 0:
+            raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK} and augment_pad >= 0, got "
+                             f"{self.frame_stack} and {self.augment_pad}")
         stds = (self.exploration_std_start, self.exploration_std_end, self.noise_clip,
                 0.0 if self.target_noise is None else self.target_noise)
         if min(stds) < 0 or self.exploration_std_updates < 0:
@@ -133,6 +148,9 @@ class TrainState:
         """What training changes, to check for divergence."""
         return [*self.actor.parameters(), *self.critic.parameters()]
 
+    def critic_parameters(self) -> list[torch.Tensor]:
+        return critic_parameters(self.actor, self.critic)
+
     def set_learning_rates(self, config: TD3Config) -> None:
         """Apply the config's learning rates (a resumed run takes the command line's, not the saved ones)."""
         for opt, lr in ((self.actor_opt, config.actor_lr), (self.critic_opt, config.critic_lr)):
@@ -158,29 +176,53 @@ class TrainState:
 _MODULES, _OPTIMIZERS = ("actor", "target_actor", "critic", "target_critic"), ("actor_opt", "critic_opt")
 
 
-def init_state(config: TD3Config, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
-               seed: int | None = None) -> TrainState:
-    """Freshly initialised networks and optimizers on `device`."""
+def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: int,
+               device: str | torch.device = "cpu", seed: int | None = None) -> TrainState:
+    """Freshly initialised networks and optimizers on `device`, for `observation` (its spec, or the
+    width of the float32 vector)."""
     device = torch.device(device)
-    sac.check_mirror(config, obs_dim, act_dim)
+    if isinstance(observation, int):
+        observation = ObservationSpec.vector(observation)
+    sac.check_mirror(config, observation.vector_width, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
-    actor = DeterministicPolicy(policy_spec(config, obs_dim, act_dim, kind=DETERMINISTIC)).to(device)
+    encoder_sizes = {"channels": config.encoder_channels, "features": config.encoder_features}
+    actor = DeterministicPolicy(policy_spec(config, observation, act_dim, DETERMINISTIC, config.frame_stack,
+                                            encoder_sizes)).to(device)
+    if config.augment_pad and actor.encoder is None:
+        raise ValueError(f"augment_pad shifts images, and observation {observation} has none")
     actor.exploration_std.fill_(exploration_std(config, 0))
     target_actor = copy.deepcopy(actor).requires_grad_(False)
-    # The target policy sees observations through the online filter: its statistics are not
-    # learned weights, so a slow copy of them would only be a stale one.
-    target_actor.observation_filter = actor.observation_filter
-    critic = TwinCritic(obs_dim, act_dim, config.hidden, config.activation, config.layer_norm).to(device)
+    projection = None
+    if actor.encoder is None:
+        # The target policy sees observations through the online filter: its statistics are not
+        # learned weights, so a slow copy of them would only be a stale one.
+        target_actor.observation_filter = actor.observation_filter
+        critic_input = actor.spec["obs_dim"]
+    else:
+        # One encoder for all (DrQ-v2's): the target networks take the online encoder's embedding.
+        target_actor.encoder = actor.encoder
+        projection = encoders.Projection(actor.encoder.conv_dim, actor.encoder.vector_dim, config.encoder_features)
+        critic_input = projection.out_dim
+    critic = TwinCritic(critic_input, act_dim, config.hidden, config.activation, config.layer_norm,
+                        projection=projection).to(device)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and bfloat16_pays(device))
-    return TrainState(actor, target_actor, critic, target_critic,
-                      adam(actor.parameters(), config.actor_lr, device),
-                      adam(critic.parameters(), config.critic_lr, device), bfloat16=bfloat16)
+    actor_parameters = [p for name, p in actor.named_parameters() if not name.startswith("encoder.")]
+    return TrainState(actor, target_actor, critic, target_critic, adam(actor_parameters, config.actor_lr, device),
+                      adam(critic_parameters(actor, critic), config.critic_lr, device), bfloat16=bfloat16)
 
 
-# Once per sampled batch, as for SAC: mirroring (config.mirror) and the observation statistics.
-prepare = sac.prepare
+def critic_parameters(actor: DeterministicPolicy, critic: TwinCritic) -> list[torch.Tensor]:
+    """What the critic loss trains: the critics, and the image encoder the actor shares with them."""
+    encoder = [] if actor.encoder is None else list(actor.encoder.parameters())
+    return [*critic.parameters(), *encoder]
+
+
+def prepare(state: TrainState, batch: Batch, config: TD3Config) -> Batch:
+    """Once per sampled batch: SAC's (mirroring, the observation statistics) for the vector; an
+    image batch goes as it came (its augmentation is drawn afresh in every update)."""
+    return sac.prepare(state, batch, config) if state.actor.encoder is None else batch
 
 
 def follow_exploration_schedule(state: TrainState, config: TD3Config) -> None:
@@ -194,31 +236,37 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
     """One TD3 gradient step: the critics', and the actor's and the targets' if `actor_step`.
     Returns detached metrics tensors (`actor_loss` on actor steps only) and `priorities`
     (|TD error|, per sample). `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
-    # The critics see observations through the policy's filter; the policies apply it themselves.
+    # Observations as the networks see them, embedded once for all of them: the filtered vector,
+    # or, for images, the shared encoder's output, which learns from the critic loss alone (the
+    # actor's loss takes it detached), of images shifted afresh in every update (augment_pad).
+    obs, next_obs = batch.obs, batch.next_obs
+    if config.augment_pad:
+        obs = encoders.random_shift(obs, state.actor.image_fields, config.augment_pad)
+        next_obs = encoders.random_shift(next_obs, state.actor.image_fields, config.augment_pad)
+    embedding = state.actor.embed(obs)
     with torch.no_grad():
-        critic_obs = state.actor.observation_filter(batch.obs)
-        critic_next_obs = state.actor.observation_filter(batch.next_obs)
+        next_embedding = state.actor.embed(next_obs)
 
     # 1. Target: clipped double Q of the target policy's action, smoothed by clipped noise.
     #    Only a real termination cuts the bootstrap; n-step batches carry the discount of theirs.
     with torch.no_grad(), state.autocast():
-        next_action = state.target_actor(batch.next_obs)
+        next_action = state.target_actor.action_of(next_embedding)
         noise_std = state.actor.exploration_std if config.target_noise is None else config.target_noise
         smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
         next_action = (next_action + smoothing).clamp(-1.0, 1.0)
-        next_q = state.target_critic(critic_next_obs, next_action).min(0).values
+        next_q = state.target_critic(next_embedding, next_action).min(0).values
         discount = config.gamma * (1.0 - batch.terminated) if batch.discounts is None else batch.discounts
         target = config.reward_scale * batch.reward + discount * next_q
 
     # 2. Twin critic loss (importance-weighted under prioritized replay) and step, every update.
     with state.autocast():
-        q = state.critic(critic_obs, batch.action)
+        q = state.critic(embedding, batch.action)
     td_error = q - target
     squared = td_error.pow(2) if batch.weights is None else td_error.pow(2) * batch.weights
     critic_loss = squared.mean(-1).sum()
     state.critic_opt.zero_grad(set_to_none=True)
     critic_loss.backward()
-    average_gradients(state.critic.parameters())
+    average_gradients(state.critic_parameters())
     state.critic_opt.step()
     metrics = {"critic_loss": critic_loss.detach(), "q_mean": q.detach().mean(), "target_mean": target.mean(),
                "priorities": td_error.detach().abs().mean(0)}
@@ -227,7 +275,8 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
     #    weights detached: only dQ/da is needed), then the targets follow by Polyak averaging.
     if actor_step:
         with state.autocast():
-            q_pi = state.critic(critic_obs, state.actor(batch.obs), detach_weights=True, critics=1)[0]
+            embedding = embedding.detach()
+            q_pi = state.critic(embedding, state.actor.action_of(embedding), detach_weights=True, critics=1)[0]
         actor_loss = -q_pi.mean()
         state.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()

@@ -6,6 +6,7 @@
     client.learner_version = 12               # reported back as policy lag
     queue = ReplayClient(session, run="exp1", batch_size=2048, in_flight=1, table="queue")  # on-policy
     n3 = ReplayClient(session, run="exp1", n_step=3, gamma=0.99)  # 3-step returns, with batch.discounts
+    pixels = ReplayClient(session, run="exp1", frame_stack=3)  # the frames form, stacks of 3
 
 Up to ``in_flight`` queries are kept outstanding, spread round-robin over the replay shards
 that hold a liveliness token; each batch taken sends the next query, so while the learner
@@ -13,7 +14,8 @@ trains, the next batches are on their way. A "not ready" reply (the rate limiter
 learner back) is retried after the delay the server asks for; it is never an error. With
 ``n_step`` > 1 every batch must carry ``discounts``: one without (from a shard older than n-step
 returns, which ignores ``n_step``) is rejected and counted (``no_discounts``), and that shard is
-left alone for a second.
+left alone for a second. With ``frame_stack`` set, the same holds of a batch without ``frames``
+(``no_frames``: a shard from before the frames form answers in the version-1 form).
 """
 
 from __future__ import annotations
@@ -49,12 +51,14 @@ class ReplayClient:
         table: str | None = None,
         n_step: int = 1,
         gamma: float | None = None,
+        frame_stack: int | None = None,
     ):
         self.keys = Keys(run)
         self.batch_size = batch_size
         self.prioritized = prioritized
         self.table = table  # None: the replay table, as for servers older than the queue
         self.n_step, self.gamma = n_step, gamma  # left out of requests for n_step 1: older shards get what they know
+        self.frame_stack = frame_stack  # None: the version-1 form of the float32 vector
         self.learner_version = -1
         self.rejections = Rejections(log)
         self.waits = 0  # "not ready" replies seen
@@ -148,7 +152,7 @@ class ReplayClient:
     def _sample_request(self) -> SampleRequest:
         n_step = None if self.n_step == 1 else self.n_step
         return SampleRequest(self.batch_size, 1, self.prioritized, int(self.learner_version), self.table, n_step,
-                             self.gamma if n_step else None)
+                             self.gamma if n_step else None, self.frame_stack)
 
     def _request(self, shard: int) -> None:
         request = self._sample_request()
@@ -167,6 +171,11 @@ class ReplayClient:
             if isinstance(message, NotReady):
                 self.waits += 1
                 self._answered(query, shard, message.retry_after)
+            elif request.frame_stack and message.frames is None:
+                self.rejections.add(ProtocolError(f"a batch without frames in answer to frame_stack "
+                                                  f"{request.frame_stack}: is the shard an l2r-replay from before the "
+                                                  "frames form?", "no_frames"), f"shard {shard}")
+                self._answered(query, shard, 1.0)
             elif request.n_step and message.discounts is None:
                 self.rejections.add(ProtocolError(f"a one-step batch in answer to n_step {request.n_step}: is the "
                                                   "shard an l2r-replay from before n-step returns?", "no_discounts"),

@@ -1,0 +1,215 @@
+"""Image observations in the learner: DrQ's random shift against crops taken by hand, the gather of
+a batch's distinct frames into stacks on the device, the encoder's shapes and which loss trains it,
+TD3 updates on image batches, image policies in checkpoints and in `act`, and the vector's
+networks and spec as they always were."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.config import UsageError
+from l2r.encoders import PixelEncoder, random_shift, shift_images, stack_frames
+from l2r.learner.__main__ import parse_settings
+from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.sac import batch_from_frames
+from l2r.learner.steps import GradientSteps
+from l2r.learner.td3 import TD3Config, init_state, update
+from l2r.policy import DeterministicPolicy, act, act_with_log_prob, build_policy, check_spec, default_spec
+from l2r.protocol import ObservationSpec
+from l2r.protocol.observations import FieldSpec
+
+PIXELS = ObservationSpec.parse("pixels: uint8[3, 24, 24]")
+CAMERA_AND_STATE = ObservationSpec.parse("pixels: uint8[3, 24, 24], state: float32[4]")
+ACT, K = 2, 3
+
+
+def pixel_config(**overrides) -> TD3Config:
+    base = dict(hidden=(16,), batch_size=8, precision="float32", frame_stack=K, augment_pad=2,
+                encoder_channels=8, encoder_features=6, policy_delay=1)
+    return TD3Config(**(base | overrides))
+
+
+def frames_batch(observation: ObservationSpec = PIXELS, n: int = 8, seed: int = 0):
+    """A batch in the frames form, as a replay shard sends it: 2n distinct frames, stacks of K."""
+    rng = np.random.default_rng(seed)
+    frames = {name: (rng.integers(0, 256, (2 * n, *f.shape), dtype=np.uint8) if f.dtype == np.uint8
+                     else rng.normal(size=(2 * n, *f.shape)).astype(np.float32))
+              for name, f in observation.fields.items()}
+    rows = rng.integers(0, 2 * n, (2, n, K))
+    return batch_from_frames(frames, rows[0], rows[1], rng.random((n, ACT), dtype=np.float32),
+                             rng.normal(size=n).astype(np.float32), np.zeros(n, bool))
+
+
+def test_a_shift_is_a_crop_of_the_image_padded_with_its_edges():
+    images = torch.arange(2 * 1 * 4 * 5, dtype=torch.uint8).reshape(2, 1, 4, 5)
+    padded = np.pad(images.numpy(), ((0, 0), (0, 0), (2, 2), (2, 2)), mode="edge")  # pad 2: offsets 0..4
+    shifts = torch.tensor([[0, 4], [3, 1]])
+    shifted = shift_images(images, shifts, pad=2)
+    assert shifted.dtype == torch.uint8 and shifted.shape == images.shape
+    np.testing.assert_array_equal(shifted[0], padded[0, :, 0:4, 4:9])
+    np.testing.assert_array_equal(shifted[1], padded[1, :, 3:7, 1:6])
+    np.testing.assert_array_equal(shift_images(images, torch.full((2, 2), 2), pad=2), images)  # the centre
+
+
+def test_random_shift_moves_each_image_by_its_own_offset_and_leaves_vectors_alone():
+    torch.manual_seed(0)
+    images = torch.randint(0, 256, (64, 3, 16, 16), dtype=torch.uint8)
+    state = torch.randn(64, 4)
+    shifted = random_shift({"pixels": images, "state": state}, ["pixels"], pad=4)
+    assert shifted["state"] is state
+    # Each shifted image is one of the 81 crops of its own padded image, at offsets drawn apart.
+    padded = np.pad(images.numpy(), ((0, 0), (0, 0), (4, 4), (4, 4)), mode="edge")
+    offsets = []
+    for i, image in enumerate(shifted["pixels"].numpy()):
+        crops = [(y, x) for y in range(9) for x in range(9) if np.array_equal(image, padded[i, :, y:y + 16, x:x + 16])]
+        assert crops, i
+        offsets.append(crops[0])
+    assert len(set(offsets)) > 20
+
+
+def test_frames_are_gathered_into_stacks_oldest_first_along_channels():
+    frames = {"pixels": torch.arange(4, dtype=torch.uint8)[:, None, None, None].expand(4, 3, 2, 2),
+              "state": torch.arange(4, dtype=torch.float32)[:, None].expand(4, 2)}
+    stacks = stack_frames(frames, torch.tensor([[0, 0, 1], [1, 2, 3]]))
+    assert stacks["pixels"].shape == (2, 9, 2, 2) and stacks["pixels"].dtype == torch.uint8
+    assert stacks["pixels"][1, :, 0, 0].tolist() == [1, 1, 1, 2, 2, 2, 3, 3, 3]
+    assert stacks["pixels"][0, :, 1, 1].tolist() == [0, 0, 0, 0, 0, 0, 1, 1, 1]
+    assert stacks["state"].tolist() == [[0, 0, 0, 0, 1, 1], [1, 1, 2, 2, 3, 3]]
+
+
+def test_a_batch_s_frames_go_to_the_device_as_uint8_and_come_out_stacked():
+    batch = frames_batch(CAMERA_AND_STATE)
+    assert batch.obs["pixels"].shape == (8, 9, 24, 24) and batch.obs["pixels"].dtype == torch.uint8
+    assert batch.next_obs["state"].shape == (8, 12) and batch.next_obs["state"].dtype == torch.float32
+
+
+def test_the_encoder_convolves_stacks_scaled_on_the_device():
+    encoder = PixelEncoder(CAMERA_AND_STATE, K, channels=4)
+    assert encoder.conv_dim == 4 * 5 * 5 and encoder.vector_dim == 12  # 24 -> 11 -> 9 -> 7 -> 5
+    assert encoder.convs["pixels"][0].in_channels == 9 and encoder.convs["pixels"][0].stride == (2, 2)
+    obs = {"pixels": torch.full((5, 9, 24, 24), 255, dtype=torch.uint8), "state": torch.ones(5, 12)}
+    embedding = encoder(obs)
+    assert embedding.shape == (5, 112) and torch.equal(embedding[:, 100:], torch.ones(5, 12))
+    first = encoder.convs["pixels"][0]  # 255 is scaled to 0.5 before the first convolution
+    expected = torch.relu(first.weight.sum((1, 2, 3)) * 0.5 + first.bias)
+    torch.testing.assert_close(first(torch.full((1, 9, 16, 16), 0.5))[0, :, 0, 0].relu(), expected)
+    embedding_of_84 = PixelEncoder(ObservationSpec.parse("pixels: uint8[3, 84, 84]"), 3)
+    assert embedding_of_84.conv_dim == 32 * 35 * 35  # DrQ-v2's 39,200
+
+
+def test_networks_of_an_image_spec_have_their_own_projections_and_share_one_encoder():
+    state = init_state(pixel_config(), CAMERA_AND_STATE, ACT, seed=0)
+    assert state.critic.projection is not state.actor.projection
+    assert state.target_actor.encoder is state.actor.encoder
+    assert state.actor.projection.trunk[0].in_features == 8 * 25 and state.actor.projection.out_dim == 6 + 12
+    encoder = set(map(id, state.actor.encoder.parameters()))
+    assert encoder <= {id(p) for group in state.critic_opt.param_groups for p in group["params"]}
+    assert not encoder & {id(p) for group in state.actor_opt.param_groups for p in group["params"]}
+
+
+def test_the_critic_loss_trains_the_encoder_and_the_actor_loss_leaves_it_alone():
+    config = pixel_config()
+    state = init_state(config, PIXELS, ACT, seed=1)
+    batch = frames_batch()
+    conv = state.actor.encoder.convs["pixels"][0].weight
+    # The actor's step alone (its critic step undone by a learning rate of 0): the encoder stays.
+    for group in state.critic_opt.param_groups:
+        group["lr"] = 0.0
+    before, actor_before = conv.detach().clone(), state.actor.head.weight.detach().clone()
+    update(state, batch, config, actor_step=True)
+    assert torch.equal(conv, before) and not torch.equal(state.actor.head.weight, actor_before)
+    # The critic loss gives the encoder gradients; the critic's step moves it.
+    for group in state.critic_opt.param_groups:
+        group["lr"] = config.critic_lr
+    update(state, batch, config, actor_step=False)
+    assert not torch.equal(conv, before)
+
+
+def test_td3_updates_on_image_batches_move_every_network():
+    config = pixel_config(update_repeat=2)
+    state = init_state(config, CAMERA_AND_STATE, ACT, seed=2)
+    networks = ("actor", "critic", "target_actor", "target_critic")
+    before = {name: copy.deepcopy(getattr(state, name).state_dict()) for name in networks}
+    steps = GradientSteps(update, config, repeat=2, policy_delay=config.policy_delay)
+    for seed in range(2):
+        metrics = steps(state, frames_batch(CAMERA_AND_STATE, seed=seed))
+    assert state.updates == 4 and metrics["priorities"].shape == (8,)
+    assert all(torch.isfinite(value).all() for value in metrics.values())
+    for name in networks:
+        after = getattr(state, name).state_dict()
+        assert any(not torch.equal(before[name][k], after[k]) for k in after), name
+
+
+def test_the_vector_keeps_its_networks_and_spec():
+    state = init_state(TD3Config(hidden=(8,)), 5, ACT, seed=0)
+    assert state.actor.spec == {"obs_dim": 5, "act_dim": ACT, "hidden": [8], "activation": "elu", "layer_norm": True,
+                                "relative_x": False, "normalize_obs": False, "kind": "deterministic"}
+    assert sorted(state.actor.state_dict()) == ["exploration_std", "head.bias", "head.weight", "trunk.0.bias",
+                                                "trunk.0.weight", "trunk.1.bias", "trunk.1.weight"]
+    assert not any("projection" in key for key in state.critic.state_dict())
+    assert check_spec({**default_spec(41, 18), **ObservationSpec.vector(41).policy_entries()}) == default_spec(41, 18)
+
+
+def test_an_image_policy_spec_says_what_an_actor_stacks():
+    spec = init_state(pixel_config(), CAMERA_AND_STATE, ACT).actor.spec
+    assert ObservationSpec.from_policy_spec(spec) == CAMERA_AND_STATE and spec["frame_stack"] == K
+    assert spec["encoder"] == {"channels": 8, "features": 6} and "obs_dim" not in spec
+    assert check_spec(spec) == spec
+    with pytest.raises(ValueError, match="frame stacks are for image observations"):
+        check_spec({**default_spec(41, 18), "frame_stack": 2})
+    with pytest.raises(ValueError, match="at least 15 x 15"):
+        check_spec({**spec, "observation": ObservationSpec({"pixels": FieldSpec(np.uint8, (3, 8, 8))}).to_wire()})
+    with pytest.raises(ValueError, match="float32 vector alone"):
+        check_spec({**spec, "normalize_obs": True})
+
+
+def test_act_takes_stacked_fields_and_the_vector_as_before():
+    policy = build_policy(init_state(pixel_config(), CAMERA_AND_STATE, ACT, seed=3).actor.spec)
+    rng = np.random.default_rng(0)
+    obs = {"pixels": rng.integers(0, 256, (4, 9, 24, 24), dtype=np.uint8),
+           "state": rng.normal(size=(4, 12)).astype(np.float32)}
+    excitation = act(policy, obs, deterministic=True)
+    assert excitation.shape == (4, ACT) and excitation.dtype == np.float32
+    assert ((excitation >= 0) & (excitation <= 1)).all()
+    assert not np.allclose(excitation, act(policy, {**obs, "pixels": 255 - obs["pixels"]}, deterministic=True))
+    explored, log_prob = act_with_log_prob(policy, obs)
+    assert explored.shape == (4, ACT) and log_prob.shape == (4,)
+    with pytest.raises(ValueError, match="as a map of arrays"):
+        act(policy, obs["state"])
+    vector = build_policy(default_spec(5, ACT))
+    one = rng.normal(size=(3, 5)).astype(np.float32)
+    np.testing.assert_array_equal(act(vector, one, True), act(vector, {"state": one}, True))
+
+
+def test_an_image_training_state_survives_a_checkpoint(tmp_path):
+    config = pixel_config()
+    state = init_state(config, PIXELS, ACT, seed=4)
+    GradientSteps(update, config, policy_delay=1)(state, frames_batch())
+    path = save_checkpoint(checkpoint_path(tmp_path), state, config, 0, ACT)
+    saved = load_checkpoint(path)
+    assert saved.policy_spec == state.actor.spec and saved.config == config
+    restored = saved.restore()
+    for name in ("actor", "target_actor", "critic", "target_critic"):
+        mine, theirs = getattr(state, name).state_dict(), getattr(restored, name).state_dict()
+        assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine), name
+    assert restored.target_actor.encoder is restored.actor.encoder
+    policy = saved.policy()
+    assert isinstance(policy, DeterministicPolicy) and policy.frame_stack == K
+    obs = {"pixels": np.zeros((1, 9, 24, 24), np.uint8)}
+    np.testing.assert_array_equal(act(policy, obs, True), act(state.actor, obs, True))
+
+
+def test_the_command_line_takes_the_observation_and_defaults_to_drq_v2_s_stack_and_shift():
+    settings = parse_settings(["--algo", "td3", "--observation", "pixels: uint8[3, 24, 24]"])
+    assert settings.td3().frame_stack == 3 and settings.td3().augment_pad == 4
+    assert settings.learner().observation == PIXELS
+    vector = parse_settings(["--algo", "td3", "--obs-dim", "7"])
+    assert vector.learner().observation is None and vector.learner().obs_dim == 7 and vector.td3().frame_stack == 1
+    for argv, message in ((["--algo", "sac", "--observation", str(PIXELS)], "train with --algo td3"),
+                          (["--algo", "td3", "--compile", "inductor", "--observation", str(PIXELS)], "runs eagerly"),
+                          (["--algo", "td3", "--frame-stack", "3"], "for image observations"),
+                          (["--algo", "td3", "--env-id", "Hopper-v5", "--observation", str(PIXELS)], "give one")):
+        with pytest.raises(UsageError, match=message):
+            parse_settings(argv)
