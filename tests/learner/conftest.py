@@ -15,7 +15,9 @@ import pytest
 import torch
 import zenoh
 
-from l2r.protocol import EXPERIENCE_QOS, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
+from l2r.protocol import (
+    EXPERIENCE_QOS, ExperienceChunk, Keys, ObservationSpec, Stats, Weights, decode, encode, session_config,
+)
 from l2r.protocol.session import wait_alive
 from tests.conftest import free_port
 
@@ -55,14 +57,24 @@ class Daemon:
 
 
 class Feeder:
-    """An actor-like publisher: random 41/18 transitions into replay, in chunks, until stopped."""
+    """An actor-like publisher: random transitions into replay, in chunks, until stopped: the runner's
+    41 observations and 18 actions, or random fields of `observation` and `act_dim` actions."""
 
-    def __init__(self, session: zenoh.Session, run: str, chunk: int = 50, period: float = 0.02):
+    def __init__(self, session: zenoh.Session, run: str, chunk: int = 50, period: float = 0.02,
+                 observation: ObservationSpec | None = None, act_dim: int = 18):
         self._publisher = session.declare_publisher(Keys(run).experience(0), **EXPERIENCE_QOS.publisher())
         self._stop = threading.Event()
         self._chunk, self._period = chunk, period
+        self._observation, self._act_dim = observation, act_dim
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
+
+    def _observations(self, rng: np.random.Generator, rows: int):
+        if self._observation is None:  # the runner's vector, in the version-1 form
+            return rng.normal(size=(rows, 41)).astype(np.float32)
+        return {name: rng.integers(0, 256, (rows, *field.shape), dtype=np.uint8) if field.dtype == np.uint8
+                else rng.normal(size=(rows, *field.shape)).astype(np.float32)
+                for name, field in self._observation.fields.items()}
 
     def _run(self) -> None:
         rng, seq, epoch = np.random.default_rng(0), 0, time.time_ns()
@@ -70,10 +82,10 @@ class Feeder:
             t = self._chunk
             chunk = ExperienceChunk(
                 actor_id=0, env_id=0, epoch=epoch, seq=seq, policy_version=0,
-                obs=rng.normal(size=(t + 1, 41)).astype(np.float32),
-                actions=rng.random((t, 18), dtype=np.float32), rewards=rng.normal(size=t).astype(np.float32),
+                obs=self._observations(rng, t + 1),
+                actions=rng.random((t, self._act_dim), dtype=np.float32), rewards=rng.normal(size=t).astype(np.float32),
                 terminated=np.zeros(t, bool), truncated=np.zeros(t, bool),
-                final_obs=np.zeros((0, 41), np.float32))
+                final_obs=self._observations(rng, 0))
             self._publisher.put(encode(chunk))
             seq += 1
             self._stop.wait(self._period)

@@ -4,6 +4,7 @@ TD3 updates on image batches, image policies in checkpoints and in `act`, and th
 networks and spec as they always were."""
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,8 @@ import torch
 from l2r.config import UsageError
 from l2r.encoders import PixelEncoder, random_shift, shift_images, stack_frames
 from l2r.learner.__main__ import parse_settings
-from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.daemon import LearnerConfig, _initial_state
 from l2r.learner.sac import batch_from_frames
 from l2r.learner.steps import GradientSteps
 from l2r.learner.td3 import TD3Config, init_state, update
@@ -110,21 +112,29 @@ def test_networks_of_an_image_spec_have_their_own_projections_and_share_one_enco
 
 
 def test_the_critic_loss_trains_the_encoder_and_the_actor_loss_leaves_it_alone():
+    config, batch = pixel_config(), frames_batch()
+    states = [init_state(config, PIXELS, ACT, seed=1) for _ in range(2)]
+    before = states[0].actor.encoder.convs["pixels"][0].weight.detach().clone()
+    for state, actor_step in zip(states, (False, True)):
+        torch.manual_seed(5)  # the same shifts and noise: the critics' steps are the same
+        update(state, batch, config, actor_step)
+    critic_only, with_actor = (state.actor.encoder.convs["pixels"][0] for state in states)
+    assert critic_only.weight.grad.abs().sum() > 0 and not torch.equal(critic_only.weight, before)
+    torch.testing.assert_close(with_actor.weight.grad, critic_only.weight.grad, rtol=0, atol=0)
+    assert torch.equal(with_actor.weight, critic_only.weight)
+    assert not torch.equal(states[1].actor.head.weight, states[0].actor.head.weight)  # the actor did step
+
+
+def test_resuming_with_another_observation_or_stack_stops_with_one_line_naming_both(tmp_path):
     config = pixel_config()
-    state = init_state(config, PIXELS, ACT, seed=1)
-    batch = frames_batch()
-    conv = state.actor.encoder.convs["pixels"][0].weight
-    # The actor's step alone (its critic step undone by a learning rate of 0): the encoder stays.
-    for group in state.critic_opt.param_groups:
-        group["lr"] = 0.0
-    before, actor_before = conv.detach().clone(), state.actor.head.weight.detach().clone()
-    update(state, batch, config, actor_step=True)
-    assert torch.equal(conv, before) and not torch.equal(state.actor.head.weight, actor_before)
-    # The critic loss gives the encoder gradients; the critic's step moves it.
-    for group in state.critic_opt.param_groups:
-        group["lr"] = config.critic_lr
-    update(state, batch, config, actor_step=False)
-    assert not torch.equal(conv, before)
+    learner = LearnerConfig(run_dir=tmp_path, resume=True, obs_dim=0, observation=PIXELS, act_dim=ACT)
+    save_checkpoint(learner.checkpoint, init_state(config, PIXELS, ACT), config, 0, ACT)
+    assert _initial_state(learner, config, torch.device("cpu")).actor.observation == PIXELS
+    with pytest.raises(CheckpointError, match=r"trained on observations \{pixels: uint8\[3, 24, 24\]\} stacked 3, "
+                                              r"this learner's are \{pixels: .*state: float32\[4\]\} stacked 3"):
+        _initial_state(replace(learner, observation=CAMERA_AND_STATE), config, torch.device("cpu"))
+    with pytest.raises(CheckpointError, match="stacked 3, this learner's are .* stacked 2"):
+        _initial_state(learner, replace(config, frame_stack=2), torch.device("cpu"))
 
 
 def test_td3_updates_on_image_batches_move_every_network():
