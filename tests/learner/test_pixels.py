@@ -94,9 +94,8 @@ def test_the_encoder_convolves_stacks_scaled_on_the_device():
     obs = {"pixels": torch.full((5, 9, 24, 24), 255, dtype=torch.uint8), "state": torch.ones(5, 12)}
     embedding = encoder(obs)
     assert embedding.shape == (5, 112) and torch.equal(embedding[:, 100:], torch.ones(5, 12))
-    first = encoder.convs["pixels"][0]  # 255 is scaled to 0.5 before the first convolution
-    expected = torch.relu(first.weight.sum((1, 2, 3)) * 0.5 + first.bias)
-    torch.testing.assert_close(first(torch.full((1, 9, 16, 16), 0.5))[0, :, 0, 0].relu(), expected)
+    # 255 is scaled to 0.5 before the convolutions
+    torch.testing.assert_close(embedding[:, :100], encoder.convs["pixels"](torch.full((5, 9, 24, 24), 0.5)))
     embedding_of_84 = PixelEncoder(ObservationSpec.parse("pixels: uint8[3, 84, 84]"), 3)
     assert embedding_of_84.conv_dim == 32 * 35 * 35  # DrQ-v2's 39,200
 
