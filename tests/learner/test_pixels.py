@@ -91,11 +91,11 @@ def test_the_encoder_convolves_stacks_scaled_on_the_device():
     encoder = PixelEncoder(CAMERA_AND_STATE, K, channels=4)
     assert encoder.conv_dim == 4 * 5 * 5 and encoder.vector_dim == 12  # 24 -> 11 -> 9 -> 7 -> 5
     assert encoder.convs["pixels"][0].in_channels == 9 and encoder.convs["pixels"][0].stride == (2, 2)
-    obs = {"pixels": torch.full((5, 9, 24, 24), 255, dtype=torch.uint8), "state": torch.ones(5, 12)}
-    embedding = encoder(obs)
+    pixels = torch.randint(0, 256, (5, 9, 24, 24), dtype=torch.uint8)
+    embedding = encoder({"pixels": pixels, "state": torch.ones(5, 12)})
     assert embedding.shape == (5, 112) and torch.equal(embedding[:, 100:], torch.ones(5, 12))
-    # 255 is scaled to 0.5 before the convolutions
-    torch.testing.assert_close(embedding[:, :100], encoder.convs["pixels"](torch.full((5, 9, 24, 24), 0.5)))
+    # 0 ... 255 scaled to -0.5 ... 0.5 before the convolutions
+    torch.testing.assert_close(embedding[:, :100], encoder.convs["pixels"](pixels / 255.0 - 0.5))
     embedding_of_84 = PixelEncoder(ObservationSpec.parse("pixels: uint8[3, 84, 84]"), 3)
     assert embedding_of_84.conv_dim == 32 * 35 * 35  # DrQ-v2's 39,200
 
