@@ -14,12 +14,12 @@ from l2r.config import UsageError
 from l2r.encoders import PixelEncoder, random_shift, shift_images, stack_frames
 from l2r.learner.__main__ import parse_settings
 from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
-from l2r.learner.daemon import LearnerConfig, _initial_state
+from l2r.learner.daemon import LearnerConfig, _check_observations, _initial_state
 from l2r.learner.sac import batch_from_frames
 from l2r.learner.steps import GradientSteps
 from l2r.learner.td3 import TD3Config, init_state, update
 from l2r.policy import DeterministicPolicy, act, act_with_log_prob, build_policy, check_spec, default_spec
-from l2r.protocol import ObservationSpec
+from l2r.protocol import ObservationSpec, ProtocolError, SampleBatch
 from l2r.protocol.observations import FieldSpec
 
 PIXELS = ObservationSpec.parse("pixels: uint8[3, 24, 24]")
@@ -122,6 +122,26 @@ def test_the_critic_loss_trains_the_encoder_and_the_actor_loss_leaves_it_alone()
     torch.testing.assert_close(with_actor.weight.grad, critic_only.weight.grad, rtol=0, atol=0)
     assert torch.equal(with_actor.weight, critic_only.weight)
     assert not torch.equal(states[1].actor.head.weight, states[0].actor.head.weight)  # the actor did step
+
+
+def sample_batch(frames: dict, k: int = K, n: int = 4) -> SampleBatch:
+    """A frames-form reply of a replay shard, every stack of frame 0."""
+    return SampleBatch(0, n, False, None, np.zeros((n, ACT), np.float32), np.zeros(n, np.float32), None,
+                       np.zeros(n, bool), np.zeros(n, bool), np.arange(n), np.zeros(n, np.int64), np.ones(n) / n,
+                       np.zeros(n, np.int64), frames=frames, obs_frames=np.zeros((n, k), np.int64),
+                       next_obs_frames=np.zeros((n, k), np.int64))
+
+
+def test_the_learner_refuses_batches_of_another_observation_or_stack():
+    learner = LearnerConfig(obs_dim=0, observation=PIXELS, act_dim=ACT)
+    frames = {"pixels": np.zeros((1, 3, 24, 24), np.uint8)}
+    _check_observations(sample_batch(frames), learner, K)
+    for batch, reason in ((sample_batch(frames, k=2), "wrong_stack"),
+                          (sample_batch({"pixels": np.zeros((1, 3, 32, 32), np.uint8)}), "wrong_shape"),
+                          (sample_batch({**frames, "state": np.zeros((1, 4), np.float32)}), "unknown_field")):
+        with pytest.raises(ProtocolError) as error:
+            _check_observations(batch, learner, K)
+        assert error.value.reason == reason
 
 
 def test_resuming_with_another_observation_or_stack_stops_with_one_line_naming_both(tmp_path):
