@@ -120,7 +120,8 @@ def encoder_sizes(sizes: Mapping) -> dict:
     "channels" of every convolution, "features" out of each network's projection."""
     if not isinstance(sizes, Mapping) or set(sizes) - {"channels", "features"}:
         raise ValueError(f"policy spec 'encoder' must be a map of channels and features, got {sizes!r:.80}")
-    checked = {"channels": sizes.get("channels", encoders.CHANNELS), "features": sizes.get("features", encoders.FEATURES)}
+    checked = {"channels": sizes.get("channels", encoders.CHANNELS),
+               "features": sizes.get("features", encoders.FEATURES)}
     for key, value in checked.items():
         if type(value) is not int or not 0 < value <= 4096:
             raise ValueError(f"policy spec encoder {key!r} must be an int from 1 to 4096, got {value!r}")
