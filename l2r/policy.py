@@ -12,7 +12,11 @@ rebuild exactly the network the learner trains:
     {"obs_dim": 41, "act_dim": 18, "hidden": [512, 512, 512], "activation": "elu",
      "layer_norm": true, "relative_x": false, "normalize_obs": false, "kind": "gaussian"}
 
-A spec without "kind" (from before the deterministic kind) is a Gaussian one.
+A spec without "kind" (from before the deterministic kind) is a Gaussian one. A policy of image
+observations has no "obs_dim"; its spec says what it takes instead (l2r.encoders):
+
+    {"observation": [{"name": "pixels", "dtype": "uint8", "shape": [3, 84, 84]}], "frame_stack": 3,
+     "encoder": {"channels": 32, "features": 50}, "act_dim": 6, ...}
 
 The network's first layer sees the observation through an `ObservationFilter` (x coordinates
 measured from the pelvis, running standardisation), part of the network's state: the filter's

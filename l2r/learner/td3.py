@@ -15,6 +15,10 @@ Two additions to Fujimoto et al.'s algorithm, both off by default:
   updates (`follow_exploration_schedule`), it goes out with every weights message and checkpoint,
   and the actors explore with it.
 
+Image observations make it DrQ-v2 (docs/learner.md): one convolutional encoder (the actor's),
+learnt by the critic loss alone, embeds each batch once for all networks, each of which projects
+the embedding its own way; every update shifts the images at random first (`augment_pad`).
+
 The critics, the batches, the precision options and the speed measures are SAC's
 (`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; its one
 branch is on the `actor_step` bool, never on a tensor or a counter; the exploration std is written
