@@ -260,9 +260,10 @@ class PolicyNetwork(nn.Module):
         if self.encoder is None:
             vector = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
             return torch.as_tensor(np.asarray(vector, dtype=np.float32), device=device)
-        if not isinstance(obs, Mapping):
+        if not isinstance(obs, Mapping) or set(obs) != set(self.observation.fields):
             raise ValueError(f"this policy takes observations of fields {self.observation}, stacked "
-                             f"{self.frame_stack}, as a map of arrays; got {type(obs).__name__}")
+                             f"{self.frame_stack}, as a map of arrays; got "
+                             f"{sorted(obs) if isinstance(obs, Mapping) else type(obs).__name__}")
         return {name: torch.as_tensor(np.asarray(obs[name], dtype=field.dtype), device=device)
                 for name, field in self.observation.fields.items()}
 

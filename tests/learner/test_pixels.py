@@ -205,8 +205,10 @@ def test_act_takes_stacked_fields_and_the_vector_as_before():
     assert not np.allclose(excitation, act(policy, {**obs, "pixels": 255 - obs["pixels"]}, deterministic=True))
     explored, log_prob = act_with_log_prob(policy, obs)
     assert explored.shape == (4, ACT) and log_prob.shape == (4,)
-    with pytest.raises(ValueError, match="as a map of arrays"):
+    with pytest.raises(ValueError, match="as a map of arrays; got ndarray"):
         act(policy, obs["state"])
+    with pytest.raises(ValueError, match=r"as a map of arrays; got \['pixels'\]"):
+        act(policy, {"pixels": obs["pixels"]})
     vector = build_policy(default_spec(5, ACT))
     one = rng.normal(size=(3, 5)).astype(np.float32)
     np.testing.assert_array_equal(act(vector, one, True), act(vector, {"state": one}, True))
