@@ -96,10 +96,12 @@ def alone() -> zenoh.Session:
     return zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{free_port()}"]))
 
 
-def test_a_shard_from_before_n_step_returns_is_told_apart_and_left_alone(run_name):
-    """A shard that ignores n_step answers one-step batches (played here by a queryable, as no
-    such l2r-replay is at hand): the client rejects them and counts why, and asks that shard
-    only about once a second."""
+@pytest.mark.parametrize("asked, reason", [({"n_step": 3, "gamma": 0.99}, "no_discounts"),
+                                           ({"frame_stack": 3}, "no_frames")])
+def test_a_shard_from_before_n_step_returns_and_frames_is_told_apart_and_left_alone(run_name, asked, reason):
+    """A shard that ignores n_step and frame_stack answers one-step batches of the vector (played
+    here by a queryable, as no such l2r-replay is at hand): the client rejects them and counts
+    why, and asks that shard only about once a second."""
     keys, questions = Keys(run_name), []
 
     def old_shard(query: zenoh.Query) -> None:
@@ -114,11 +116,11 @@ def test_a_shard_from_before_n_step_returns_is_told_apart_and_left_alone(run_nam
     try:
         queryable = session.declare_queryable(keys.sample(0), old_shard)
         token = session.liveliness().declare_token(keys.alive("replay", 0))
-        with ReplayClient(session, run_name, batch_size=4, in_flight=4, n_step=3, gamma=0.99) as client:
+        with ReplayClient(session, run_name, batch_size=4, in_flight=4, **asked) as client:
             with pytest.raises(queue.Empty):
                 client.sample(timeout=2.5)
             # each of the 4 query slots waits a second after such a batch
-            assert 1 <= client.rejections.by_reason["no_discounts"] <= len(questions) <= 4 * 3
+            assert 1 <= client.rejections.by_reason[reason] <= len(questions) <= 4 * 3
         token.undeclare()
         queryable.undeclare()
     finally:
