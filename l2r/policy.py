@@ -264,8 +264,15 @@ class PolicyNetwork(nn.Module):
             raise ValueError(f"this policy takes observations of fields {self.observation}, stacked "
                              f"{self.frame_stack}, as a map of arrays; got "
                              f"{sorted(obs) if isinstance(obs, Mapping) else type(obs).__name__}")
-        return {name: torch.as_tensor(np.asarray(obs[name], dtype=field.dtype), device=device)
-                for name, field in self.observation.fields.items()}
+        tensors = {}
+        for name, field in self.observation.fields.items():
+            stacked = (self.frame_stack * field.shape[0], *field.shape[1:])
+            array = np.asarray(obs[name], dtype=field.dtype)
+            if array.shape[1:] != stacked:
+                raise ValueError(f"observation field {name!r}: shape {list(array.shape)}, this policy takes "
+                                 f"[n, {', '.join(map(str, stacked))}] ({self.frame_stack} frames of {field} stacked)")
+            tensors[name] = torch.as_tensor(array, device=device)
+        return tensors
 
     @torch.no_grad()
     def act(self, obs_batch: np.ndarray | Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:

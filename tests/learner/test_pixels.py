@@ -209,6 +209,8 @@ def test_act_takes_stacked_fields_and_the_vector_as_before():
         act(policy, obs["state"])
     with pytest.raises(ValueError, match=r"as a map of arrays; got \['pixels'\]"):
         act(policy, {"pixels": obs["pixels"]})
+    with pytest.raises(ValueError, match=r"shape \[4, 3, 24, 24\], this policy takes \[n, 9, 24, 24\]"):
+        act(policy, {**obs, "pixels": obs["pixels"][:, :3]})
     vector = build_policy(default_spec(5, ACT))
     one = rng.normal(size=(3, 5)).astype(np.float32)
     np.testing.assert_array_equal(act(vector, one, True), act(vector, {"state": one}, True))
