@@ -1,8 +1,9 @@
 """Task families, and what each scores an episode by.
 
 A task's family comes from its id: `runner` for the Learning to Run runner (`l2r/Run-v0` and
-`l2r/RunOpenSim-v0`), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5; the camera
-tasks of `l2r.control` score by return too). The family picks the
+`l2r/RunOpenSim-v0`), `pixels` for the camera tasks of `l2r.control` (`l2r/dmc-cartpole-swingup-v0`:
+the DeepMind Control suite seen through 84 × 84 frames), `standard` for any other gymnasium task
+(Hopper-v5, Walker2d-v5). The family picks the
 recipe a job trains with (l2r.recipes) and its score: what `l2r up` keeps `learner/best.pt` by and
 names the best evaluation episode by, and what the status line, the final report, summary.json,
 the evaluators' log and `l2r eval` speak of.
@@ -14,15 +15,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-RUNNER, STANDARD = "runner", "standard"
-FAMILIES = (RUNNER, STANDARD)
+RUNNER, PIXELS, STANDARD = "runner", "pixels", "standard"
+FAMILIES = (RUNNER, PIXELS, STANDARD)
 
 
 RUNNER_IDS = "l2r/Run"  # the prefix of the runner's ids (l2r.sim's PORT_ID and OPENSIM_ID), no other l2r/ task's
+CAMERA_IDS = "l2r/dmc-"  # the prefix of l2r.control's ids
 
 
 def family_of(env_id: str) -> str:
-    return RUNNER if env_id.startswith(RUNNER_IDS) else STANDARD
+    return RUNNER if env_id.startswith(RUNNER_IDS) else PIXELS if env_id.startswith(CAMERA_IDS) else STANDARD
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,7 @@ class Score:
 SCORES = {
     RUNNER: Score("distance", "m", "distance"),  # how far the pelvis went
     STANDARD: Score("return", "", "episode_return"),  # the sum of the task's own rewards
+    PIXELS: Score("return", "", "episode_return"),  # the suite's rewards, as DrQ-v2 reports them
     # Photo tasks will score by PSNR in dB, once their episode summaries carry it.
 }
 

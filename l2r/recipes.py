@@ -2,7 +2,8 @@
 
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
 comes from the task (l2r.families): `runner` for the Learning to Run runner (`l2r/Run-v0`,
-`l2r/RunOpenSim-v0`), `standard` for any other gymnasium task (Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
+`l2r/RunOpenSim-v0`), `pixels` for the camera tasks (`l2r/dmc-...`), `standard` for any other gymnasium task
+(Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
 family's recipe, and each setting has an `l2r up` flag of its own name that replaces the
 recipe's value.
 
@@ -20,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
-from l2r.families import RUNNER, STANDARD, family_of
+from l2r.families import PIXELS, RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS
 from l2r.policy import ACTIVATIONS
 
@@ -84,6 +85,22 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=25_000, samples_per_insert=256.0, hold_actors=True,
         random_steps=25_000, envs_per_actor=1, action_repeat=1,
+    ),
+    # DrQ-v2's, for the camera tasks (TD3 on 3 stacked 84 x 84 frames; the learner's image defaults
+    # add the frame stack of 3 and random shifts of 4 pixels): 1024-wide networks, n-step 3, the
+    # exploration std from 1.0 to 0.1 over its "easy" tasks' 100,000 env steps (50,000 updates at
+    # one per 2 env steps; its medium tasks take 250,000), the target's noise that same std clipped
+    # at 0.3, the actor every update, learning after 2,000 uniform random steps. Weights go out
+    # every 10th update rather than each: an image policy is 8 MB, mostly its encoder's projection.
+    (PIXELS, "td3"): dict(
+        hidden="1024,1024", activation="relu", layer_norm=False, batch_size=256, lr=1e-4, gamma=0.99, tau=0.01,
+        reward_scale=1.0, update_repeat=1, publish_every=10,
+        n_step=3, policy_delay=1, target_noise=0.2, scheduled_target_noise=True, noise_clip=0.3,
+        exploration_std_start=1.0, exploration_std_end=0.1, exploration_std_updates=50_000,
+        relative_x=False, normalize_obs=False, mirror=False,
+        min_replay=2_000, samples_per_insert=128.0, hold_actors=True,
+        # action_repeat 1: the camera task itself holds each action for DrQ-v2's 2 suite steps.
+        random_steps=2_000, envs_per_actor=1, action_repeat=1,
     ),
 }
 

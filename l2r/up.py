@@ -39,7 +39,6 @@ import zipfile
 from datetime import datetime, timezone
 from pathlib import Path
 
-import gymnasium
 import numpy as np
 import zenoh
 
@@ -47,7 +46,7 @@ import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
-from l2r.families import FAMILIES, RUNNER, family_of, score_of
+from l2r.families import FAMILIES, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
@@ -56,10 +55,14 @@ from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS
 from l2r.replay.queue import QueueConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
+from l2r.spaces import task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
 from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
+
+VECTOR_CAPACITY, IMAGE_CAPACITY = 1_000_000, 100_000
+IMAGE_SIDE_FRACTION = 0.0625
 
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
 # the --config file, whose values launch.json keeps as the flags they set.
@@ -133,10 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "replay inserts) before the job gives up on it and exits with code 1")
     a = p.add_argument_group("actors")
     a.add_argument("--env-id", default=PORT_ID,
-                   help="gymnasium id of the task: the runner, or another with Box observations and actions, such as "
-                        "Hopper-v5 (the replay server and learner then take its widths, the job trains with the "
-                        "standard recipe, and the runner's own options are off: --relative-x, --mirror, the actors' "
-                        "blow-up check)")
+                   help="gymnasium id of the task: the runner; another with Box actions, such as Hopper-v5 (the "
+                        "replay server and learner then take its observation spec, the job trains with the standard "
+                        "recipe, and the runner's own options are off: --relative-x, --mirror, the actors' blow-up "
+                        "check); or a camera task, l2r/dmc-<domain>-<task>-v0 such as l2r/dmc-cartpole-swingup-v0 "
+                        "(84 x 84 frames, DrQ-v2's pixels recipe, --algo td3)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--evaluators", type=int, default=1,
@@ -169,7 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "deterministic policy); ppo on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
-    le.add_argument("--capacity", type=int, default=1_000_000, help="replay capacity in transitions (SAC, TD3)")
+    le.add_argument("--capacity", type=int,
+                    help=f"replay capacity in transitions (SAC, TD3); unset: {VECTOR_CAPACITY:,}, and {IMAGE_CAPACITY:,} "
+                         f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start)")
     le.add_argument("--queue-capacity", type=int,
                     help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
     le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,
@@ -188,8 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
                               "algorithm (docs/training.md, \"Recipes\") unless its flag is given")
     rc.add_argument("--recipe", choices=FAMILIES,
                     help="train with this family's recipe (unset: the family of --env-id: runner for the runner's l2r/Run ids, "
-                         "standard for any other task), e.g. --recipe runner on Hopper-v5 to set the two against "
-                         "each other")
+                         "pixels for the camera tasks' l2r/dmc- ids, standard for any other task), e.g. --recipe runner "
+                         "on Hopper-v5 to set the two against each other")
     for name, text in SETTINGS.items():
         rc.add_argument(f"--{name.replace('_', '-')}", **_recipe_flag(name, text))
     o = p.add_argument_group("output")
@@ -227,9 +233,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
             print(f"l2r up: warning: --{dest.replace('_', '-')} {getattr(args, dest)} replaces {old} from "
                   f"{args.resume / 'launch.json'}", file=sys.stderr)
     snapshot_capacity = replay_snapshot_capacity(args.resume / "replay")
-    if snapshot_capacity not in (None, args.capacity):
+    if snapshot_capacity not in (None, replay_capacity(args)):
         print(f"l2r up: warning: the replay snapshot in {args.resume / 'replay'} holds {snapshot_capacity:,} "
-              f"transitions' capacity; the replay server cannot restore it with --capacity {args.capacity:,} and the "
+              f"transitions' capacity; the replay server cannot restore it with --capacity {replay_capacity(args):,} and the "
               f"job will give up (move replay/ away to start with an empty replay)", file=sys.stderr)
     return _checked(parser, args), launch
 
@@ -318,6 +324,18 @@ def replay_snapshot_capacity(directory: Path) -> int | None:
 
 
 def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.Namespace:
+    if family_of(args.env_id) != RUNNER:
+        try:
+            observation, _ = task_spaces(args.env_id)
+        except ValueError as e:
+            parser.error(f"--env-id {args.env_id}: {e}")
+        if observation.vector_width is None and args.algo != "td3":
+            parser.error(f"--env-id {args.env_id}: its observation is {observation}; images train with --algo td3 "
+                         f"(DrQ-v2), not {args.algo}")
+    family = args.recipe or family_of(args.env_id)
+    if (family, args.algo) not in RECIPES:
+        parser.error(f"there is no {family} recipe for --algo {args.algo}; {family}'s: "
+                     f"{', '.join(algo for f, algo in RECIPES if f == family)}")
     recipe = recipe_of(args).values
     if args.actors < 1 or recipe["envs_per_actor"] < 1:
         parser.error("--actors and --envs-per-actor must be at least 1")
@@ -327,11 +345,6 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--hidden takes widths such as 256,256 (got {recipe['hidden']!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
-    if family_of(args.env_id) != RUNNER:
-        try:
-            task_widths(args.env_id)
-        except ValueError as e:
-            parser.error(f"--env-id {args.env_id}: {e}")
     return args
 
 
@@ -369,22 +382,21 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
     return [ids[i % len(ids)] for i in range(max(args.evaluators, len(ids)))]
 
 
-def task_widths(env_id: str) -> tuple[int, int]:
-    """The observation and action widths of a gymnasium task; ValueError, saying why, for a task
-    whose observations or actions are not one Box (camera tasks: docs/observations.md)."""
-    try:
-        env = gymnasium.make(env_id)
-    except gymnasium.error.Error as e:
-        raise ValueError(str(e)) from None
-    try:
-        spaces = {"observations": env.observation_space, "actions": env.action_space}
-        for what, space in spaces.items():
-            if not isinstance(space, gymnasium.spaces.Box):
-                raise ValueError(f"its {what} are {space}, and l2r up trains on vectors alone so far "
-                                 f"(docs/observations.md)")
-        return int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
-    finally:
-        env.close()
+def replay_capacity(args: argparse.Namespace) -> int:
+    """--capacity, else the default for the task's observations."""
+    return args.capacity or (IMAGE_CAPACITY if family_of(args.env_id) == PIXELS else VECTOR_CAPACITY)
+
+
+def task_flags(env_id: str) -> tuple[list[str], list[str]]:
+    """The replay server's and learner's flags for the observations and actions of a task other
+    than the runner: the vector's widths as before, else the observation spec; an image shard keeps
+    side rows for a sixteenth of its capacity (docs/observations.md, "Replay storage")."""
+    observation, act_dim = task_spaces(env_id)
+    if observation.vector_width is not None:
+        widths = ["--obs-dim", str(observation.vector_width), "--act-dim", str(act_dim)]
+        return widths, widths
+    spec = ["--observation", str(observation), "--act-dim", str(act_dim)]
+    return [*spec, "--side-fraction", str(IMAGE_SIDE_FRACTION)], spec
 
 
 def learner_threads(args: argparse.Namespace) -> int:
@@ -429,18 +441,15 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                   "--queue-max-lag", str(args.queue_max_lag)]
         in_flight = ["--in-flight", "1"]
     else:
-        tables, in_flight = ["--capacity", str(args.capacity)], []
-    task = []  # another task than the runner: its widths
-    if family_of(args.env_id) != RUNNER:
-        obs_dim, act_dim = task_widths(args.env_id)
-        task = ["--obs-dim", str(obs_dim), "--act-dim", str(act_dim)]
+        tables, in_flight = ["--capacity", str(replay_capacity(args))], []
+    replay_task, learner_task = task_flags(args.env_id) if family_of(args.env_id) != RUNNER else ([], [])
     children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
                       argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables,
-                                 *daemon_flags(recipe, REPLAY_FLAGS), *task,
+                                 *daemon_flags(recipe, REPLAY_FLAGS), *replay_task,
                                  "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
-                                     "--device", args.device, "--algo", args.algo, *in_flight, *task,
+                                     "--device", args.device, "--algo", args.algo, *in_flight, *learner_task,
                                      *daemon_flags(recipe, LEARNER_FLAGS), *layer_norm_flag(recipe, args.learner_arg),
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(recipe["action_repeat"]),

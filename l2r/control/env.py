@@ -84,9 +84,11 @@ class ControlEnv(gym.Env):
         # pixels, rendered faster (bench/render_speed.py); set before the first render makes it.
         self.physics.model.vis.global_.offwidth = image_size
         self.physics.model.vis.global_.offheight = image_size
-        self.camera_id = CAMERAS.get(domain, 0)
-        self.camera = Camera(self.physics, height=image_size, width=image_size, camera_id=self.camera_id)
-        self.gl = rendering.gl_report(self.physics)
+        self.camera_id, self.image_size = CAMERAS.get(domain, 0), image_size
+        # Made at the first reset, so a process that reads the spaces alone (a learner, l2r up's
+        # planning) needs no OpenGL.
+        self.camera: Camera | None = None
+        self.gl: rendering.GLReport | None = None
 
         spec = self.control_env.action_spec()
         self.suite_low, self.suite_high = spec.minimum, spec.maximum
@@ -104,6 +106,9 @@ class ControlEnv(gym.Env):
         if seed is not None:
             # The suite draws the initial state from the task's RandomState, which takes 32-bit seeds.
             self.control_env.task.random.seed(int(self.np_random.integers(2**32)))
+        if self.camera is None:
+            self.camera = Camera(self.physics, height=self.image_size, width=self.image_size, camera_id=self.camera_id)
+            self.gl = rendering.gl_report(self.physics)
         time_step = self.control_env.reset()
         self.episode_over = False
         return self.observation(time_step.observation), {}

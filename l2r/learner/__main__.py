@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 
 # Set before torch loads OpenMP: idle OpenMP workers then sleep instead of spinning. The learner
@@ -27,6 +26,7 @@ from l2r.learner.steps import COMPILE_MODES  # noqa: E402
 from l2r.learner.td3 import TD3Config  # noqa: E402
 from l2r.protocol import DaemonSettings, ObservationSpec, ProtocolError, configure_logging  # noqa: E402
 from l2r.protocol.limits import MAX_FRAME_STACK  # noqa: E402
+from l2r.spaces import task_spaces  # noqa: E402
 
 IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
 """DrQ-v2's frame stack and random shift, the defaults for image observations."""
@@ -182,7 +182,7 @@ class LearnerSettings(DaemonSettings):
             if self.observation is not None:
                 raise UsageError("--env-id and --observation both give the observation: give one")
             try:
-                return env_spaces(self.env_id)
+                return task_spaces(self.env_id)
             except ValueError as e:
                 raise UsageError(f"--env-id {self.env_id}: {e}") from None
         if self.observation is None:
@@ -274,26 +274,6 @@ class LearnerSettings(DaemonSettings):
             action_repeat=self.action_repeat, metrics_interval=self.metrics_interval,
             max_updates=self.max_updates, seed=self.seed, world_size=self.world_size, rank=self.rank,
             dist_url=self.dist_url)
-
-
-def env_spaces(env_id: str) -> tuple[ObservationSpec, int]:
-    """The observation spec and action width of a gymnasium environment (l2r's own ids included);
-    ValueError, saying why, for one l2r cannot train on."""
-    import gymnasium
-
-    import l2r.control  # noqa: F401  (registers the camera tasks' ids)
-    import l2r.sim  # noqa: F401  (registers the runner's)
-
-    try:
-        env = gymnasium.make(env_id)
-    except gymnasium.error.Error as e:
-        raise ValueError(str(e)) from None
-    try:
-        if not isinstance(env.action_space, gymnasium.spaces.Box):
-            raise ValueError(f"its actions are {env.action_space}; l2r takes a Box")
-        return ObservationSpec.from_space(env.observation_space), int(math.prod(env.action_space.shape))
-    finally:
-        env.close()
 
 
 def build_parser() -> CommandParser:

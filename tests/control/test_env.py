@@ -98,7 +98,18 @@ def test_the_episode_is_truncated_after_1000_suite_steps(env):
         assert env.step(np.zeros(1, np.float32))[3] is False
 
 
+def test_reading_the_spaces_makes_no_camera_and_no_gl_context():
+    # A learner or l2r up's planning reads the spaces on hosts that may have no OpenGL at all.
+    fresh = gymnasium.make("l2r/dmc-walker-walk-v0")
+    try:
+        assert fresh.observation_space["pixels"].shape == (3, 84, 84)
+        assert fresh.unwrapped.camera is None and fresh.unwrapped.gl is None
+    finally:
+        fresh.close()
+
+
 def test_the_report_names_the_backend_and_the_gl_renderer(env):
+    env.reset(seed=0)
     report = rendering.gl_report(env.unwrapped.physics)
     assert report is env.unwrapped.gl
     assert report.backend == os.environ["MUJOCO_GL"] in ("egl", "osmesa")

@@ -9,7 +9,7 @@ import pytest
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
-from l2r.families import RUNNER, STANDARD, family_of
+from l2r.families import PIXELS, RUNNER, family_of
 from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
@@ -121,12 +121,25 @@ def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_opt
         assert (actor.env_id, actor.max_speed, actor.episode_log_dir) == ("Hopper-v5", 0, None)
 
 
-def test_a_task_without_vector_observations_or_unknown_is_refused_in_one_line(capsys):
-    # The camera tasks are l2r/ ids but not the runner: neither its recipe nor a crash at planning.
-    assert family_of("l2r/dmc-cartpole-swingup-v0") == STANDARD and family_of("l2r/RunOpenSim-v0") == RUNNER
-    for env_id, why in (("l2r/dmc-cartpole-swingup-v0", "trains on vectors alone"), ("Nope-v0", "doesn't exist")):
+def test_a_camera_task_plans_its_observation_spec_and_the_pixels_recipe():
+    assert family_of("l2r/dmc-cartpole-swingup-v0") == PIXELS and family_of("l2r/RunOpenSim-v0") == RUNNER
+    args, _ = parse_args(["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
+    assert replay.observation == learner.observation == "{pixels: uint8[3, 84, 84]}"
+    assert (replay.act_dim, learner.act_dim, replay.capacity, replay.side_fraction) == (1, 1, 100_000, 0.0625)
+    config = learner.algorithm()
+    assert (config.frame_stack, config.augment_pad, config.n_step, config.hidden) == (3, 4, 3, (1024, 1024))
+    # The task holds each action for 2 suite steps itself; the actors add no repeat of their own.
+    assert actor_settings(children["actor-0"]).action_repeat == 1
+
+
+def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
+    for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0"], "images train with --algo td3 (DrQ-v2), not sac"),
+                      (["--env-id", "Nope-v0"], "doesn't exist"),
+                      (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo")):
         with pytest.raises(SystemExit) as exit_:
-            parse_args(["--env-id", env_id])
+            parse_args(argv)
         assert exit_.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()[-1]
-        assert err.startswith(f"l2r up: --env-id {env_id}: ") and why in err, err
+        assert err.startswith("l2r up: ") and why in err, err

@@ -1,0 +1,31 @@
+"""The observation spec and action width of a task, read off its gymnasium spaces.
+
+`l2r up` plans its daemons by them and `l2r-learner --env-id` builds its networks by them; both
+ask here, so a task either trains everywhere or is refused in the same words.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium
+
+from l2r.protocol.observations import ObservationSpec
+
+
+def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
+    """The observation spec and action width of a gymnasium task (l2r's own ids included);
+    ValueError, saying why, for one l2r cannot train on."""
+    import l2r.control  # noqa: F401  (registers the camera tasks' ids)
+    import l2r.sim  # noqa: F401  (registers the runner's)
+
+    try:
+        env = gymnasium.make(env_id)
+    except gymnasium.error.Error as e:
+        raise ValueError(str(e)) from None
+    try:
+        if not isinstance(env.action_space, gymnasium.spaces.Box):
+            raise ValueError(f"its actions are {env.action_space}; l2r takes a Box")
+        return ObservationSpec.from_space(env.observation_space), int(math.prod(env.action_space.shape))
+    finally:
+        env.close()
