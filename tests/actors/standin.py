@@ -28,3 +28,14 @@ class StandIn(gymnasium.Env):
 
 
 gymnasium.register("StandIn-v0", entry_point=StandIn)
+
+
+class Broken(StandIn):
+    """A stand-in that breaks its own declared space after 5 steps: 40 observations, not 41."""
+
+    def step(self, action):
+        obs, *rest = super().step(action)
+        return (obs[:40] if self._t > 5 else obs, *rest)
+
+
+gymnasium.register("BrokenStandIn-v0", entry_point=Broken)
