@@ -102,7 +102,7 @@ def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: i
         trained = (ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"])
         if task != trained:
             raise WrongTask(f"the policy takes observations {trained[0]} and gives {trained[1]} actions, "
-                            f"{env_id} has {task[0]} and {task[1]}: --env-id names the task it trained on")
+                            f"{env_id} gives {task[0]} and takes {task[1]}: --env-id names the task it trained on")
         # The runner's blow-up check, as in training; `l2r up` turns it off on other tasks.
         max_speed = ActorConfig.max_speed if family_of(env_id) == RUNNER else 0.0
         return run_deterministic(policy, envs, [seed + i for i in range(episodes)], max_speed=max_speed,
