@@ -209,18 +209,19 @@ class Actor:
         seeds = [episode_seed(config, i, 0) for i in range(config.num_envs)]
         envs = [make_env(config, seed) for seed in seeds]
         self.observation = observation_spec(envs[0], config.env_id)
-        self.image_fields = sum(field.dtype == np.uint8 for field in self.observation.fields.values())
+        self.camera = any(field.dtype == np.uint8 for field in self.observation.fields.values())
+        self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
         for env, seed in zip(envs, seeds):
             obs, info = env.reset(seed=seed)
             x = float(info.get("distance", 0.0))
             self.slots.append(EnvSlot(env, self.observe(obs), seed, start_x=x, x=x))
         self.weights = WeightFollower(session, self.keys, self.observation)
-        self.frames = FrameStack(self.observation, self.weights.frame_stack, config.num_envs)
+        self.stacks = FrameStack(self.observation, self.weights.frame_stack, config.num_envs)
         self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size, self.observation)
                          for i in range(config.num_envs)]
         for i, (builder, slot) in enumerate(zip(self.builders, self.slots)):
             builder.begin(slot.obs)
-            self.frames.reset(i, slot.obs)
+            self.stacks.reset(i, slot.obs)
         self.experience = session.declare_publisher(
             self.keys.experience(config.actor_id, config.num_shards), **EXPERIENCE_QOS.publisher())
         self.resend = self.resender = None
@@ -234,7 +235,7 @@ class Actor:
         if not config.evaluate:  # evaluation rounds start their own recordings
             for slot in self.slots:
                 self.begin_record(slot)
-        self._rate_steps, self._rate_time = 0, time.monotonic()
+        self._rate_steps, self._rate_frames, self._rate_time = 0, 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
 
@@ -253,7 +254,7 @@ class Actor:
         uniform = np.full(len(self.slots), uniform_log_prob(act_dim), np.float32)
         if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
-        actions, log_probs = act_with_log_prob(self.weights.policy, self.frames.stacked())
+        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked())
         bad = ~(np.isfinite(actions).all(axis=1) & np.isfinite(log_probs))
         if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
             log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
@@ -268,8 +269,8 @@ class Actor:
         acted_by = self.weights.version
         if self.weights.poll():
             self.flush(force=True, version=acted_by)  # a chunk carries the one version that produced it
-            if self.weights.frame_stack != self.frames.depth:
-                self.frames = self.frames.with_depth(self.weights.frame_stack)
+            if self.weights.frame_stack != self.stacks.depth:
+                self.stacks = self.stacks.with_depth(self.weights.frame_stack)
             if self.first_version is None:
                 self.first_version = self.weights.version
         if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > 0):
@@ -291,6 +292,7 @@ class Actor:
             slot.x = float(info.get("distance", 0.0))
             slot.ret += float(reward)
             slot.length += int(info.get("inner_steps", 1))
+            self.frames += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
                 slot.recorder.log_step(logged(obs), action, reward, info)
             self.live.publish(i, slot.episode, slot.length, reward, info)
@@ -298,10 +300,10 @@ class Actor:
             if terminated or truncated:
                 self.end_episode(i, slot, float(info.get("distance", 0.0)), terminated, truncated)
                 start_obs = slot.obs
-                self.frames.reset(i, start_obs)
+                self.stacks.reset(i, start_obs)
             else:
                 slot.obs = obs
-                self.frames.push(i, obs)
+                self.stacks.push(i, obs)
             if not self.config.evaluate:
                 self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now, log_probs[i])
         self.steps += len(self.slots)
@@ -389,8 +391,9 @@ class Actor:
 
     def publish_stats(self) -> None:
         now = time.monotonic()
-        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
-        self._rate_steps, self._rate_time = self.steps, now
+        elapsed = max(now - self._rate_time, 1e-9)
+        rate, frame_rate = (self.steps - self._rate_steps) / elapsed, (self.frames - self._rate_frames) / elapsed
+        self._rate_steps, self._rate_frames, self._rate_time = self.steps, self.frames, now
         values = {
             "env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
             "chunks_sent": self.chunks_sent, "policy_version": self.weights.version,
@@ -399,8 +402,8 @@ class Actor:
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
             "num_envs": len(self.slots), "blowups": self.blowups, "held_s": self.held_s,
         }
-        if self.image_fields:  # camera tasks: the frames rendered, one per image field of each step
-            values["frames_per_s"] = rate * self.image_fields
+        if self.camera:  # one frame rendered per env step; the papers count a frame per inner step
+            values |= {"frames": self.frames, "frames_per_s": frame_rate}
         if self.resend is not None:
             values |= {"chunks_acked": self.resend.acked, "chunks_resent": self.resend.resent,
                        "unacked_chunks": len(self.resend), "unacked_bytes": self.resend.nbytes,

@@ -79,7 +79,9 @@ def test_a_camera_actor_sends_its_environment_s_frames_one_a_step_to_a_camera_re
             f"{shard()}\n{of_actor()}\n{replay.log()[-2000:]}"
         assert shard()["rejected"] == 0 and shard()["gaps"] == 0
         assert of_actor()["policy_version"] == -1  # the vector policy was refused: it goes on acting randomly
-        assert of_actor()["frames_per_s"] > 0 and of_actor()["frames_per_s"] == of_actor()["env_steps_per_s"]
+        # cartpole repeats each action twice itself: two of the frames papers count per env step
+        assert of_actor()["frames_per_s"] > 0 and of_actor()["frames_per_s"] == 2 * of_actor()["env_steps_per_s"]
+        assert of_actor()["frames"] == 2 * of_actor()["env_steps"]
 
         batch = None
         for reply in session.get(keys.sample(0), payload=encode(SampleRequest(batch_size=16, frame_stack=3)), timeout=10):
