@@ -24,6 +24,7 @@ from gymnasium.wrappers import RescaleAction
 import torch
 import zenoh
 
+import l2r.control  # noqa: F401  (registers the camera tasks, l2r/dmc-<domain>-<task>-v0)
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.experience import ChunkBuilder, ResendBuffer

@@ -1,9 +1,13 @@
-"""An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds."""
+"""An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds,
+and the camera tasks, by their ids alone."""
 
 import numpy as np
+import pytest
 from gymnasium.wrappers import RescaleAction
 
-from l2r.actors.actor import ActorConfig, make_env
+from l2r.actors.actor import ActorConfig, make_env, observation_spec
+from l2r.protocol import ObservationSpec
+from tests.actors.camera import RENDERER
 
 
 def test_another_task_takes_the_policy_s_excitations_rescaled_to_its_action_bounds():
@@ -19,3 +23,13 @@ def test_the_runner_takes_its_difficulty_and_seed_and_keeps_its_excitations():
     assert env.unwrapped.difficulty == 2
     assert (env.action_space.low.min(), env.action_space.high.max()) == (0.0, 1.0)
     assert not isinstance(env, RescaleAction)
+
+
+@pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
+def test_a_camera_task_is_known_by_its_id_and_declares_its_frames():
+    env = make_env(ActorConfig(env_id="l2r/dmc-cartpole-swingup-v0", action_repeat=1), seed=0)
+    try:
+        assert observation_spec(env, "l2r/dmc-cartpole-swingup-v0") == ObservationSpec.parse("pixels: uint8[3, 84, 84]")
+        assert (env.action_space.low.tolist(), env.action_space.high.tolist()) == ([0.0], [1.0])
+    finally:
+        env.close()
