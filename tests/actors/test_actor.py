@@ -88,10 +88,15 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
         alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
         assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
 
-        # Garbage, then weights that do not fit the network: counted, not fatal.
+        # Garbage, weights that do not fit the network, a policy for 40 observations where the env
+        # gives 41, stacks the replay cannot build: counted, not fatal, the policy kept.
         peer.publish(b"\x00not msgpack")
         peer.publish(encode(Weights(4, {"trunk.0.weight": np.zeros((2, 2), np.float32)}, SPEC)))
-        assert wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 2), "two rejections counted"
+        narrow = {**SPEC, "obs_dim": 40}
+        peer.publish(encode(Weights(4, policy_state(build_policy(narrow)), narrow)))
+        peer.publish(encode(Weights(4, peer.latest.params, {**SPEC, "frame_stack": 17})))
+        assert wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 4), "four rejections counted"
+        assert peer.last_stats()["policy_version"] == 3
         assert proc.poll() is None
 
         # A published update is swapped in; its chunks carry the new version.
