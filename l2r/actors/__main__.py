@@ -32,8 +32,9 @@ class ActorSettings(DaemonSettings):
                           "(l2r-replay --observation 'pixels: uint8[3, 84, 84]')", group=ACTING)
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
-    action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps (0.01 s each) per policy action",
-                                 group=ACTING, ge=1)
+    action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps per policy action (0.01 s each on the "
+                                 "runner; a camera task already holds each action for 2 suite steps itself, so 1 "
+                                 "there trains as DrQ-v2 does)", group=ACTING, ge=1)
     random_steps: int = setting(DEFAULTS.random_steps, "uniform random excitations for this many of the actor's "
                                 "first steps (skipped when the run's policy is already past version 0)",
                                 group=ACTING, ge=0)
