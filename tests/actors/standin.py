@@ -39,3 +39,14 @@ class Broken(StandIn):
 
 
 gymnasium.register("BrokenStandIn-v0", entry_point=Broken)
+
+
+class Counting(StandIn):
+    """A stand-in whose observation is a count, a Discrete space: no observation l2r takes."""
+
+    def __init__(self, difficulty: int = 0, seed: int | None = None):
+        super().__init__(difficulty, seed)
+        self.observation_space = gymnasium.spaces.Discrete(40)
+
+
+gymnasium.register("CountingStandIn-v0", entry_point=Counting)

@@ -143,6 +143,14 @@ def test_an_environment_that_breaks_its_own_observation_space_stops_the_actor_wi
     assert "Traceback" not in out
 
 
+def test_an_environment_whose_observations_l2r_cannot_take_stops_the_actor_at_start_with_one_line(peer):
+    proc = peer.actor("--env-id", "tests.actors.standin:CountingStandIn-v0", "--num-envs", "1")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert out.strip().splitlines()[-1] == ("l2r-actor: tests.actors.standin:CountingStandIn-v0: observation 'state' "
+                                            "is a Discrete space; l2r takes a Box or a Dict of Box spaces"), out
+
+
 def test_evaluation_role_repeats_its_episodes_exactly_under_the_same_weights_and_sends_no_experience(peer):
     peer.replay_up(True)
     proc = peer.actor("--evaluate", "--actor-id", "9", "--eval-episodes", "4", "--seed", "100", "--eval-interval", "0")
