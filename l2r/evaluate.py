@@ -14,10 +14,12 @@ import numpy as np
 import torch
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0 and l2r/RunOpenSim-v0)
-from l2r.actors.actor import ActorConfig, make_task, run_deterministic
+from l2r.actors.actor import ActorConfig, ObservationError, make_task, observation_spec, run_deterministic
+from l2r.actors.frame_stack import frame_stack_of
 from l2r.config import CommandParser
 from l2r.families import RUNNER, family_of, score_of
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
+from l2r.protocol import ObservationSpec, ProtocolError
 from l2r.sim.wrappers import ActionRepeat
 
 DEFAULT_ACTION_REPEAT = 3  # the runner's recipe's and l2r-actor's; for checkpoints that do not say
@@ -84,7 +86,7 @@ class Counted(gymnasium.Wrapper):
 
 
 class WrongTask(ValueError):
-    """A policy whose widths are not the task's: a checkpoint of another task."""
+    """A policy for other observations or actions than the task's: a checkpoint of another task."""
 
 
 def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: int,
@@ -96,14 +98,15 @@ def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: i
     if action_repeat > 1:
         envs = [ActionRepeat(env, action_repeat) for env in envs]
     try:
-        widths = (int(np.prod(envs[0].observation_space.shape)), int(np.prod(envs[0].action_space.shape)))
-        policy_widths = (policy.spec["obs_dim"], policy.spec["act_dim"])
-        if widths != policy_widths:
-            raise WrongTask(f"the policy takes {policy_widths[0]} observations and gives {policy_widths[1]} actions, "
-                            f"{env_id} has {widths[0]} and {widths[1]}: --env-id names the task it trained on")
+        task = (observation_spec(envs[0], env_id), int(np.prod(envs[0].action_space.shape)))
+        trained = (ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"])
+        if task != trained:
+            raise WrongTask(f"the policy takes observations {trained[0]} and gives {trained[1]} actions, "
+                            f"{env_id} gives {task[0]} and takes {task[1]}: --env-id names the task it trained on")
         # The runner's blow-up check, as in training; `l2r up` turns it off on other tasks.
         max_speed = ActorConfig.max_speed if family_of(env_id) == RUNNER else 0.0
-        return run_deterministic(policy, envs, [seed + i for i in range(episodes)], max_speed=max_speed)
+        return run_deterministic(policy, envs, [seed + i for i in range(episodes)], max_speed=max_speed,
+                                 frame_stack=frame_stack_of(policy.spec), env_id=env_id)
     finally:
         for env in envs:
             env.close()
@@ -134,8 +137,11 @@ def cli(argv: list[str] | None = None) -> int:
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
-    except WrongTask as e:
+    except (WrongTask, ProtocolError) as e:  # a policy of another task, or a spec that says no task
         print(f"l2r eval: {checkpoint.path}: {e}", file=sys.stderr)
+        return 1
+    except ObservationError as e:
+        print(f"l2r eval: {e}", file=sys.stderr)
         return 1
     score = score_of(args.env_id)
     episodes = [SimpleNamespace(episode_return=ret, distance=distance, length=length)

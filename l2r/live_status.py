@@ -28,8 +28,10 @@ def _num(x, fmt: str) -> str:
 def status_line(s: dict, score: Score) -> str:
     """The figures of RunMetrics.snapshot in one line, evaluations in the terms of the task's `score`."""
     opensim = s.get(f"opensim_eval_{score.name}")
+    frames = s.get("frames_per_s")  # camera tasks only
     return (f"[{s['time']:6.0f}s] env {s['env_steps_per_s']:7.0f} steps/s ({s['env_steps']:,})"
-            f" | learner {s['updates_per_s']:5.1f} upd/s ({s['updates']:,}, v{s['version']})"
+            + ("" if frames is None else f", {frames:.0f} frames/s")
+            + f" | learner {s['updates_per_s']:5.1f} upd/s ({s['updates']:,}, v{s['version']})"
             f" | return {_num(s['recent_return'], '.2f')}"
             + ("" if score.name == "return" else f" {score.text(s[f'recent_{score.name}'])}")
             + f" | eval {score.text(s[f'eval_{score.name}'])}"

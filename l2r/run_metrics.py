@@ -320,10 +320,12 @@ class RunMetrics:
                 return [e for e in self.evals if self.simulators.get(e.actor_id, self.env_id) == simulator]
 
             name = self.score.name
+            cameras = [v for v in actors if "frames_per_s" in v]  # actors of camera tasks
             return {
                 "time": self.time,
                 "env_steps": self._env_steps(),
                 "env_steps_per_s": total(actors, "env_steps_per_s"),
+                **({"frames_per_s": total(cameras, "frames_per_s")} if cameras else {}),
                 "updates": self.updates,
                 "updates_per_s": total(learners, "updates_per_s"),
                 "version": self.version,

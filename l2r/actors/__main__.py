@@ -25,13 +25,16 @@ class ActorSettings(DaemonSettings):
         metavar="{N,auto}")
     num_envs: int = setting(DEFAULTS.num_envs, "environments stepped together, their observations batched into "
                             "one policy call", group=ACTING, ge=1)
-    env_id: str = setting(DEFAULTS.env_id, "gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port) or "
+    env_id: str = setting(DEFAULTS.env_id, "gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port), "
                           "l2r/RunOpenSim-v0 (OpenSim 4.6, the 2017 simulator: about 100 steps/s; "
-                          "pip install 'l2r[opensim]')", group=ACTING)
+                          "pip install 'l2r[opensim]'), another task such as Hopper-v5, or a camera task "
+                          "l2r/dmc-<domain>-<task>-v0, whose uint8 frames its replay shard must store "
+                          "(l2r-replay --observation 'pixels: uint8[3, 84, 84]')", group=ACTING)
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
-    action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps (0.01 s each) per policy action",
-                                 group=ACTING, ge=1)
+    action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps per policy action (0.01 s each on the "
+                                 "runner; a camera task already holds each action for 2 suite steps itself, so 1 "
+                                 "there trains as DrQ-v2 does)", group=ACTING, ge=1)
     random_steps: int = setting(DEFAULTS.random_steps, "uniform random excitations for this many of the actor's "
                                 "first steps (skipped when the run's policy is already past version 0)",
                                 group=ACTING, ge=0)

@@ -24,17 +24,21 @@ from gymnasium.wrappers import RescaleAction
 import torch
 import zenoh
 
+import l2r.control  # noqa: F401  (registers the camera tasks, l2r/dmc-<domain>-<task>-v0)
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
+from l2r.actors.frame_stack import FrameStack
 from l2r.actors.weights import WeightFollower
+from l2r.config import StartupFailure
 from l2r.episodes.live import LiveFrames
 from l2r.families import RUNNER, family_of, score_of
 from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
-    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ProtocolError, Rejections, ReplayAck, Stats,
-    decode, encode, shard_of,
+    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ObservationSpec, ProtocolError, Rejections,
+    ReplayAck, Stats, decode, encode, shard_of,
 )
+from l2r.protocol.observations import VECTOR_FIELD
 from l2r.sim.wrappers import ActionRepeat
 
 log = logging.getLogger("l2r.actor")
@@ -60,7 +64,8 @@ class ActorConfig:
     num_envs: int = 4
     """Environments stepped in lock-step, their observations batched into one policy call."""
     env_id: str = "l2r/Run-v0"
-    """Gymnasium id of the environment (any env with a Box observation and [0, 1] actions)."""
+    """Gymnasium id of the environment: any env with Box actions and a Box, or Dict of Box,
+    observation space (`ObservationSpec.from_space`)."""
     difficulty: int = 0
     action_repeat: int = 3
     random_steps: int = 5_000
@@ -116,6 +121,36 @@ def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
     return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
 
 
+class ObservationError(RuntimeError):
+    """The environment's observations are not ones l2r takes: its declared space, or a reset or
+    step that breaks it. The actor stops: every chunk would be refused."""
+
+
+def observation_spec(env: gymnasium.Env, env_id: str) -> ObservationSpec:
+    """The spec ``env`` declares (ObservationError when l2r cannot take its space)."""
+    try:
+        return ObservationSpec.from_space(env.observation_space)
+    except (ValueError, ProtocolError) as e:
+        raise ObservationError(f"{env_id}: {e}") from None
+
+
+def fields_of(spec: ObservationSpec, observation, env_id: str) -> dict[str, np.ndarray]:
+    """An observation ``env_id`` returned, as the fields of its spec (ObservationError when it
+    breaks the env's own declared space)."""
+    try:
+        return spec.fields_of(observation)
+    except ProtocolError as e:
+        raise ObservationError(f"{env_id} returned an observation outside its own observation space: {e}") from None
+
+
+NO_VECTOR = np.zeros(0, np.float32)
+
+
+def logged(fields: dict[str, np.ndarray]) -> np.ndarray:
+    """What an episode log keeps of an observation: its vector (none of a camera's frames)."""
+    return fields.get(VECTOR_FIELD, NO_VECTOR)
+
+
 def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
     """Training seeds differ across actors, envs and episodes; evaluation seeds are fixed."""
     if config.evaluate:
@@ -141,7 +176,7 @@ class EnvSlot:
     """One environment and its episode in progress."""
 
     env: gymnasium.Env
-    obs: np.ndarray
+    obs: dict[str, np.ndarray]  # the fields of the observation to act on
     seed: int
     episode: int = 0
     ret: float = 0.0
@@ -158,7 +193,6 @@ class Actor:
         self.config = config
         self.keys = Keys(config.run)
         self.session = session
-        self.weights = WeightFollower(session, self.keys)
         self.replay = None if config.evaluate else ReplayWatch(
             session, self.keys, shard_of(config.actor_id, config.num_shards))
         self.rng = np.random.default_rng([config.seed, config.actor_id])
@@ -173,15 +207,22 @@ class Actor:
         self.first_version: int | None = None  # version of the first weights received
         self.random_phase = not config.evaluate and config.random_steps > 0
         self.slots: list[EnvSlot] = []
-        for i in range(config.num_envs):
-            seed = episode_seed(config, i, 0)
-            env = make_env(config, seed)
+        seeds = [episode_seed(config, i, 0) for i in range(config.num_envs)]
+        envs = [make_env(config, seed) for seed in seeds]
+        self.observation = observation_spec(envs[0], config.env_id)
+        self.camera = any(field.dtype == np.uint8 for field in self.observation.fields.values())
+        self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
+        for env, seed in zip(envs, seeds):
             obs, info = env.reset(seed=seed)
             x = float(info.get("distance", 0.0))
-            self.slots.append(EnvSlot(env, obs, seed, start_x=x, x=x))
-        self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size) for i in range(config.num_envs)]
-        for builder, slot in zip(self.builders, self.slots):
+            self.slots.append(EnvSlot(env, self.observe(obs), seed, start_x=x, x=x))
+        self.weights = WeightFollower(session, self.keys, self.observation)
+        self.stacks = FrameStack(self.observation, self.weights.frame_stack, config.num_envs)
+        self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size, self.observation)
+                         for i in range(config.num_envs)]
+        for i, (builder, slot) in enumerate(zip(self.builders, self.slots)):
             builder.begin(slot.obs)
+            self.stacks.reset(i, slot.obs)
         self.experience = session.declare_publisher(
             self.keys.experience(config.actor_id, config.num_shards), **EXPERIENCE_QOS.publisher())
         self.resend = self.resender = None
@@ -195,9 +236,12 @@ class Actor:
         if not config.evaluate:  # evaluation rounds start their own recordings
             for slot in self.slots:
                 self.begin_record(slot)
-        self._rate_steps, self._rate_time = 0, time.monotonic()
+        self._rate_steps, self._rate_frames, self._rate_time = 0, 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
+
+    def observe(self, observation) -> dict[str, np.ndarray]:
+        return fields_of(self.observation, observation, self.config.env_id)
 
     # -- actions -------------------------------------------------------------------------
 
@@ -207,12 +251,11 @@ class Actor:
 
     def actions(self) -> tuple[np.ndarray, np.ndarray]:
         """Excitations for every env, and the log-probability of each under what chose it."""
-        obs = np.stack([s.obs for s in self.slots])
         act_dim = self.slots[0].env.action_space.shape[0]
         uniform = np.full(len(self.slots), uniform_log_prob(act_dim), np.float32)
         if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
-        actions, log_probs = act_with_log_prob(self.weights.policy, obs)
+        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked())
         bad = ~(np.isfinite(actions).all(axis=1) & np.isfinite(log_probs))
         if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
             log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
@@ -227,6 +270,8 @@ class Actor:
         acted_by = self.weights.version
         if self.weights.poll():
             self.flush(force=True, version=acted_by)  # a chunk carries the one version that produced it
+            if self.weights.frame_stack != self.stacks.depth:
+                self.stacks = self.stacks.with_depth(self.weights.frame_stack)
             if self.first_version is None:
                 self.first_version = self.weights.version
         if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > 0):
@@ -236,7 +281,8 @@ class Actor:
         actions, log_probs = self.actions()
         now = time.time()
         for i, (slot, action) in enumerate(zip(self.slots, actions)):
-            obs, reward, terminated, truncated, info = slot.env.step(action)
+            raw, reward, terminated, truncated, info = slot.env.step(action)
+            obs = self.observe(raw)
             if blew_up(reward, info, self.config.max_speed):
                 self.blowups += 1
                 if self.blowups == 1 or self.blowups % 100 == 0:
@@ -247,15 +293,18 @@ class Actor:
             slot.x = float(info.get("distance", 0.0))
             slot.ret += float(reward)
             slot.length += int(info.get("inner_steps", 1))
+            self.frames += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
-                slot.recorder.log_step(obs, action, reward, info)
+                slot.recorder.log_step(logged(obs), action, reward, info)
             self.live.publish(i, slot.episode, slot.length, reward, info)
             start_obs = None
             if terminated or truncated:
                 self.end_episode(i, slot, float(info.get("distance", 0.0)), terminated, truncated)
                 start_obs = slot.obs
+                self.stacks.reset(i, start_obs)
             else:
                 slot.obs = obs
+                self.stacks.push(i, obs)
             if not self.config.evaluate:
                 self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now, log_probs[i])
         self.steps += len(self.slots)
@@ -288,7 +337,8 @@ class Actor:
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
-        slot.obs, info = slot.env.reset(seed=slot.seed)
+        obs, info = slot.env.reset(seed=slot.seed)
+        slot.obs = self.observe(obs)
         slot.start_x = slot.x = float(info.get("distance", 0.0))
         self.begin_record(slot)
 
@@ -325,7 +375,7 @@ class Actor:
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
             results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
                                         self.record_evaluation if self.episode_logger is not None else None,
-                                        self.config.max_speed)
+                                        self.config.max_speed, self.weights.frame_stack, self.config.env_id)
             for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
                 summary = EpisodeSummary(
                     actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
@@ -342,8 +392,9 @@ class Actor:
 
     def publish_stats(self) -> None:
         now = time.monotonic()
-        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
-        self._rate_steps, self._rate_time = self.steps, now
+        elapsed = max(now - self._rate_time, 1e-9)
+        rate, frame_rate = (self.steps - self._rate_steps) / elapsed, (self.frames - self._rate_frames) / elapsed
+        self._rate_steps, self._rate_frames, self._rate_time = self.steps, self.frames, now
         values = {
             "env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
             "chunks_sent": self.chunks_sent, "policy_version": self.weights.version,
@@ -352,6 +403,8 @@ class Actor:
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
             "num_envs": len(self.slots), "blowups": self.blowups, "held_s": self.held_s,
         }
+        if self.camera:  # one frame rendered per env step; the papers count a frame per inner step
+            values |= {"frames": self.frames, "frames_per_s": frame_rate}
         if self.resend is not None:
             values |= {"chunks_acked": self.resend.acked, "chunks_resent": self.resend.resent,
                        "unacked_chunks": len(self.resend), "unacked_bytes": self.resend.nbytes,
@@ -435,15 +488,20 @@ class Resender:
 
 
 def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop: threading.Event | None = None,
-                      record=None, max_speed: float = ActorConfig.max_speed) -> list[tuple[float, float, int]]:
+                      record=None, max_speed: float = ActorConfig.max_speed, frame_stack: int = 1,
+                      env_id: str = "the environment") -> list[tuple[float, float, int]]:
     """Run one deterministic episode per env (batched policy calls); (return, distance, steps) each.
 
+    The policy acts on stacks of the last ``frame_stack`` observations, as in training.
     ``record(env, seed)``, if given, is called after each reset and returns an episode
     recorder (see `episode_log`). Shared by the evaluation role and `l2r eval`."""
+    spec = observation_spec(envs[0], env_id)
+    frames = FrameStack(spec, frame_stack, len(envs))
     obs, start_x, recorders = [], [], []
-    for env, seed in zip(envs, seeds):
+    for i, (env, seed) in enumerate(zip(envs, seeds)):
         o, info = env.reset(seed=seed)
-        obs.append(o)
+        obs.append(fields_of(spec, o, env_id))
+        frames.reset(i, obs[i])
         start_x.append(float(info.get("distance", 0.0)))
         recorders.append(record(env, seed) if record else None)
     x = list(start_x)
@@ -452,18 +510,20 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop:
     lengths = [0] * len(envs)
     running = list(range(len(envs)))
     while running and not (stop is not None and stop.is_set()):
-        actions = act(policy, np.stack([obs[i] for i in running]), deterministic=True)
+        actions = act(policy, frames.stacked(running), deterministic=True)
         still = []
         for i, action in zip(running, actions):
-            o, reward, terminated, truncated, info = envs[i].step(action)
+            raw, reward, terminated, truncated, info = envs[i].step(action)
+            o = fields_of(spec, raw, env_id)
             if blew_up(reward, info, max_speed):  # ends the episode where it was, as in training
                 o, reward, terminated, info = obs[i], 0.0, True, {**info, "distance": x[i]}
             x[i] = float(info.get("distance", 0.0))
             returns[i] += float(reward)
             lengths[i] += int(info.get("inner_steps", 1))
             obs[i] = o
+            frames.push(i, o)
             if recorders[i] is not None:
-                recorders[i].log_step(o, action, reward, info)
+                recorders[i].log_step(logged(o), action, reward, info)
             if terminated or truncated:
                 results[i] = (returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i])
                 if recorders[i] is not None:
@@ -499,7 +559,10 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
                 return 0
             config = dataclasses.replace(config, actor_id=actor_id)
         token = session.liveliness().declare_token(keys.alive(config.role, config.actor_id))
-        actor = Actor(config, session)
+        try:
+            actor = Actor(config, session)
+        except ObservationError as e:
+            raise StartupFailure(str(e)) from None
         log.info("%s %d up: %d x %s (difficulty %d, action repeat %d), run %r", config.role,
                  config.actor_id, config.num_envs, config.env_id, config.difficulty,
                  config.action_repeat, config.run)
@@ -538,6 +601,9 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
                     actor.held_s += time.monotonic() - started
                     continue
                 actor.step()
+        except ObservationError as e:  # every chunk from here on would be refused: stop, with the chunks so far
+            log.error("%s; stopping", e)
+            return 1
         finally:
             actor.close()
             actor.publish_stats()

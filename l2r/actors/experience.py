@@ -12,26 +12,35 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from l2r.protocol import ExperienceChunk
+from l2r.protocol import ExperienceChunk, ObservationSpec
+from l2r.protocol.messages import Observations
+from l2r.protocol.observations import VECTOR_FIELD
 
 
 class ChunkBuilder:
-    """Accumulates the steps of one environment; `take` hands them over as a chunk."""
+    """Accumulates the steps of one environment; `take` hands them over as a chunk.
 
-    def __init__(self, actor_id: int, env_id: int, epoch: int, capacity: int):
+    Observations are the fields of ``observation`` (`ObservationSpec.fields_of`), kept in each
+    field's own dtype: a frame stays uint8 from the environment to the wire. A chunk of the
+    float32 vector holds it as one matrix, the version-1 form; any other spec's chunk holds a
+    map of field to rows, the version-2 form (docs/observations.md)."""
+
+    def __init__(self, actor_id: int, env_id: int, epoch: int, capacity: int, observation: ObservationSpec):
         self.actor_id, self.env_id, self.epoch = actor_id, env_id, epoch
         self.capacity = capacity
-        self._obs: list[np.ndarray] = []
+        self.observation = observation
+        self._obs: list[Mapping[str, np.ndarray]] = []
         self._actions: list[np.ndarray] = []
         self._rewards: list[float] = []
         self._terminated: list[bool] = []
         self._truncated: list[bool] = []
         self._log_probs: list[float] = []
-        self._final_obs: list[np.ndarray] = []
+        self._final_obs: list[Mapping[str, np.ndarray]] = []
         self.started_at = 0.0  # wall-clock time of the chunk's first step
 
     def __len__(self) -> int:
@@ -41,12 +50,13 @@ class ChunkBuilder:
     def full(self) -> bool:
         return len(self._actions) >= self.capacity
 
-    def begin(self, obs: np.ndarray) -> None:
+    def begin(self, obs: Mapping[str, np.ndarray]) -> None:
         """The observation the next step starts from (after a reset, or after `take`)."""
-        self._obs = [np.asarray(obs, np.float32)]
+        self._obs = [obs]
 
     def add(self, action: np.ndarray, reward: float, terminated: bool, truncated: bool,
-            next_obs: np.ndarray, start_obs: np.ndarray | None, now: float, log_prob: float) -> None:
+            next_obs: Mapping[str, np.ndarray], start_obs: Mapping[str, np.ndarray] | None, now: float,
+            log_prob: float) -> None:
         """One step. ``start_obs`` is the first observation of the next episode when this step
         ended one (the env was reset), else None; ``log_prob`` is the acting policy's
         log-probability of ``action``."""
@@ -58,24 +68,24 @@ class ChunkBuilder:
         self._truncated.append(bool(truncated))
         self._log_probs.append(float(log_prob))
         if start_obs is None:
-            self._obs.append(np.asarray(next_obs, np.float32))
+            self._obs.append(next_obs)
         else:
-            self._final_obs.append(np.asarray(next_obs, np.float32))
-            self._obs.append(np.asarray(start_obs, np.float32))
+            self._final_obs.append(next_obs)
+            self._obs.append(start_obs)
 
     def take(self, seq: int, policy_version: int) -> ExperienceChunk | None:
         """The steps so far as one chunk (None if there are none); the builder starts afresh
         from the current observation."""
         if not self._actions:
             return None
-        obs = np.stack(self._obs)
         final_obs = self._final_obs
         if self._terminated[-1] or self._truncated[-1]:
             # The last step ended an episode: its true next observation closes the chunk and
             # the first observation of the next episode opens the next chunk.
-            obs[-1] = final_obs[-1]
+            obs = self._rows(self._obs[:-1] + final_obs[-1:])
             final_obs = final_obs[:-1]
-        width = obs.shape[1]
+        else:
+            obs = self._rows(self._obs)
         chunk = ExperienceChunk(
             actor_id=self.actor_id, env_id=self.env_id, epoch=self.epoch, seq=seq,
             policy_version=policy_version, obs=obs,
@@ -83,7 +93,7 @@ class ChunkBuilder:
             rewards=np.asarray(self._rewards, np.float32),
             terminated=np.asarray(self._terminated, bool),
             truncated=np.asarray(self._truncated, bool),
-            final_obs=np.stack(final_obs) if final_obs else np.zeros((0, width), np.float32),
+            final_obs=self._rows(final_obs),
             log_probs=np.asarray(self._log_probs, np.float32),
         )
         current = self._obs[-1]
@@ -91,6 +101,12 @@ class ChunkBuilder:
         self._log_probs = []
         self._obs = [current]
         return chunk
+
+    def _rows(self, observations: list[Mapping[str, np.ndarray]]) -> Observations:
+        """Observations as rows per field, in the chunk's form: the vector's matrix, or the map."""
+        rows = {name: np.stack([o[name] for o in observations]) if observations
+                else np.zeros((0, *field.shape), field.dtype) for name, field in self.observation.fields.items()}
+        return rows[VECTOR_FIELD] if self.observation.vector_width is not None else rows
 
 
 @dataclass

@@ -3,8 +3,9 @@ there until the stepping loop swaps them in between two steps.
 
 Weights come from three places: the published updates, a query for the latest weights on
 join (repeated while none has arrived, or when the version beacon shows that a published
-update was dropped), and nothing else. A malformed message or weights that do not fit the
-network are logged and counted, never raised.
+update was dropped), and nothing else. A malformed message, weights that do not fit the
+network, or a policy built for other observations than the environment's are logged and
+counted, never raised.
 """
 
 from __future__ import annotations
@@ -16,8 +17,11 @@ import time
 import numpy as np
 import zenoh
 
+from l2r.actors.frame_stack import frame_stack_of
 from l2r.policy import PolicyNetwork, build_policy, check_spec, load_policy_state
-from l2r.protocol import WEIGHTS_QOS, Keys, LearnerVersion, ProtocolError, Rejections, Weights, decode
+from l2r.protocol import (
+    WEIGHTS_QOS, Keys, LearnerVersion, ObservationSpec, ProtocolError, Rejections, Weights, decode,
+)
 
 log = logging.getLogger("l2r.actor.weights")
 
@@ -25,8 +29,9 @@ log = logging.getLogger("l2r.actor.weights")
 class WeightFollower:
     """Keeps the newest `Weights` seen and turns them into a policy on request."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, query_every: float = 2.0):
+    def __init__(self, session: zenoh.Session, keys: Keys, observation: ObservationSpec, query_every: float = 2.0):
         self._session = session
+        self.observation = observation  # the environment's: weights of a policy for others are refused
         self._keys = keys
         self._query_every = query_every
         self._lock = threading.Lock()
@@ -37,6 +42,7 @@ class WeightFollower:
         self.newest_seen = -1  # newest version announced by weights or the learner's beacon
         self.swaps = 0
         self.policy: PolicyNetwork | None = None
+        self.frame_stack = 1  # observations stacked into one input of the policy in use
         self._subscriber = session.declare_subscriber(keys.weights, self._on_weights)
         self._beacon = session.declare_subscriber(keys.learner_version, self._on_beacon)
 
@@ -56,6 +62,7 @@ class WeightFollower:
         try:
             weights = decode(payload, Weights)
             check_spec(weights.spec)
+            self.check_observation(weights.spec)
         except ProtocolError as e:
             self.rejections.add(e, source)
             return
@@ -66,6 +73,15 @@ class WeightFollower:
             self.newest_seen = max(self.newest_seen, weights.version)
             if weights.version > self.version and (self._pending is None or weights.version > self._pending.version):
                 self._pending = weights
+
+    def check_observation(self, spec: dict) -> None:
+        """Raise ProtocolError (``bad_spec``) unless a policy of ``spec`` takes the environment's
+        observations, in stacks of a depth the replay can build."""
+        observation = ObservationSpec.from_policy_spec(spec)
+        if observation != self.observation:
+            raise ProtocolError(f"weights: the policy takes {observation}, the environment gives {self.observation}",
+                                "bad_spec")
+        frame_stack_of(spec)
 
     def _on_beacon(self, sample: zenoh.Sample) -> None:
         try:
@@ -106,6 +122,7 @@ class WeightFollower:
             return False
         first = self.policy is None
         self.policy, self.version = policy, weights.version
+        self.frame_stack = frame_stack_of(weights.spec)
         self.swaps += 1
         log.log(logging.INFO if first else logging.DEBUG, "policy version %d in use", weights.version)
         return True

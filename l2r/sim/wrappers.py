@@ -12,7 +12,7 @@ class ActionRepeat(gym.Wrapper):
 
     Rewards are summed; the repeat stops early when the episode terminates or is truncated.
     The observation and info are those of the last inner step; `info["inner_steps"]` says how
-    many inner steps were taken.
+    many inner steps were taken (the sum of the inner env's own `inner_steps`, where it has them).
     """
 
     def __init__(self, env: gym.Env, repeat: int = 3):
@@ -22,11 +22,12 @@ class ActionRepeat(gym.Wrapper):
         self.repeat = repeat
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        total = 0.0
-        for i in range(self.repeat):
+        total, inner_steps = 0.0, 0
+        for _ in range(self.repeat):
             obs, reward, terminated, truncated, info = self.env.step(action)
             total += reward
+            inner_steps += int(info.get("inner_steps", 1))  # an env that repeats actions itself counts its own
             if terminated or truncated:
                 break
-        info["inner_steps"] = i + 1
+        info["inner_steps"] = inner_steps
         return obs, total, terminated, truncated, info

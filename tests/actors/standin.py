@@ -28,3 +28,25 @@ class StandIn(gymnasium.Env):
 
 
 gymnasium.register("StandIn-v0", entry_point=StandIn)
+
+
+class Broken(StandIn):
+    """A stand-in that breaks its own declared space after 5 steps: 40 observations, not 41."""
+
+    def step(self, action):
+        obs, *rest = super().step(action)
+        return (obs[:40] if self._t > 5 else obs, *rest)
+
+
+gymnasium.register("BrokenStandIn-v0", entry_point=Broken)
+
+
+class Counting(StandIn):
+    """A stand-in whose observation is a count, a Discrete space: no observation l2r takes."""
+
+    def __init__(self, difficulty: int = 0, seed: int | None = None):
+        super().__init__(difficulty, seed)
+        self.observation_space = gymnasium.spaces.Discrete(40)
+
+
+gymnasium.register("CountingStandIn-v0", entry_point=Counting)

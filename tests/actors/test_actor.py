@@ -88,16 +88,22 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
         alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
         assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
 
-        # Garbage, then weights that do not fit the network: counted, not fatal.
+        # Garbage, weights that do not fit the network, a policy for 40 observations where the env
+        # gives 41, stacks the replay cannot build: counted, not fatal, the policy kept.
         peer.publish(b"\x00not msgpack")
         peer.publish(encode(Weights(4, {"trunk.0.weight": np.zeros((2, 2), np.float32)}, SPEC)))
-        assert wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 2), "two rejections counted"
+        narrow = {**SPEC, "obs_dim": 40}
+        peer.publish(encode(Weights(4, policy_state(build_policy(narrow)), narrow)))
+        peer.publish(encode(Weights(4, peer.latest.params, {**SPEC, "frame_stack": 17})))
+        assert wait_for(lambda: peer.last_stats().get("rejected_weights", 0) >= 4), "four rejections counted"
+        assert peer.last_stats()["policy_version"] == 3
         assert proc.poll() is None
 
         # A published update is swapped in; its chunks carry the new version.
         peer.publish(encode(Weights(5, policy_state(build_policy(SPEC)), SPEC)))
         assert wait_for(lambda: any(c.policy_version == 5 for c in peer.chunks)), "chunks acted by version 5"
         assert wait_for(lambda: peer.last_stats().get("policy_version") == 5 and peer.last_stats().get("staleness") == 0), "stats at version 5"
+        assert "frames_per_s" not in peer.last_stats()  # a vector task renders no frames
 
         # Without a replay server the actor waits instead of sending into the void.
         peer.replay_up(False)
@@ -125,6 +131,24 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
     assert len({c.epoch for c in peer.chunks}) == 1
     train = [e for e in peer.episodes if not e.evaluation]
     assert train and all(e.length == 40 and e.actor_id == 0 for e in train)  # stand-in: 40 steps of 0.01 s
+
+
+def test_an_environment_that_breaks_its_own_observation_space_stops_the_actor_with_one_line(peer):
+    peer.replay_up(True)
+    proc = peer.actor("--env-id", "tests.actors.standin:BrokenStandIn-v0", "--num-envs", "1")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert "tests.actors.standin:BrokenStandIn-v0 returned an observation outside its own observation space: " \
+           "observation.state: shape [40], expected [41]; stopping" in out, out
+    assert "Traceback" not in out
+
+
+def test_an_environment_whose_observations_l2r_cannot_take_stops_the_actor_at_start_with_one_line(peer):
+    proc = peer.actor("--env-id", "tests.actors.standin:CountingStandIn-v0", "--num-envs", "1")
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert out.strip().splitlines()[-1] == ("l2r-actor: tests.actors.standin:CountingStandIn-v0: observation 'state' "
+                                            "is a Discrete space; l2r takes a Box or a Dict of Box spaces"), out
 
 
 def test_evaluation_role_repeats_its_episodes_exactly_under_the_same_weights_and_sends_no_experience(peer):

@@ -1,9 +1,15 @@
-"""An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds."""
+"""An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds,
+and the camera tasks, by their ids alone; `l2r eval` tells a policy of other observations apart."""
 
 import numpy as np
+import pytest
 from gymnasium.wrappers import RescaleAction
 
-from l2r.actors.actor import ActorConfig, make_env
+from l2r.actors.actor import ActorConfig, make_env, observation_spec
+from l2r.evaluate import WrongTask, evaluate
+from l2r.policy import build_policy
+from l2r.protocol import ObservationSpec
+from tests.actors.camera import CAMERA, RENDERER
 
 
 def test_another_task_takes_the_policy_s_excitations_rescaled_to_its_action_bounds():
@@ -19,3 +25,21 @@ def test_the_runner_takes_its_difficulty_and_seed_and_keeps_its_excitations():
     assert env.unwrapped.difficulty == 2
     assert (env.action_space.low.min(), env.action_space.high.max()) == (0.0, 1.0)
     assert not isinstance(env, RescaleAction)
+
+
+@pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
+def test_a_camera_task_is_known_by_its_id_and_declares_its_frames():
+    env = make_env(ActorConfig(env_id="l2r/dmc-cartpole-swingup-v0", action_repeat=1), seed=0)
+    try:
+        assert observation_spec(env, "l2r/dmc-cartpole-swingup-v0") == ObservationSpec.parse("pixels: uint8[3, 84, 84]")
+        assert (env.action_space.low.tolist(), env.action_space.high.tolist()) == ([0.0], [1.0])
+    finally:
+        env.close()
+
+
+@pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
+def test_l2r_eval_refuses_a_vector_policy_on_a_camera_task_naming_both_observations():
+    policy = build_policy({"obs_dim": 41, "act_dim": 1, "hidden": [8], "activation": "elu", "layer_norm": False})
+    with pytest.raises(WrongTask, match=r"the policy takes observations \{state: float32\[41\]\} and gives 1 "
+                                        r"actions, tests.actors.camera:SmallCamera-v0 gives \{pixels: uint8\[3, 16, 16\]\}"):
+        evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id=CAMERA)

@@ -13,6 +13,7 @@ import pytest
 import l2r.control  # noqa: F401  (registers the ids)
 from l2r.control import rendering
 from l2r.control.env import ControlEnv
+from l2r.sim.wrappers import ActionRepeat
 from dm_control import suite  # after l2r.control.env, which chooses MUJOCO_GL and patches dm_control
 
 
@@ -106,6 +107,14 @@ def test_reading_the_spaces_makes_no_camera_and_no_gl_context():
         assert fresh.unwrapped.camera is None and fresh.unwrapped.gl is None
     finally:
         fresh.close()
+
+
+def test_the_actors_action_repeat_over_the_env_s_own_counts_every_suite_step(env):
+    with repeating(env, 300):
+        env.reset(seed=0)
+        repeated = ActionRepeat(env, 3)
+        steps = [repeated.step(np.zeros(1, np.float32)) for _ in range(2)]
+        assert [s[4]["inner_steps"] for s in steps] == [900, 100] and steps[1][3]
 
 
 def test_the_report_names_the_backend_and_the_gl_renderer(env):

@@ -80,5 +80,6 @@ def test_eval_says_when_the_checkpoint_is_another_task_s(tmp_path):
     hopper_checkpoint(tmp_path)
     run = l2r_eval(str(tmp_path), "--episodes", "1")  # the runner, by default
     assert run.returncode == 1
-    assert "the policy takes 11 observations and gives 3 actions, l2r/Run-v0 has 41 and 18" in run.stderr
+    assert ("the policy takes observations {state: float32[11]} and gives 3 actions, l2r/Run-v0 gives "
+            "{state: float32[41]} and takes 18") in run.stderr
     assert "Traceback" not in run.stderr

@@ -5,7 +5,9 @@ import csv
 import zenoh
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from l2r.protocol import EpisodeSummary, Keys, encode, session_config
+from l2r.families import score_of
+from l2r.live_status import status_line
+from l2r.protocol import EpisodeSummary, Keys, Stats, encode, session_config
 from l2r.run_metrics import RunMetrics
 from tests.conftest import free_port, wait_for
 
@@ -39,3 +41,28 @@ def test_episodes_are_kept_apart_by_the_simulator_their_actor_steps(tmp_path):
     assert [e.value for e in events.Scalars("eval/distance")] == [1.0]
     assert [e.value for e in events.Scalars("eval/RunOpenSim-v0/distance")] == [3.0, 5.0]
     assert [e.value for e in events.Scalars("train/distance")] == [0.5]
+
+
+def test_camera_actors_frames_per_second_add_up_into_the_figures_and_the_status_line(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = Keys("frames-test")
+    with zenoh.open(session_config(listen=[endpoint])) as listener, \
+            zenoh.open(session_config(connect=[endpoint])) as sender:
+        metrics = RunMetrics(listener, keys, tmp_path, env_id="Hopper-v5")
+        try:
+            publishers = [sender.declare_publisher(keys.stats("actor", i)) for i in range(2)]
+            assert wait_for(lambda: all(p.matching_status.matching for p in publishers), 10)
+            publishers[0].put(encode(Stats("actor", "0", 0.0, {"env_steps": 10, "env_steps_per_s": 100.0})))
+            assert wait_for(lambda: metrics.snapshot()["env_steps_per_s"] == 100.0, 10)
+            vector = metrics.snapshot()
+            publishers[1].put(encode(Stats("actor", "1", 0.0, {"env_steps": 10, "env_steps_per_s": 50.0,
+                                                                "frames_per_s": 50.0})))
+            publishers[0].put(encode(Stats("actor", "0", 0.0, {"env_steps": 10, "env_steps_per_s": 100.0,
+                                                                "frames_per_s": 100.0})))
+            assert wait_for(lambda: metrics.snapshot().get("frames_per_s") == 150.0, 10)
+            camera = metrics.snapshot()
+        finally:
+            metrics.close()
+    score = score_of("Hopper-v5")
+    assert "frames_per_s" not in vector and "frames/s" not in status_line(vector, score)
+    assert "] env     150 steps/s (20), 150 frames/s | learner" in status_line(camera, score)

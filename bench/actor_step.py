@@ -1,0 +1,77 @@
+"""What an actor's stepping loop costs per env step, and the frames a camera actor renders a second.
+
+A real `Actor` (l2r/actors/actor.py) in this process, on a Zenoh session of its own that nobody
+joins, steps its environments with uniform random excitations (its warm-up) for ``--steps`` env
+steps after ``--warmup`` of them: everything an actor does per step but the policy call, chunks
+encoded and put included. The figure that survives a shared machine is the CPU time of the
+stepping thread per env step (a per-thread clock); the whole process's CPU time (Zenoh's
+threads, and llvmpipe's, which rasterise a camera task's frames) and wall-clock rates are
+reported beside it.
+Run it against another checkout (PYTHONPATH) on the same machine to compare two versions.
+
+Prints one JSON line: ``cpu_us_per_env_step``, ``process_cpu_us_per_env_step``,
+``env_steps_per_s``, on a camera task
+``frames_per_s`` (suite steps, as papers count frames), and the settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import socket
+import time
+
+import zenoh
+
+from l2r.actors.actor import Actor, ActorConfig
+from l2r.protocol import session_config
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def cpu_model() -> str:
+    with open("/proc/cpuinfo") as f:
+        return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), platform.machine())
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--env-id", default="l2r/Run-v0", help="the actor's task (a camera task: l2r/dmc-cartpole-swingup-v0)")
+    p.add_argument("--num-envs", type=int, default=4, help="environments stepped together")
+    p.add_argument("--action-repeat", type=int, default=3, help="the actor's --action-repeat (1 for a camera task)")
+    p.add_argument("--steps", type=int, default=4000, help="env steps measured, over all environments")
+    p.add_argument("--warmup", type=int, default=400, help="env steps before measuring")
+    args = p.parse_args()
+    config = ActorConfig(run=f"bench-{free_port()}", env_id=args.env_id, num_envs=args.num_envs,
+                         action_repeat=args.action_repeat, random_steps=10**9, resend_buffer_mb=0,
+                         max_speed=20.0 if args.env_id.startswith("l2r/Run") else 0.0)
+    with zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{free_port()}"])) as session:
+        actor = Actor(config, session)
+        try:
+            while actor.steps < args.warmup:
+                actor.step()
+            steps, frames = actor.steps, getattr(actor, "frames", 0)
+            wall, cpu, process = time.perf_counter(), time.thread_time(), time.process_time()
+            while actor.steps - steps < args.steps:
+                actor.step()
+            cpu, process, wall = time.thread_time() - cpu, time.process_time() - process, time.perf_counter() - wall
+            done, rendered = actor.steps - steps, getattr(actor, "frames", 0) - frames
+        finally:
+            actor.close()
+    result = {"bench": "actor_step", "env_id": args.env_id, "num_envs": args.num_envs,
+              "action_repeat": args.action_repeat, "env_steps": done,
+              "cpu_us_per_env_step": round(1e6 * cpu / done, 1),
+              "process_cpu_us_per_env_step": round(1e6 * process / done, 1), "env_steps_per_s": round(done / wall, 1),
+              "machine": cpu_model()}
+    if getattr(actor, "camera", False):
+        result["frames_per_s"] = round(rendered / wall, 1)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
