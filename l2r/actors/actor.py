@@ -54,6 +54,10 @@ def blew_up(reward: float, info: dict, max_speed: float) -> bool:
     return max_speed > 0 and abs(reward) > max_speed * STEP_SECONDS * int(info.get("inner_steps", 1))
 
 
+# The version of the policy a learner publishes before its first update.
+UNTRAINED = 1
+
+
 @dataclass
 class ActorConfig:
     """What one actor process does. Run and network settings travel in the Zenoh config."""
@@ -274,8 +278,8 @@ class Actor:
                 self.stacks = self.stacks.with_depth(self.weights.frame_stack)
             if self.first_version is None:
                 self.first_version = self.weights.version
-        if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > 0):
-            # A first policy past version 0 means the run was already training: no warm-up.
+        if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > UNTRAINED):
+            # A first policy past the untrained one means the run was already training: no warm-up.
             self.random_phase = False
             log.info("warm-up over after %d random steps; acting with the policy", self.steps)
         actions, log_probs = self.actions()

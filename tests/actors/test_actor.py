@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from l2r.policy import build_policy, policy_state
+from l2r.policy import build_policy, policy_state, uniform_log_prob
 from l2r.protocol import EpisodeSummary, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
 from tests.conftest import ROOT, free_port, wait_for
 
@@ -75,6 +75,19 @@ def stop(proc: subprocess.Popen) -> str:
     out, _ = proc.communicate(timeout=20)
     assert proc.returncode == 0, out
     return out
+
+
+def test_the_untrained_policy_of_a_new_run_leaves_the_warm_up_to_run_its_course(peer):
+    # A learner publishes version 1 before its first update; the warm-up must not end on it.
+    peer.latest = Weights(1, peer.latest.params, SPEC)
+    peer.replay_up(True)
+    proc = peer.actor("--random-steps", "1000000", "--seed", "4")
+    try:
+        assert wait_for(lambda: len(peer.chunks) >= 3), "chunks"
+        uniform = uniform_log_prob(SPEC["act_dim"])
+        assert all(np.allclose(c.log_probs, uniform) for c in peer.chunks), "uniform random actions"
+    finally:
+        assert "warm-up over" not in stop(proc)
 
 
 def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
