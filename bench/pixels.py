@@ -179,10 +179,13 @@ def measure_l2r(args, ctx) -> dict:
         with zenoh.open(session_config(connect=[endpoint])) as session:
             if not wait_alive(session, keys.alive("replay", 0), timeout=60):
                 raise SystemExit("the replay shard did not come up")
-            inserted: list[tuple[float, int]] = []
-            stats = session.declare_subscriber(
-                keys.stats("replay", 0), lambda s: inserted.append((lambda m: (m.time, m.values["inserted"]))(
-                    decode(s.payload, Stats))))
+            inserted: list[tuple[float, int]] = []  # (shard's clock, transitions stored) of each stats report
+
+            def on_stats(sample: zenoh.Sample) -> None:
+                report = decode(sample.payload, Stats)
+                inserted.append((report.time, report.values["inserted"]))
+
+            stats = session.declare_subscriber(keys.stats("replay", 0), on_stats)
             go, sent = ctx.Barrier(args.actors + 1), ctx.Queue()
             actors = [ctx.Process(target=actor, args=(i, endpoint, run, args.seconds, go, sent))
                       for i in range(args.actors)]

@@ -72,7 +72,7 @@ def reuse_large_buffers() -> bool:
     A process that sends or receives batches of camera frames makes buffers of 20-30 MB per
     batch (the gathered frames, the message, Zenoh's copy of it), most of them on Zenoh's
     threads. glibc gives each thread an arena of its own and hands such buffers back to the
-    system when they are freed, so every batch faulted in about 15,000 fresh pages: a replay
+    system when they are freed, so every batch faulted in 5,000 to 11,000 fresh pages: a replay
     shard spent 30-40 ms of CPU per batch, mostly in the kernel, for 7 ms of copying and
     gathering. With one arena (threads then share its lock, which these processes hardly
     contend for), buffers up to glibc's largest mmap threshold (32 MiB) taken from the heap,
