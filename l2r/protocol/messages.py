@@ -475,8 +475,8 @@ LARGE_ARRAY_BYTES = 64 * 1024
 def _packb(out: dict) -> bytes:
     """``msgpack.packb(out, use_bin_type=True)``, byte for byte, with the data of large arrays
     copied into the result once. msgpack would copy it into a buffer that grows by reallocation
-    (fresh pages each time) and then again into its result: 15-40 ms for a batch of camera frames
-    (20 MB), against 1.4-2.4 ms joined."""
+    (fresh pages each time) and then again into its result: 16-78 ms for a batch of camera frames
+    (20 MB) on a loaded machine, against 1.4-7 ms joined."""
     if not any(_large_data(value) for value in out.values()):
         return msgpack.packb(out, use_bin_type=True)
     packer = msgpack.Packer(use_bin_type=True)
