@@ -312,8 +312,10 @@ class EpisodeReplay:
 
     def fetch(self, worker: int, workers: int) -> None:
         for path in sorted(self.directory.glob("*_*_*.npz"), reverse=True):  # newest first
+            if path.name.endswith(".tmp.npz"):
+                continue  # still being written
             index, length = (int(x) for x in path.stem.split("_")[1:])
-            if index % workers != worker or path.name.endswith(".tmp.npz"):
+            if index % workers != worker:
                 continue
             if path in self.episodes:
                 break
