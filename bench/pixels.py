@@ -9,7 +9,8 @@ Prints one JSON line. Phases, one after another in one run, each ``--seconds`` l
             ``--in-flight`` queries outstanding, and decodes every reply
   raw       bare Zenoh between two processes of the same kinds: a queryable answering each
             query with a payload of one batch's bytes, a querier with the same queries in flight;
-            sample and raw take ``--rounds`` turns, and the figures are the turns' medians
+            sample and raw take ``--rounds`` turns each, ``--seconds`` in all between them, and
+            the figures are the turns' medians, with the CPU time shard and learner spent per batch
   baseline  DrQ-v2's replay design (facebookresearch/drqv2, replay_buffer.py), rebuilt here:
             actor processes save each episode (500 steps, as DrQ-v2's 1,000 environment steps
             at action repeat 2) of stacked observations as a compressed .npz file; the worker
