@@ -43,7 +43,7 @@ from l2r.learner.td3 import TD3Config
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
     STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ObservationSpec, ProtocolError, ReplayClient,
-    SampleBatch, Stats, Weights, encode,
+    SampleBatch, Stats, Weights, encode, reuse_large_buffers,
 )
 
 log = logging.getLogger("l2r.learner")
@@ -168,6 +168,8 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     # loops over its own minibatches, and image batches (maps of fields) are not captured yet.
     eager = config.world_size > 1 or isinstance(algo, PPOConfig) or config.observation is not None
     config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
+    if config.observation is not None:
+        reuse_large_buffers()  # before Zenoh's threads start: batches of frames are 20-30 MB each
     stop = threading.Event()
 
     def on_signal(signum: int, _frame) -> None:

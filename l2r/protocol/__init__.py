@@ -12,7 +12,8 @@ from l2r.protocol.messages import (
 from l2r.protocol.observations import FieldSpec, ObservationSpec, as_fields
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
-    DaemonSettings, Rejections, configure_logging, session_config, wait_alive, watched,
+    DaemonSettings, Rejections, configure_logging, reuse_large_buffers, session_config, wait_alive, watched,
+    with_reply_pool,
 )
 
 __all__ = [
@@ -22,5 +23,6 @@ __all__ = [
     "Frame", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck",
     "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "FieldSpec", "ObservationSpec",
     "as_fields", "ReplayClient",
-    "DaemonSettings", "Rejections", "configure_logging", "session_config", "wait_alive", "watched",
+    "DaemonSettings", "Rejections", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
+    "watched", "with_reply_pool",
 ]

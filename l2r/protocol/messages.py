@@ -465,7 +465,56 @@ def encode(message: Message) -> bytes:
                          for k, v in value.items()}
         else:
             out[name] = value
-    return msgpack.packb(out, use_bin_type=True)
+    return _packb(out)
+
+
+LARGE_ARRAY_BYTES = 64 * 1024
+"""Array data from this size on is joined into the message by ``_packb`` rather than packed by msgpack."""
+
+
+def _packb(out: dict) -> bytes:
+    """``msgpack.packb(out, use_bin_type=True)``, byte for byte, with the data of large arrays
+    copied into the result once. msgpack would copy it into a buffer that grows by reallocation
+    (fresh pages each time) and then again into its result: 16-78 ms for a batch of camera frames
+    (20 MB) on a loaded machine, against 1.4-7 ms joined."""
+    if not any(_large_data(value) for value in out.values()):
+        return msgpack.packb(out, use_bin_type=True)
+    packer = msgpack.Packer(use_bin_type=True)
+    pieces: list[bytes | memoryview] = []
+
+    def walk(value: Any) -> None:
+        if isinstance(value, dict):
+            pieces.append(packer.pack_map_header(len(value)))
+            for key, item in value.items():
+                pieces.append(packer.pack(key))
+                walk(item)
+        elif isinstance(value, memoryview) and value.nbytes >= LARGE_ARRAY_BYTES:
+            pieces.append(_bin_header(value.nbytes))
+            pieces.append(value)
+        else:
+            pieces.append(packer.pack(value))
+
+    walk(out)
+    return b"".join(pieces)
+
+
+def _large_data(value: Any) -> bool:
+    """Whether ``value``, an array map or a map of them (or anything else), holds large array data."""
+    if not isinstance(value, dict):
+        return False
+    data = value.get("data")
+    if isinstance(data, memoryview):
+        return data.nbytes >= LARGE_ARRAY_BYTES
+    return any(_large_data(item) for item in value.values())
+
+
+def _bin_header(size: int) -> bytes:
+    """msgpack's header of a bin of ``size`` bytes (bin 8, 16 or 32, the shortest that fits, as msgpack writes it)."""
+    if size < 1 << 8:
+        return b"\xc4" + size.to_bytes(1, "big")
+    if size < 1 << 16:
+        return b"\xc5" + size.to_bytes(2, "big")
+    return b"\xc6" + size.to_bytes(4, "big")
 
 
 def _version(message: Message) -> int:

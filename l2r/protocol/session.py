@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import threading
@@ -41,6 +42,48 @@ def session_config(
     if connect or listen:
         conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
+
+
+SHARED_MEMORY_POOL = "transport/shared_memory/transport_optimization/pool_size"
+ZENOH_DEFAULT_POOL_BYTES = 16 * 2**20
+REPLY_POOL_BYTES = 256 * 2**20
+"""The shared memory a replay shard gives Zenoh for its replies to processes on its host.
+
+Zenoh copies a message above 3 KB once into a pool of shared memory and sends a peer on the same
+host only a reference to it. Its default pool of 16 MiB is too small for a batch of camera
+frames (20-30 MB), which then goes through TCP in 64 KB fragments instead: 8-14 replies of 20 MB
+a second between two processes here, against 80-100 through a pool of 128 MiB
+(docs/performance.md). 256 MiB holds eight such replies in flight, or one of the largest message.
+The pool is made at its first use and in /dev/shm; peers on other hosts get TCP as before."""
+
+
+def with_reply_pool(conf: zenoh.Config, pool_bytes: int = REPLY_POOL_BYTES) -> zenoh.Config:
+    """``conf`` with Zenoh's shared-memory pool raised to ``pool_bytes``, unless a config file
+    chose a size of its own (anything but Zenoh's default)."""
+    if json.loads(conf.get_json(SHARED_MEMORY_POOL)) == ZENOH_DEFAULT_POOL_BYTES:
+        conf.insert_json5(SHARED_MEMORY_POOL, str(pool_bytes))
+    return conf
+
+
+def reuse_large_buffers() -> bool:
+    """Have this process's C allocator keep freed buffers of up to 32 MiB for reuse; False where
+    it is not glibc's (nothing changes then). Call it before opening a Zenoh session.
+
+    A process that sends or receives batches of camera frames makes buffers of 20-30 MB per
+    batch (the gathered frames, the message, Zenoh's copy of it), most of them on Zenoh's
+    threads. glibc gives each thread an arena of its own and hands such buffers back to the
+    system when they are freed, so every batch faulted in 5,000 to 11,000 fresh pages: a replay
+    shard spent 30-40 ms of CPU per batch, mostly in the kernel, for 7 ms of copying and
+    gathering. With one arena (threads then share its lock, which these processes hardly
+    contend for), buffers up to glibc's largest mmap threshold (32 MiB) taken from the heap,
+    and up to 256 MiB of freed heap kept, the buffers are reused (docs/performance.md)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except AttributeError:
+        return False
+    m_trim_threshold, m_mmap_threshold, m_arena_max = -1, -3, -8  # glibc's malloc.h
+    settings = ((m_arena_max, 1), (m_mmap_threshold, 32 * 2**20), (m_trim_threshold, 256 * 2**20))
+    return all(mallopt(option, value) == 1 for option, value in settings)
 
 
 NETWORK = "run and network (common to all l2r daemons)"

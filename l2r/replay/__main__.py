@@ -9,7 +9,7 @@ from typing import Literal, Sequence
 from l2r.config import (
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
-from l2r.protocol import DaemonSettings, ProtocolError, configure_logging
+from l2r.protocol import DaemonSettings, ProtocolError, configure_logging, reuse_large_buffers
 from l2r.protocol.observations import ObservationSpec
 from l2r.replay.queue import QueueConfig
 from l2r.replay.rate_limiter import RateLimiter
@@ -128,6 +128,7 @@ def serve(s: ReplaySettings) -> int:
                           s.stats_interval, write_ahead_log=not s.no_wal, max_actors=s.max_actors)
     limiter = RateLimiter(s.min_size, s.samples_per_insert, s.error_buffer, s.hold_actors)
     queue = QueueConfig(s.queue_capacity, s.queue_max_lag, s.queue_when_full)
+    reuse_large_buffers()  # before Zenoh's threads start: replies of camera frames are 20-30 MB each
     return main(server, storage, limiter, s.zenoh_session_config(), queue_config=queue)
 
 

@@ -26,7 +26,7 @@ import zenoh
 
 from l2r.protocol import (
     ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
-    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode,
+    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode, with_reply_pool,
 )
 from l2r.protocol.observations import ObservationSpec
 from l2r.replay import snapshot
@@ -532,7 +532,7 @@ def main(config: ServerConfig, storage_config: StorageConfig, limiter: RateLimit
                  "no write-ahead log: a crash loses what came since the last snapshot")
 
     keys = server.keys
-    with zenoh.open(zenoh_config) as session:
+    with zenoh.open(with_reply_pool(zenoh_config)) as session:
         acks = session.declare_publisher(keys.replay_ack(config.shard), **ACK_QOS.publisher())
         entities = [
             session.declare_subscriber(keys.experience_of_shard(config.shard), _direct(server.on_experience)),
