@@ -18,25 +18,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import socket
+import sys
 import time
+from pathlib import Path
 
 import zenoh
 
 from l2r.actors.actor import Actor, ActorConfig
 from l2r.protocol import session_config
 
+sys.path.insert(0, str(Path(__file__).parent))
+from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
+
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def cpu_model() -> str:
-    with open("/proc/cpuinfo") as f:
-        return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), platform.machine())
 
 
 def main() -> None:
@@ -67,7 +66,7 @@ def main() -> None:
               "action_repeat": args.action_repeat, "env_steps": done,
               "cpu_us_per_env_step": round(1e6 * cpu / done, 1),
               "process_cpu_us_per_env_step": round(1e6 * process / done, 1), "env_steps_per_s": round(done / wall, 1),
-              "machine": cpu_model()}
+              "machine": cpu_model(), "cpu_flags": cpu_flags()}
     if getattr(actor, "camera", False):
         result["frames_per_s"] = round(rendered / wall, 1)
     print(json.dumps(result))

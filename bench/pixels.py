@@ -53,6 +53,7 @@ from l2r.replay.storage import StorageConfig, observation_bytes, storage_bytes
 
 sys.path.insert(0, str(Path(__file__).parent))
 from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
+from replay_throughput import rss_bytes  # noqa: E402
 
 SPEC = ObservationSpec.parse("pixels: uint8[3, 84, 84]")
 FRAME_STACK, BATCH, STEPS, ACT = 3, 256, 64, 6
@@ -159,14 +160,6 @@ def cpu_seconds(pid: int) -> float:
     """User and system CPU time process ``pid`` has used."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def rss_bytes(pid: int) -> int:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    return 0
 
 
 def measure_l2r(args, ctx) -> dict:
