@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from l2r.up import parse_args
+from l2r.up import parse_args, replay_capacity
 
 
 @pytest.fixture
@@ -38,7 +38,7 @@ def test_on_resume_the_command_line_wins_over_the_file_and_the_file_over_launch_
     path = config('seconds = 7200\nactors = 3\neval-env-id = ["l2r/RunOpenSim-v0"]\n')
     args, _ = parse_args(["--resume", str(run_dir), "--config", path, "--actors", "4"])
     assert (args.actors, args.seconds, args.eval_env_id) == (4, 7200.0, ["l2r/RunOpenSim-v0"])
-    assert (args.batch_size, args.capacity) == (64, 1_000_000)  # launch.json, then the default
+    assert (args.batch_size, replay_capacity(args)) == (64, 1_000_000)  # launch.json, then the default
     warnings = capsys.readouterr().err
     assert "--seconds 7200.0 replaces 100.0 from" in warnings and "--actors 4 replaces 2 from" in warnings
 
