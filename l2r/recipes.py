@@ -30,12 +30,14 @@ Value = bool | int | float | str
 RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # Tuned on the runner on a 2-core CPU (docs/training.md, "The recipe"): rewards of 0.01-0.03 m
     # a step scaled up, a cool start, the body's symmetry and running statistics doing the rest.
+    # No warm-up: every runner figure was measured with actors acting with the learner's untrained
+    # policy from its first publication on (until 2026-11-26 that first policy ended any warm-up).
     (RUNNER, "sac"): dict(
         hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
         reward_scale=10.0, initial_alpha=0.1, update_repeat=1, publish_every=50,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
-        random_steps=10_000, envs_per_actor=4, action_repeat=3,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
     ),
     # Stable-Baselines3's and CleanRL's SAC for MuJoCo tasks: raw observations, learning from 5,000
     # steps on, one gradient step per env step (samples-per-insert = batch-size / update-repeat,
@@ -73,7 +75,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
-        random_steps=10_000, envs_per_actor=4, action_repeat=3,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
     ),
     # CleanRL's TD3 for MuJoCo tasks: standard/sac's networks and one gradient step per env step,
     # learning from 25,000 uniform random steps on.

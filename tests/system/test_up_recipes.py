@@ -19,14 +19,15 @@ ACTOR = "--run run --log-level INFO --connect tcp/127.0.0.1:7447 --connect tcp/1
 RUNNER_LOGS = "--episode-log-dir runs/x/episodes --log-every 10"
 EVALUATOR = "--evaluate --actor-id 1 --num-envs 2 --eval-episodes 2 --eval-interval 20.0"
 # The command lines `l2r up --learner-threads 1` planned before recipes, with --algo and, for
-# Hopper-v5, --env-id Hopper-v5 --action-repeat 1.
+# Hopper-v5, --env-id Hopper-v5 --action-repeat 1; but for --random-steps 0, the warm-up those
+# actors had in effect (the learner's first, untrained policy ended it, so it was as if 0).
 BEFORE = {
     ("l2r/Run-v0", "sac"): {
         "replay": f"{REPLAY} --capacity 1000000 --min-size 10000 --samples-per-insert 0.0 --snapshot-dir runs/x/replay",
         "learner": f"{LEARNER} --update-repeat 1 --batch-size 256 --hidden 256,256 --relative-x --normalize-obs "
                    f"--mirror --threads 1 --action-repeat 3 --keep-checkpoints 3 --run-dir runs/x",
         "actor-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 --actor-id 0 "
-                   f"--random-steps 10000 {RUNNER_LOGS}",
+                   f"--random-steps 0 {RUNNER_LOGS}",
         "evaluator-0": f"{ACTOR} --env-id l2r/Run-v0 --num-envs 4 --difficulty 0 --action-repeat 3 --seed 0 "
                        f"{EVALUATOR} {RUNNER_LOGS}"},
     ("l2r/Run-v0", "ppo"): {
@@ -43,7 +44,7 @@ BEFORE = {
         "learner": f"{LEARNER} --update-repeat 1 --batch-size 256 --hidden 256,256 --obs-dim 11 --act-dim 3 "
                    f"--normalize-obs --threads 1 --action-repeat 1 --keep-checkpoints 3 --run-dir runs/x",
         "actor-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 --max-speed 0 "
-                   f"--actor-id 0 --random-steps 10000",
+                   f"--actor-id 0 --random-steps 0",
         "evaluator-0": f"{ACTOR} --env-id Hopper-v5 --num-envs 4 --difficulty 0 --action-repeat 1 --seed 0 "
                        f"--max-speed 0 {EVALUATOR}"},
     ("Hopper-v5", "ppo"): {
@@ -121,7 +122,7 @@ def test_a_td3_job_samples_the_replay_table_as_sac_does_with_a_td3_learner():
     config = learner.algorithm()
     assert (learner.algo, type(config).__name__, learner.in_flight) == ("td3", "TD3Config", 4)
     assert (config.batch_size, config.hidden, config.update_repeat, config.policy_delay) == (256, (256, 256), 1, 2)
-    assert actor_settings(children["actor-0"]).random_steps == 10_000
+    assert actor_settings(children["actor-0"]).random_steps == 0
     assert learner_settings(planned("--algo", "td3", "--scheduled-target-noise")["learner"]).td3().target_noise is None
 
 
