@@ -21,6 +21,9 @@ Prints one JSON line. Figures:
   peak_gflops, peak_basis     the CPU's float32 peak on the cores the threads can use (see cpu_peak)
   matmul_gflops               what one float32 batched matmul of the critics' shape, (2 x 640 x 512) x
                               (512 x 512), reaches on the same threads: the practical ceiling (CPU only)
+  *kernels_per_update_bB      with --profile DIR (CUDA): GPU kernels one update runs, and
+  *gpu_ms_per_update_bB       the milliseconds they keep the GPU busy, from a torch.profiler trace of
+                              PROFILE_STEPS updates written to DIR as NAMEbB.json.gz
 With --clock cpu (for a machine other work is loading) every rate is updates per second of this
 process's CPU time rather than of wall-clock time, and GFLOP/s are per CPU-second: per core, if the
 threads kept their cores busy. Compare those with the peak per core (peak_gflops / cores).
@@ -34,6 +37,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
+import gzip  # noqa: E402
 import json  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
@@ -45,6 +49,7 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 from l2r.learner.steps import COMPILE_MODES, WARMUP_CALLS  # noqa: E402
 
 OBS_DIM, ACT_DIM, HIDDEN, BUFFER = 41, 18, (512, 512, 512), 20_000
+PROFILE_STEPS = 10
 
 
 class L2RStepper:
@@ -167,6 +172,23 @@ def step_flops(stepper) -> int:
     return counter.get_total_flops()
 
 
+def gpu_profile(stepper, path: str) -> dict:
+    """Kernels per update and their GPU milliseconds, from a trace of PROFILE_STEPS updates
+    (written to `path`, gzipped): where a GPU update's time goes, launches against work."""
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU,
+                                            torch.profiler.ProfilerActivity.CUDA]) as profiler:
+        stepper.steps(PROFILE_STEPS)
+    trace = path.removesuffix(".gz")
+    profiler.export_chrome_trace(trace)
+    with open(trace, "rb") as raw, gzip.open(path, "wb") as packed:
+        packed.write(raw.read())
+    os.remove(trace)
+    with gzip.open(path, "rt") as f:
+        kernels = [e for e in json.load(f)["traceEvents"] if e.get("cat") == "kernel"]
+    return {"kernels_per_update": round(len(kernels) / PROFILE_STEPS, 1),
+            "gpu_ms_per_update": round(sum(e.get("dur", 0) for e in kernels) / PROFILE_STEPS / 1000, 3)}
+
+
 def rate(stepper, n: int, clock) -> float:
     started = clock()
     stepper.steps(n)
@@ -192,7 +214,11 @@ def main() -> None:
     p.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                    help="wall: updates per second; cpu: per second of this process's CPU time, for a machine "
                         "loaded by other work (default: %(default)s)")
+    p.add_argument("--profile", metavar="DIR", help="CUDA: trace each l2r update and SB3's with torch.profiler into "
+                                                    "DIR and report kernels and GPU time per update")
     args = p.parse_args()
+    if args.profile and args.device != "cuda":
+        p.error("--profile counts GPU kernels: it needs --device cuda")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch sees no CUDA device")
     if args.compile is None:
@@ -229,9 +255,14 @@ def main() -> None:
         steppers["baseline_"] = SB3Stepper(batch_size, args.device)
         n = args.steps * (2 if batch_size == 256 else 1)
         flops = {}
-        for name, stepper in steppers.items():
+        for name, stepper in list(steppers.items()):
             warm_up_started = time.perf_counter()
-            stepper.warm_up()
+            try:
+                stepper.warm_up()
+            except Exception as error:  # a mode that fails on this machine is reported, the others still timed
+                result[f"{name}error_b{batch_size}"] = f"{type(error).__name__}: {error}"[:500]
+                del steppers[name]
+                continue
             if name[:-1] in (m.replace("-", "_") for m in modes):
                 result[f"{name}compile_s_b{batch_size}"] = round(time.perf_counter() - warm_up_started, 1)
                 flops[name] = flops[""]  # the default network's; the counter cannot see into compiled code
@@ -246,6 +277,12 @@ def main() -> None:
             result[f"{name}range_b{batch_size}"] = [round(min(values), 2), round(max(values), 2)]
             result[f"{name}gflop_per_update_b{batch_size}"] = round(flops[name] / 1e9, 3)
             result[f"{name}gflops_b{batch_size}"] = round(statistics.median(values) * flops[name] / 1e9, 1)
+        if args.profile:
+            os.makedirs(args.profile, exist_ok=True)
+            for name, stepper in steppers.items():
+                for key, value in gpu_profile(stepper, os.path.join(args.profile,
+                                                                    f"{name or 'default_'}b{batch_size}.json.gz")).items():
+                    result[f"{name}{key}_b{batch_size}"] = value
         baseline = result[f"baseline_updates_per_s_b{batch_size}"]
         for name in steppers:
             if name != "baseline_":

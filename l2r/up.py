@@ -46,6 +46,7 @@ import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
+from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
@@ -57,7 +58,6 @@ from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.spaces import task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
-from l2r.view import find_episode, write_recording
 
 log = logging.getLogger("l2r.up")
 
@@ -517,6 +517,8 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
         else:
             summary["best_eval_episode"]["log"] = str(found)
             try:
+                from l2r.view import write_recording  # Rerun loads here, not at every start of l2r up
+
                 summary["best_eval_recording"] = str(write_recording([found], run_dir / "best_eval.rrd"))
             except Exception as e:  # a convenience: the run's results are saved whatever happens here
                 log.warning("no recording of the best evaluation episode (%s): %s", found.name, e)

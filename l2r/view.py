@@ -13,8 +13,8 @@ forces. Interrupted ``.mcap.part`` files play up to where they stop.
 of the episodes they are running, and draws those frames as they come.
 
 For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode files into a
-``.rrd`` file (``l2r up`` uses it for the best evaluation episode), and
-``find_episode(directory, kind=..., seed=...)`` finds the episode file with that metadata.
+``.rrd`` file (``l2r up`` uses it for the best evaluation episode, found by
+``l2r.episodes.read.find_episode``).
 """
 
 from __future__ import annotations
@@ -30,14 +30,12 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-from mcap.reader import SeekingReader
-from mcap.records import Metadata
 
 from l2r.config import (
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
 from l2r.episodes.body import BodyModel, Shape, rotate
-from l2r.episodes.read import Episode, iter_records, read_episode
+from l2r.episodes.read import Episode, read_episode
 from l2r.protocol.session import DaemonSettings, configure_logging
 
 APP_ID = "l2r"
@@ -203,27 +201,6 @@ def write_recording(mcap_paths: Sequence[str | Path], rrd_path: str | Path) -> P
     rec.flush()
     rec.disconnect()
     return Path(rrd_path)
-
-
-def find_episode(directory: str | Path, **episode: str | int) -> Path | None:
-    """The first episode file in ``directory`` whose "episode" metadata holds every item of
-    ``episode`` (``kind="eval", actor=1, seed=0, policy_version=12``), or None."""
-    wanted = {name: str(value) for name, value in episode.items()}
-    for path in sorted(Path(directory).glob("*.mcap")):
-        meta = episode_metadata(path).get("episode", {})
-        if all(meta.get(name) == value for name, value in wanted.items()):
-            return path
-    return None
-
-
-def episode_metadata(path: str | Path) -> dict[str, dict[str, str]]:
-    """The metadata records of an episode file, by name: read through the summary's index in
-    a complete file, by a scan in a damaged one."""
-    try:
-        with open(path, "rb") as f:
-            return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
-    except Exception:  # no usable summary: scan what can be read
-        return {r.name: dict(r.metadata) for r in iter_records(path) if isinstance(r, Metadata)}
 
 
 # ------------------------------------------------------------------------------------ live

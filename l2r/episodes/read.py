@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
@@ -112,3 +113,24 @@ def _fill(episode: Episode, rows: list, tf: dict[int, object]) -> None:
                 pos[k, i] = (tr.x, tr.y, tr.z)
                 quat[k, i] = (r.w, r.x, r.y, r.z)
     episode.pos, episode.quat = pos, quat
+
+
+def find_episode(directory: str | Path, **episode: str | int) -> Path | None:
+    """The first episode file in ``directory`` whose "episode" metadata holds every item of
+    ``episode`` (``kind="eval", actor=1, seed=0, policy_version=12``), or None."""
+    wanted = {name: str(value) for name, value in episode.items()}
+    for path in sorted(Path(directory).glob("*.mcap")):
+        meta = episode_metadata(path).get("episode", {})
+        if all(meta.get(name) == value for name, value in wanted.items()):
+            return path
+    return None
+
+
+def episode_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """The metadata records of an episode file, by name: read through the summary's index in
+    a complete file, by a scan in a damaged one."""
+    try:
+        with open(path, "rb") as f:
+            return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
+    except Exception:  # no usable summary: scan what can be read
+        return {r.name: dict(r.metadata) for r in iter_records(path) if isinstance(r, Metadata)}

@@ -16,7 +16,8 @@ from l2r.episodes import schema
 from l2r.sim.env import FOOT_SPHERES, RunEnv
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.model import BODIES, MUSCLES
-from l2r.view import CAMERA, CAMERA_DISTANCE, CAMERA_HEIGHT, find_episode, write_recording
+from l2r.episodes.read import find_episode
+from l2r.view import CAMERA, CAMERA_DISTANCE, CAMERA_HEIGHT, write_recording
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 STEPS = 12

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from l2r.view import episode_metadata
+from l2r.episodes.read import episode_metadata
 from tests.conftest import ROOT, wait_for
 
 # Small networks and batches so a few hundred updates fit in seconds on two shared cores.
