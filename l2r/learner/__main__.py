@@ -55,7 +55,8 @@ class LearnerSettings(DaemonSettings):
         "auto", "how SAC's and TD3's update runs: off (eager, one kernel launch per operation); graphs (its "
         "update-repeat updates captured as one CUDA graph, replayed per batch; CUDA only, needs no compiler); inductor "
         "(torch.compile's fused kernels; a C++ compiler on CPU, Triton on CUDA; compiles for a minute or more at "
-        "start); inductor-graphs (both, CUDA); auto = off (graphs on CUDA once they have run on a GPU: docs/learner.md)",
+        "start); inductor-graphs (both, CUDA); auto = inductor-graphs on CUDA (graphs without Triton), off on CPU "
+        "(docs/learner.md)",
         group=PROCESS)
     obs_dim: int = setting(41, "width of the float32 vector observation, when --observation and --env-id are not "
                            "given", group=PROCESS, ge=1)

@@ -96,7 +96,8 @@ class Diverged(RuntimeError):
 
 
 def _finite(state: TrainState) -> bool:
-    return all(bool(torch.isfinite(t).all()) for t in state.parameters())
+    # One read back for all tensors: on a GPU each read waits for the device.
+    return bool(torch.stack([torch.isfinite(t).all() for t in state.parameters()]).all())
 
 
 class WeightsOutlet:

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from l2r.learner import sac, td3
+from l2r.learner import steps as steps_module
 from l2r.learner.distributed import DeviceUnavailable
 from l2r.learner.steps import WARMUP_CALLS, GradientSteps, resolve_mode
 from tests.learner.test_sac import ACT, OBS, random_batch, small_config
@@ -82,8 +83,11 @@ def test_steps_count_the_updates_of_their_one_state():
         steps(sac.init_state(config, OBS, ACT, seed=1), random_batch())
 
 
-def test_auto_is_off_until_graphs_have_run_on_a_gpu_and_graphs_need_cuda():
-    assert resolve_mode("auto", torch.device("cuda")) == "off"
+def test_auto_captures_graphs_on_cuda_compiled_where_triton_is_and_graphs_need_cuda(monkeypatch):
+    monkeypatch.setattr(steps_module, "has_triton", lambda: True)
+    assert resolve_mode("auto", torch.device("cuda")) == "inductor-graphs"
+    monkeypatch.setattr(steps_module, "has_triton", lambda: False)
+    assert resolve_mode("auto", torch.device("cuda")) == "graphs"
     assert resolve_mode("auto", torch.device("cpu")) == "off"
     assert resolve_mode("inductor", torch.device("cpu")) == "inductor"
     for mode in ("graphs", "inductor-graphs"):
