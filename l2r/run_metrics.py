@@ -191,6 +191,7 @@ class RunMetrics:
         self.episodes = 0
         self.version = -1
         self.updates = self.before.updates  # until the learner reports its own count
+        self._last_status: tuple[float, int] | None = None  # (time, env steps) of the last status
         self._subs = [session.declare_subscriber(k, self._on_stats) for k in (keys.all_stats, keys.all_metrics)]
         self._subs.append(session.declare_subscriber(keys.all_episodes, self._on_episode))
         self._subs.append(session.declare_subscriber(keys.learner_version, self._on_version))
@@ -342,9 +343,21 @@ class RunMetrics:
             }
 
     def record_status(self) -> dict:
-        """Write the status figures to status.csv, flush every file, and return the figures."""
+        """Write the status figures to status.csv, flush every file, and return the figures. Env
+        steps (and frames) per second are over the interval since the last status: an actor's
+        own two-second rate reads 0 whenever replay holds it, which in a learner-bound job (one
+        gradient step per env step) is most of the time, however fast the job moves."""
         figures = self.snapshot()
         with self._lock:
+            if self._last_status is not None and figures["time"] > self._last_status[0]:
+                then, steps_then = self._last_status
+                per_s = (figures["env_steps"] - steps_then) / (figures["time"] - then)
+                if "frames_per_s" in figures:
+                    cameras = [v for (role, _), v in self.stats.items() if role == "actor" and "frames" in v]
+                    steps = sum(float(v["env_steps"]) for v in cameras)
+                    figures["frames_per_s"] = per_s * (sum(float(v["frames"]) for v in cameras) / steps if steps else 1.0)
+                figures["env_steps_per_s"] = per_s
+            self._last_status = (figures["time"], figures["env_steps"])
             self._csv["status"].write(self._leading() | {k: ("" if v is None else v) for k, v in figures.items()
                                                          if k not in LEADING})
             for table in self._csv.values():

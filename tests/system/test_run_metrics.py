@@ -2,6 +2,7 @@
 
 import csv
 
+import pytest
 import zenoh
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -66,3 +67,29 @@ def test_camera_actors_frames_per_second_add_up_into_the_figures_and_the_status_
     score = score_of("Hopper-v5")
     assert "frames_per_s" not in vector and "frames/s" not in status_line(vector, score)
     assert "] env     150 steps/s (20), 150 frames/s | learner" in status_line(camera, score)
+
+
+def test_the_status_counts_env_steps_per_second_over_its_interval_while_actors_are_held(tmp_path):
+    # A held actor's own rate is 0 in most of its two-second windows; the job still moves.
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = Keys("rate-test")
+    with zenoh.open(session_config(listen=[endpoint])) as listener, \
+            zenoh.open(session_config(connect=[endpoint])) as sender:
+        metrics = RunMetrics(listener, keys, tmp_path, env_id="Hopper-v5")
+        try:
+            actor = sender.declare_publisher(keys.stats("actor", 0))
+            assert wait_for(lambda: actor.matching_status.matching, 10)
+            actor.put(encode(Stats("actor", "0", 0.0, {"env_steps": 100, "env_steps_per_s": 0.0,
+                                                        "frames": 200, "frames_per_s": 0.0})))
+            assert wait_for(lambda: metrics.env_steps == 100, 10)
+            first = metrics.record_status()
+            actor.put(encode(Stats("actor", "0", 0.0, {"env_steps": 400, "env_steps_per_s": 0.0,
+                                                        "frames": 800, "frames_per_s": 0.0})))
+            assert wait_for(lambda: metrics.env_steps == 400, 10)
+            second = metrics.record_status()
+        finally:
+            metrics.close()
+    assert first["env_steps_per_s"] == 0.0  # no interval yet: the actors' own rate
+    elapsed = second["time"] - first["time"]
+    assert second["env_steps_per_s"] == pytest.approx(300 / elapsed)
+    assert second["frames_per_s"] == pytest.approx(600 / elapsed)
