@@ -2,8 +2,8 @@
 
 Importing this package registers `l2r/PhotoTune-v0` (l2r.photo.env): a goal-conditioned tuner of
 the nine parameters of RLPixTuner's photo-finishing pipeline (l2r.photo.pipeline), on the
-photographs that ship in installed wheels (l2r.photo.photos). Nothing heavy loads until an env is
-made:
+photographs that ship in installed wheels (l2r.photo.photos). The photos load at an env's first
+reset, so reading its spaces costs nothing:
 
     import gymnasium, l2r.photo
     env = gymnasium.make("l2r/PhotoTune-v0")              # the training photos
