@@ -1,0 +1,18 @@
+"""Photo finishing as a reinforcement-learning task.
+
+Importing this package registers `l2r/PhotoTune-v0` (l2r.photo.env): a goal-conditioned tuner of
+the nine parameters of RLPixTuner's photo-finishing pipeline (l2r.photo.pipeline), on the
+photographs that ship in installed wheels (l2r.photo.photos). The photos load at an env's first
+reset, so reading its spaces costs nothing:
+
+    import gymnasium, l2r.photo
+    env = gymnasium.make("l2r/PhotoTune-v0")              # the training photos
+    env = gymnasium.make("l2r/PhotoTune-v0", split="test")  # the held-out ones
+"""
+
+import gymnasium
+
+TUNE_ID = "l2r/PhotoTune-v0"
+
+# The env ends its episodes itself (10 queries, or a collapsed image), so no max_episode_steps.
+gymnasium.register(id=TUNE_ID, entry_point="l2r.photo.env:PhotoTuneEnv")

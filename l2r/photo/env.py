@@ -1,0 +1,149 @@
+"""`PhotoTuneEnv` (`l2r/PhotoTune-v0`): find the pipeline parameters that turn a photo into a goal.
+
+RLPixTuner's goal-conditioned tuning task (its `envs/isp_env.py`) in the "FiveK-Random" setting:
+each episode crops a 256 × 256 working image from a photo of the split and makes its goal by
+running the pipeline (l2r.photo.pipeline) on it with hidden parameters, each action drawn
+uniformly in [-1, 1]; a crop or goal that is itself collapsed (below) is drawn again.
+
+The action is a complete setting of the nine parameters, each in [-1, 1] mapped onto its range,
+not a change to the current one: as in RLPixTuner (`isp_inp_original`), each step runs the
+pipeline on the untouched input with the action's parameters, so a step is one query of the
+pipeline, the unit in which the tuner is compared with optimisers such as CMA-ES, and the
+observation carries the parameters of the last query for the policy to refine. (Deltas would make
+what a step can reach depend on the path taken and stick at the ends of the ranges.)
+
+The observation holds three fields: `pixels`, the current image, and `goal`, the goal image, each
+uint8[3, 64, 64] (the 4 × 4 block means of the working images), and `state`, float32[16]:
+luminance, contrast and saturation of the current image, the same of the goal (RLPixTuner's
+per-image statistics, on the 64 × 64 images, `image_statistics`), the current parameters as
+actions, and the fraction of the episode's steps taken (gymnasium orders a Dict's fields by name:
+the spec reads `goal, pixels, state`). An episode starts from the input with
+neutral parameters.
+
+The reward is the change in PSNR to the goal (on the working images, capped at 100 dB) times
+0.01. An episode ends after 10 steps, or early when the image collapses, its mean brightness
+below 0.01 or above 0.9; both are terminations, the count of steps being in the observation and
+a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the current image.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from l2r.photo import photos
+from l2r.photo.pipeline import NEUTRAL, PARAMETERS, actions_from_params, finish, params_from_actions
+
+MAX_STEPS = 10
+REWARD_SCALE = 0.01
+DARKEST, BRIGHTEST = 0.01, 0.9
+"""The mean brightness outside which an image has collapsed."""
+MAX_PSNR_DB = 100.0
+"""PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
+MAX_DRAWS = 100
+STATE_FIELDS = (
+    "luminance", "contrast", "saturation", "goal_luminance", "goal_contrast", "goal_saturation",
+    *(f"{p.name}_action" for p in PARAMETERS), "steps_taken",
+)
+
+
+def psnr_db(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """PSNR in dB of float images in [0, 1] against their goals, per image of [N, 3, H, W]."""
+    mse = np.mean(np.square(images - goals, dtype=np.float64), axis=(1, 2, 3))
+    return 10.0 * np.log10(1.0 / np.maximum(mse, 10 ** (-MAX_PSNR_DB / 10)))
+
+
+def collapsed(image: np.ndarray) -> bool:
+    """Whether an image's mean brightness is below 0.01 or above 0.9."""
+    return not DARKEST <= float(image.mean()) <= BRIGHTEST
+
+
+def image_statistics(images: np.ndarray) -> np.ndarray:
+    """[N, 3]: per image the mean luminance (0.27 R + 0.67 G + 0.06 B), the variance of that
+    luminance (its contrast) and the mean of (max - min) / (min(max + min, 2 - max - min) + 0.01)
+    over R, G, B (its saturation, HSL's but for the 0.01): each in [0, 1]."""
+    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
+    high, low = images.max(axis=1), images.min(axis=1)
+    saturation = (high - low) / (np.minimum(high + low, 2.0 - high - low) + 0.01)
+    return np.stack([luminance.mean(axis=(1, 2)), luminance.var(axis=(1, 2)), saturation.mean(axis=(1, 2))], axis=1)
+
+
+class PhotoTuneEnv(gym.Env):
+    """The goal-conditioned photo-finishing tuner's task.
+
+    split: "train" or "test", the photos episodes are cropped from (l2r.photo.photos.SPLITS).
+    max_steps: steps (pipeline queries) per episode.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, split: str = "train", max_steps: int = MAX_STEPS):
+        photos.check_split(split)
+        if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        self.split, self.max_steps = split, max_steps
+        self.photos: dict[str, np.ndarray] | None = None  # loaded at the first reset: the spaces need none
+        side = photos.OBSERVATION_SIZE
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
+        self.observation_space = gym.spaces.Dict({
+            "pixels": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
+            "goal": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
+            "state": gym.spaces.Box(-1.0, 1.0, (len(STATE_FIELDS),), np.float32),
+        })
+        self.episode_over = True
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
+        super().reset(seed=seed)
+        if self.photos is None:
+            self.photos = photos.load_split(self.split)
+        names = list(self.photos)
+        for _ in range(MAX_DRAWS):
+            self.photo_name = names[int(self.np_random.integers(len(names)))]
+            self.source = photos.random_crop(self.photos[self.photo_name], self.np_random)
+            self.goal_params = params_from_actions(self.np_random.uniform(-1.0, 1.0, len(PARAMETERS)))
+            self.goal = finish(self.source[None], self.goal_params)[0]
+            if not collapsed(self.source) and not collapsed(self.goal):
+                break
+        else:
+            raise RuntimeError(f"{MAX_DRAWS} crops and goals of the {self.split} photos in a row were collapsed")
+        self.goal_small = photos.downsample(self.goal)
+        self.image, self.params, self.steps = self.source, NEUTRAL, 0
+        self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
+        self.episode_over = False
+        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name}
+
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        if self.episode_over:
+            raise RuntimeError("PhotoTune: step() before the first reset() or after the episode ended; call reset()")
+        self.params = params_from_actions(self.check_action(action))
+        self.image = finish(self.source[None], self.params)[0]
+        psnr = float(psnr_db(self.image[None], self.goal[None])[0])
+        reward = REWARD_SCALE * (psnr - self.psnr)
+        self.psnr, self.steps = psnr, self.steps + 1
+        ruined = collapsed(self.image)
+        self.episode_over = ruined or self.steps >= self.max_steps
+        return self.observation(), reward, self.episode_over, False, {"psnr_db": psnr, "collapsed": ruined}
+
+    def check_action(self, action: Any) -> np.ndarray:
+        """The action as a float32 array inside [-1, 1], or a ValueError saying what is wrong."""
+        try:
+            action = np.asarray(action, dtype=np.float32)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"PhotoTune: the action is not an array of numbers ({e})") from None
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"PhotoTune: the action has shape {action.shape}, expected {self.action_space.shape}")
+        if not np.isfinite(action).all():
+            raise ValueError(f"PhotoTune: the action has non-finite entries: {action.tolist()}")
+        return np.clip(action, -1.0, 1.0)
+
+    def observation(self) -> dict[str, np.ndarray]:
+        current = photos.downsample(self.image)
+        statistics = image_statistics(np.stack([current, self.goal_small]))
+        state = np.concatenate([statistics.ravel(), actions_from_params(self.params), [self.steps / self.max_steps]])
+        return {
+            "pixels": photos.to_uint8(current),
+            "goal": photos.to_uint8(self.goal_small),
+            "state": np.clip(state, -1.0, 1.0).astype(np.float32),
+        }

@@ -1,0 +1,148 @@
+"""l2r/PhotoTune-v0 on the real photos: spaces against the observation spec, the reward as the PSNR
+change, early ends, the split, seeding, bad actions."""
+
+import math
+
+import gymnasium
+from gymnasium.utils.env_checker import check_env
+import numpy as np
+import pytest
+
+import l2r.photo  # noqa: F401  (registers the id)
+from l2r.photo import photos
+from l2r.photo.env import collapsed, image_statistics, psnr_db
+from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
+from l2r.protocol.observations import ObservationSpec
+
+DARKEN = np.array([-1, -1, -1, -1, 0, 1, -1, -1, 1], np.float32)
+"""-2 EV, the smallest gains, most contrast, highlights and shadows down."""
+
+
+@pytest.fixture(scope="module")
+def env():
+    """One env for the module: the first reset loads the photos (about a second)."""
+    env = gymnasium.make("l2r/PhotoTune-v0")
+    yield env.unwrapped
+    env.close()
+
+
+def psnr(image, goal):
+    return -10 * math.log10(np.mean((image.astype(np.float64) - goal) ** 2))
+
+
+def test_spaces_follow_the_observation_spec(env):
+    spec = ObservationSpec.from_space(env.observation_space)
+    # In gymnasium's order of a Dict's keys, sorted.
+    assert spec == ObservationSpec.parse("goal: uint8[3, 64, 64], pixels: uint8[3, 64, 64], state: float32[16]")
+    assert env.action_space == gymnasium.spaces.Box(-1.0, 1.0, (9,), np.float32)
+    obs, _ = env.reset(seed=0)
+    spec.fields_of(obs)  # raises unless each field has its dtype and shape
+    check_env(env, skip_render_check=True)
+
+
+def test_the_observation_shows_both_images_their_statistics_and_the_parameters(env):
+    obs, _ = env.reset(seed=1)
+    np.testing.assert_array_equal(obs["pixels"], photos.to_uint8(photos.downsample(env.source)))
+    np.testing.assert_array_equal(obs["goal"], photos.to_uint8(photos.downsample(env.goal)))
+    small = photos.downsample(np.stack([env.source, env.goal]))
+    np.testing.assert_allclose(obs["state"][:6], image_statistics(small).ravel(), atol=1e-6)
+    assert obs["state"][6:].tolist() == [0.0] * 10  # neutral parameters, no step taken
+    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
+    obs, *_ = env.step(action)
+    np.testing.assert_allclose(obs["state"][6:15], action, atol=1e-5)
+    assert obs["state"][15] == pytest.approx(0.1)
+
+
+def test_image_statistics_by_hand():
+    image = np.zeros((1, 3, 2, 2), np.float32)
+    image[0, 0] = 1.0  # pure red: luminance 0.27 everywhere, HSL saturation 1 / 1.01
+    assert image_statistics(image)[0].tolist() == pytest.approx([0.27, 0.0, 1 / 1.01], abs=1e-6)
+    image[0, :, 0, 0] = 1.0  # one white pixel of four
+    assert image_statistics(image)[0, :2].tolist() == pytest.approx([0.4525, 3 * 0.1825 ** 2 / 4 + 0.5475 ** 2 / 4])
+
+
+def test_the_reward_is_the_psnr_change_times_a_hundredth(env):
+    _, info = env.reset(seed=2)
+    previous = psnr(env.source, env.goal)
+    assert info["psnr_db"] == pytest.approx(previous)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        action = rng.uniform(-0.5, 0.5, 9).astype(np.float32)
+        _, reward, terminated, truncated, info = env.step(action)
+        now = psnr(finish(env.source[None], params_from_actions(action))[0], env.goal)
+        assert reward == pytest.approx(0.01 * (now - previous), abs=1e-7)
+        assert info["psnr_db"] == pytest.approx(now) and not terminated and not truncated
+        previous = now
+
+
+def test_the_hidden_parameters_reach_the_goal(env):
+    env.reset(seed=3)
+    _, reward, *_, info = env.step(actions_from_params(env.goal_params))
+    assert info["psnr_db"] == 100.0 and reward > 0  # capped: the image is the goal
+    assert psnr_db(np.zeros((1, 3, 2, 2)), np.ones((1, 3, 2, 2))).tolist() == [0.0]
+
+
+def test_an_episode_is_ten_queries(env):
+    env.reset(seed=4)
+    for step in range(1, 11):
+        _, _, terminated, truncated, info = env.step(np.zeros(9, np.float32))
+        assert terminated == (step == 10) and not truncated and not info["collapsed"]
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros(9, np.float32))
+
+
+def test_a_collapsed_image_ends_the_episode_early(env):
+    env.reset(seed=5)
+    _, reward, terminated, _, info = env.step(DARKEN)
+    assert terminated and info["collapsed"] and reward < 0
+    assert env.image.mean() < 0.01
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros(9, np.float32))
+    assert collapsed(np.full((3, 2, 2), 0.009)) and collapsed(np.full((3, 2, 2), 0.91))
+    assert not collapsed(np.full((3, 2, 2), 0.011)) and not collapsed(np.full((3, 2, 2), 0.89))
+
+
+def test_goals_and_inputs_are_never_collapsed_themselves(env):
+    for seed in range(20):
+        env.reset(seed=seed)
+        assert not collapsed(env.source) and not collapsed(env.goal)
+
+
+def test_each_split_draws_only_its_own_photos():
+    seen = {}
+    for split in ("train", "test"):
+        split_env = gymnasium.make("l2r/PhotoTune-v0", split=split)
+        seen[split] = {split_env.reset(seed=seed)[1]["photo"] for seed in range(12)}
+        split_env.close()
+        assert seen[split] <= set(photos.SPLITS[split]) and len(seen[split]) > 1
+    with pytest.raises(ValueError, match="split must be one of"):
+        gymnasium.make("l2r/PhotoTune-v0", split="val")
+
+
+def test_the_same_seed_gives_the_same_episode(env):
+    def episode(seed):
+        obs, _ = env.reset(seed=seed)
+        frames, rewards = [obs], []
+        for action in np.random.default_rng(7).uniform(-1, 1, (3, 9)).astype(np.float32):
+            obs, reward, *_ = env.step(action)
+            frames.append(obs)
+            rewards.append(reward)
+        return frames, rewards
+
+    (first, first_rewards), (again, again_rewards) = episode(11), episode(11)
+    assert first_rewards == again_rewards
+    for a, b in zip(first, again):
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name])
+    other, _ = episode(12)
+    assert not np.array_equal(first[0]["goal"], other[0]["goal"])
+
+
+def test_bad_actions_are_refused_in_words(env):
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(3,\), expected \(9,\)"):
+        env.step(np.zeros(3))
+    with pytest.raises(ValueError, match="non-finite"):
+        env.step(np.full(9, np.nan))
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        gymnasium.make("l2r/PhotoTune-v0", max_steps=0)
