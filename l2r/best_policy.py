@@ -88,9 +88,12 @@ class BestPolicy:
             self._weights[weights.version] = weights
             evaluating = set(self._evaluating.values())
             unpinned = [version for version in self._weights if version not in evaluating]  # oldest first
-            for oldest in unpinned[:max(0, len(unpinned) - CACHED_VERSIONS)]:
-                del self._weights[oldest]
-                self._updates.pop(oldest, None)
+            evicted = unpinned[:max(0, len(unpinned) - CACHED_VERSIONS)]
+            for version in evicted:
+                del self._weights[version]
+            if evicted:  # also the beacons of older versions, whose weights may have been dropped on the way
+                self._updates = {version: updates for version, updates in self._updates.items()
+                                 if version > evicted[-1] or version in evaluating}
 
     def _on_version(self, sample: zenoh.Sample) -> None:
         beacon = watched(sample, LearnerVersion)

@@ -12,7 +12,7 @@ from l2r.best_policy import CACHED_VERSIONS, BestPolicy
 from l2r.families import score_of
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import build_policy, policy_state
-from l2r.protocol import EpisodeSummary, EvaluationRound, Keys, Weights, encode, session_config
+from l2r.protocol import EpisodeSummary, EvaluationRound, Keys, LearnerVersion, Weights, encode, session_config
 from tests.conftest import free_port, wait_for
 
 SPEC = {"obs_dim": 11, "act_dim": 3, "hidden": [8], "activation": "relu", "layer_norm": False}
@@ -31,23 +31,28 @@ class Job:
         self.sender = zenoh.open(session_config(connect=[endpoint]))
         self.best = BestPolicy(self.listener, keys, run_dir, episodes_per_round=EPISODES, action_repeat=1,
                                score=score_of("Hopper-v5"), judges=judges)
-        # Weights blocked rather than dropped, so the cache sees every version this test counts on.
-        self._weights = self.sender.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK)
+        # Weights and beacons blocked rather than dropped, so the cache sees every version this test counts on.
+        block = {"congestion_control": zenoh.CongestionControl.BLOCK}
+        self._weights = self.sender.declare_publisher(keys.weights, **block)
+        self._beacon = self.sender.declare_publisher(keys.learner_version, **block)
         self._rounds = {actor: self.sender.declare_publisher(keys.rounds(actor)) for actor in (0, 1)}
         self._episodes = {actor: self.sender.declare_publisher(keys.episodes(actor)) for actor in (0, 1)}
-        publishers = [self._weights, *self._rounds.values(), *self._episodes.values()]
+        publishers = [self._weights, self._beacon, *self._rounds.values(), *self._episodes.values()]
         # A put before the sender has learnt of the listener's subscribers is dropped.
         assert wait_for(lambda: all(p.matching_status.matching for p in publishers), 10)
         self.version = 0
         self.params = {}  # version -> its weights
 
-    def publish(self, count: int) -> None:
-        """``count`` new versions, each with weights of its own, as a learner publishing after every update."""
+    def publish(self, count: int, dropping: int = 0) -> None:
+        """``count`` new versions, each with weights of its own and a beacon, as a learner publishing
+        after every update; the weights of the first ``dropping`` lost on the way."""
         template = policy_state(build_policy(SPEC))
-        for _ in range(count):
+        for i in range(count):
             self.version += 1
             self.params[self.version] = {name: np.full_like(value, self.version) for name, value in template.items()}
-            self._weights.put(encode(Weights(self.version, self.params[self.version], SPEC)))
+            if i >= dropping:
+                self._weights.put(encode(Weights(self.version, self.params[self.version], SPEC)))
+            self._beacon.put(encode(LearnerVersion(self.version, updates=10 * self.version)))
         newest = self.version
         assert wait_for(lambda: newest in self.best._weights, 10), f"v{newest} never reached the cache"
 
@@ -89,7 +94,7 @@ def test_an_announced_round_keeps_its_weights_for_best_pt_while_the_learner_publ
     job.round_while_publishing(3, ret=50.0)
     assert wait_for(lambda: saved_version(job.best) == 3, 10), "the round's policy was never saved"
     saved = load_checkpoint(job.best.path)
-    assert saved.version == 3
+    assert (saved.version, saved.updates) == (3, 30)
     assert all(bool((value == 3).all()) for value in saved.train_state["actor"].values())
     assert job.best.best["mean_return"] == 50.0
     # Memory stays bounded: once its round has ended, the version is let go as the cache moves on.
@@ -132,3 +137,8 @@ def test_the_announcement_of_an_evaluator_that_does_not_judge_keeps_nothing(tmp_
         assert job.best._evaluating == {EVALUATOR: 2}
     finally:
         job.close()
+
+
+def test_beacons_of_versions_whose_weights_were_dropped_on_the_way_are_not_kept_for_ever(job):
+    job.publish(3 * CACHED_VERSIONS, dropping=CACHED_VERSIONS)
+    assert wait_for(lambda: len(job.best._updates) <= CACHED_VERSIONS + 1, 10), len(job.best._updates)
