@@ -7,8 +7,13 @@ the runner, the return on a standard task) than any before in the run, the polic
 version is saved as a policy checkpoint (see l2r.learner.checkpoint) that `l2r eval` reads. Its
 `evaluation` names the score and holds its mean as `mean_<score>` (`mean_distance` on the
 runner, as files from before scores were named). The weights come from the learner's weights
-messages, the very ones the evaluator loaded: the newest `CACHED_VERSIONS` are kept in memory
-until a round of theirs ends.
+messages, the very ones the evaluator loaded. The newest `CACHED_VERSIONS` are kept in memory,
+and besides them the version each evaluator said it evaluates as its round began (the
+`evaluation_round` message), until that round ends or the evaluator's next one begins: a learner
+may publish hundreds of versions a second, far more than a cache holds over a round of episodes.
+The round's announcement comes milliseconds after the evaluator took the newest weights, while
+they are still cached. An evaluator that does not announce its rounds (from before the message)
+has its policy saved only while the version is still among the newest cached.
 """
 
 from __future__ import annotations
@@ -23,11 +28,11 @@ import zenoh
 
 from l2r.families import Score
 from l2r.learner.checkpoint import CheckpointError, best_policy_path, load_checkpoint, save_policy_checkpoint
-from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Weights, watched
+from l2r.protocol import EpisodeSummary, EvaluationRound, Keys, LearnerVersion, Weights, watched
 
 log = logging.getLogger("l2r.up")
 
-CACHED_VERSIONS = 64  # how far the learner may run ahead of an evaluation round
+CACHED_VERSIONS = 64  # how far the learner may run ahead of an evaluator that does not announce its rounds
 
 
 class BestPolicy:
@@ -46,9 +51,15 @@ class BestPolicy:
         self._weights: OrderedDict[int, Weights] = OrderedDict()
         self._updates: dict[int, int] = {}  # updates at each version, from the learner's beacon
         self._rounds: dict[tuple[int, int], dict[int, float]] = {}  # (evaluator, version) -> seed -> score
+        self._evaluating: dict[int, int] = {}  # evaluator -> the version of its round under way, kept cached
         self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
                       session.declare_subscriber(keys.learner_version, self._on_version),
+                      session.declare_subscriber(keys.all_rounds, self._on_round),
                       session.declare_subscriber(keys.all_episodes, self._on_episode)]
+
+    def _is_judge(self, actor_id: int) -> bool:
+        """Whether the rounds of this evaluator choose best.pt."""
+        return self.judges is None or actor_id in self.judges
 
     def _earlier_best(self) -> dict | None:
         """The evaluation of the best.pt a resumed run left, if it was judged by this score."""
@@ -75,9 +86,14 @@ class BestPolicy:
             return
         with self._lock:
             self._weights[weights.version] = weights
-            while len(self._weights) > CACHED_VERSIONS:
-                oldest, _ = self._weights.popitem(last=False)
-                self._updates.pop(oldest, None)
+            evaluating = set(self._evaluating.values())
+            unpinned = [version for version in self._weights if version not in evaluating]  # oldest first
+            evicted = unpinned[:max(0, len(unpinned) - CACHED_VERSIONS)]
+            for version in evicted:
+                del self._weights[version]
+            if evicted:  # also the beacons of older versions, whose weights may have been dropped on the way
+                self._updates = {version: updates for version, updates in self._updates.items()
+                                 if version > evicted[-1] or version in evaluating}
 
     def _on_version(self, sample: zenoh.Sample) -> None:
         beacon = watched(sample, LearnerVersion)
@@ -86,11 +102,18 @@ class BestPolicy:
         with self._lock:
             self._updates[beacon.version] = beacon.updates
 
+    def _on_round(self, sample: zenoh.Sample) -> None:
+        round_ = watched(sample, EvaluationRound)
+        if round_ is None or not self._is_judge(round_.actor_id):
+            return
+        with self._lock:  # its previous round is over: that version's weights go as the cache moves on
+            self._evaluating[round_.actor_id] = round_.policy_version
+
     def _on_episode(self, sample: zenoh.Sample) -> None:
         ep = watched(sample, EpisodeSummary)
         if ep is None:
             return
-        if not ep.evaluation or (self.judges is not None and ep.actor_id not in self.judges):
+        if not ep.evaluation or not self._is_judge(ep.actor_id):
             return
         with self._lock:
             round_ = self._rounds.setdefault((ep.actor_id, ep.policy_version), {})
@@ -98,6 +121,8 @@ class BestPolicy:
             if len(round_) < self.episodes_per_round:
                 return
             del self._rounds[(ep.actor_id, ep.policy_version)]
+            if self._evaluating.get(ep.actor_id) == ep.policy_version:
+                del self._evaluating[ep.actor_id]  # its weights are read below or not needed
             mean = sum(round_.values()) / len(round_)
             if mean <= self.best_mean:
                 return

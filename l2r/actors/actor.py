@@ -35,8 +35,8 @@ from l2r.episodes.live import LiveFrames
 from l2r.families import RUNNER, family_of, score_of
 from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
-    EPISODE_QOS, EXPERIENCE_QOS, STATS_QOS, EpisodeSummary, Keys, ObservationSpec, ProtocolError, Rejections,
-    ReplayAck, Stats, decode, encode, shard_of,
+    EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, Keys, ObservationSpec,
+    ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
 from l2r.protocol.observations import VECTOR_FIELD
 from l2r.sim.wrappers import ActionRepeat
@@ -234,6 +234,7 @@ class Actor:
             self.resend = ResendBuffer(int(config.resend_buffer_mb * 2**20), config.resend_delay, MAX_RESEND_DELAY)
             self.resender = Resender(self, session)
         self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
+        self.rounds = session.declare_publisher(self.keys.rounds(config.actor_id), **ROUND_QOS.publisher())
         self.stats = session.declare_publisher(self.keys.stats(config.role, config.actor_id), **STATS_QOS.publisher())
         self.episode_logger = make_episode_logger(config)
         self.live = LiveFrames(session, self.keys, config.actor_id)  # frames only while a viewer watches
@@ -374,6 +375,8 @@ class Actor:
     def run_round(self, stop: threading.Event) -> None:
         """`eval_episodes` deterministic episodes with one policy version, spread over the envs."""
         version, n, scores = self.weights.version, len(self.slots), []
+        # Said before the first episode, so that l2r up keeps this version's weights to save if it scores best.
+        self.rounds.put(encode(EvaluationRound(self.config.actor_id, version)))
         score = score_of(self.config.env_id)
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]

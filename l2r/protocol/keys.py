@@ -11,6 +11,7 @@ Read top to bottom, this module is the system's data-flow graph:
     actor   --actor_ids?-->                  replay shard 0    (query at start, for --actor-id auto)
     learner --learner/version-->             everyone          (small version beacon)
     actor   --episodes/<actor>-->            launcher, viewers (episode summaries)
+    evaluator --rounds/<actor>-->            launcher          (the version a round evaluates)
     actor   --frames/<actor>/<env>-->        viewer            (only while alive/viewer/* exists)
     anyone  --stats/<role>/<instance>-->     launcher, logs
     learner --metrics/<rank>-->              launcher, logs
@@ -72,6 +73,9 @@ SAMPLE_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.INTERACTIVE_HIGH)
 PRIORITY_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH)
 # Small and rare, and each one is a result a person wants to see.
 EPISODE_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_LOW)
+# Small and rare, and it must reach the launcher while the launcher still holds the weights it
+# names, which at hundreds of versions a second is tens of milliseconds: sent at once, as weights are.
+ROUND_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_HIGH, express=True)
 # Version beacons, stats and metrics are periodic: the next one replaces a lost one.
 VERSION_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_LOW, express=True)
 STATS_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW, express=True)
@@ -147,6 +151,14 @@ class Keys:
     @property
     def all_episodes(self) -> str:
         return f"{self.root}/episodes/*"
+
+    # -- evaluation rounds: evaluator -> launcher, as each round starts (ROUND_QOS) ----------
+    def rounds(self, actor_id: int) -> str:
+        return f"{self.root}/rounds/{actor_id}"
+
+    @property
+    def all_rounds(self) -> str:
+        return f"{self.root}/rounds/*"
 
     # -- live frames for a viewer (FRAMES_QOS), sent only while a viewer token exists ------
     def frames(self, actor_id: int, env_id: int) -> str:

@@ -37,6 +37,7 @@ INTEGER_LIMITS: dict[str, dict[str, tuple[int, int]]] = {
     "priority_update": {},
     "episode": {"actor_id": ID, "env_id": ID, "length": COUNT, "policy_version": VERSION, "difficulty": ID,
                 "seed": COUNT},
+    "evaluation_round": {"actor_id": ID, "policy_version": VERSION},
     "stats": {},
     "learner_version": {"version": VERSION, "updates": COUNT},
     "frame": {"actor_id": ID, "env_id": ID, "episode": COUNT, "step": COUNT},

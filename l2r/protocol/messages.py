@@ -372,6 +372,18 @@ class EpisodeSummary(Message):
 
 
 @dataclass
+class EvaluationRound(Message):
+    """An evaluator starting a round of deterministic episodes of one policy version. It comes
+    before the round's episodes, so that whoever keeps the best policy (`l2r up`) holds
+    on to that version's weights, however many versions the learner publishes meanwhile."""
+
+    KIND: ClassVar[str] = "evaluation_round"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "int", "policy_version": "int"}
+    actor_id: int
+    policy_version: int
+
+
+@dataclass
 class Stats(Message):
     """Free-form numbers a daemon reports about itself."""
 

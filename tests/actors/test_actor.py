@@ -13,7 +13,9 @@ import pytest
 import zenoh
 
 from l2r.policy import build_policy, policy_state, uniform_log_prob
-from l2r.protocol import EpisodeSummary, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config
+from l2r.protocol import (
+    EpisodeSummary, EvaluationRound, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config,
+)
 from tests.conftest import ROOT, free_port, wait_for
 
 STANDIN = "tests.actors.standin:StandIn-v0"
@@ -29,6 +31,7 @@ class Peer:
         self.session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{self.port}"]))
         self.chunks: list[ExperienceChunk] = []
         self.episodes: list[EpisodeSummary] = []
+        self.rounds: list[EvaluationRound] = []
         self.stats: list[Stats] = []
         self.latest = Weights(3, policy_state(build_policy(SPEC)), SPEC)
         self.token = None
@@ -36,6 +39,7 @@ class Peer:
         self._subs = [
             s.declare_subscriber(self.keys.experience_of_shard(0), lambda x: self.chunks.append(decode(x.payload))),
             s.declare_subscriber(self.keys.all_episodes, lambda x: self.episodes.append(decode(x.payload))),
+            s.declare_subscriber(self.keys.all_rounds, lambda x: self.rounds.append(decode(x.payload))),
             s.declare_subscriber(self.keys.all_stats, lambda x: self.stats.append(decode(x.payload))),
             s.declare_queryable(self.keys.weights_query, lambda q: q.reply(self.keys.weights_query, encode(self.latest))),
         ]
@@ -164,7 +168,7 @@ def test_an_environment_whose_observations_l2r_cannot_take_stops_the_actor_at_st
                                             "is a Discrete space; l2r takes a Box or a Dict of Box spaces"), out
 
 
-def test_evaluation_role_repeats_its_episodes_exactly_under_the_same_weights_and_sends_no_experience(peer):
+def test_evaluation_role_announces_and_repeats_its_rounds_exactly_under_the_same_weights_and_sends_no_experience(peer):
     peer.replay_up(True)
     proc = peer.actor("--evaluate", "--actor-id", "9", "--eval-episodes", "4", "--seed", "100", "--eval-interval", "0")
 
@@ -183,6 +187,7 @@ def test_evaluation_role_repeats_its_episodes_exactly_under_the_same_weights_and
         stop(proc)
     assert not peer.chunks
     assert all(e.evaluation and e.actor_id == 9 for e in peer.episodes)
+    assert [(r.actor_id, r.policy_version) for r in peer.rounds] == [(9, 3), (9, 8), (9, 9)]
     assert sorted(round_of(3)) == [100, 101, 102, 103]
     assert round_of(8) == round_of(3)
     assert all(round_of(9)[seed] != round_of(3)[seed] for seed in round_of(3))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from l2r.protocol import (
-    ActorId, ActorIdRequest, EpisodeSummary, ExperienceChunk, Frame, LearnerVersion, NotReady, PriorityUpdate,
-    ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
+    ActorId, ActorIdRequest, EpisodeSummary, EvaluationRound, ExperienceChunk, Frame, LearnerVersion, NotReady,
+    PriorityUpdate, ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
 )
 
 
@@ -62,6 +62,7 @@ def every_message() -> list:
         PriorityUpdate(np.arange(4, dtype=np.int64), np.arange(4, dtype=np.int64), np.ones(4, np.float32)),
         ReplayAck(0, np.array([3, 5]), np.array([17, 2**62]), np.array([40, 9]), np.array([2, 0]), np.array([7, 31])),
         EpisodeSummary(1, 2, 12.5, 3.25, 300, 7, 1, 42, evaluation=True, time=1.5),
+        EvaluationRound(1, 7),
         Stats("replay", "0", 123.0, {"size": 10, "inserts_per_s": 2.5}),
         LearnerVersion(11, 2200, 5.0),
         Frame(1, 0, 3, 17, {"xpos": rng.random((12, 3))}, {"reward": 0.5}),
