@@ -1,14 +1,17 @@
 """A camera task's episodes on record: the frames its policy saw, logged by the actor's own
-logger and evaluation loop on a real camera task, and read back; the runner's files stay as
-they were."""
+logger and evaluation loop on a real camera task, read back, and drawn by `l2r view`; the
+runner's files stay as they were."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
+import rerun as rr
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -19,6 +22,7 @@ from l2r.episodes.read import read_episode
 from l2r.policy import build_policy
 from l2r.sim.env import RunEnv
 from tests.actors.camera import CAMERA, EPISODE_STEPS, IMAGE_SIZE, RENDERER
+from tests.conftest import ROOT
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 pytestmark = pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
@@ -97,6 +101,35 @@ def test_an_interrupted_camera_file_reads_the_frames_it_has(camera_episode, tmp_
     n = len(episode.images["pixels"])
     assert not episode.complete and 0 < n <= len(episode) < EPISODE_STEPS
     np.testing.assert_array_equal(episode.images["pixels"], rendered[:n])
+
+
+@pytest.mark.slow
+def test_l2r_view_saves_a_camera_episode_with_its_frames(camera_episode, tmp_path):
+    path, rendered = camera_episode
+    out = tmp_path / "camera.rrd"
+    result = subprocess.run([sys.executable, "-m", "l2r.cli", "view", str(path), "--save", str(out)],
+                            capture_output=True, text=True, timeout=60, cwd=ROOT)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    reader = rr.chunk.RrdReader(out)
+    chunks = [c for c in reader.stream().to_chunks() if not c.is_static]
+    assert not any(c.entity_path.startswith("/world") for c in chunks)  # no body to draw
+    rows = []
+    for chunk in chunks:
+        if chunk.entity_path == "/images/pixels":
+            batch = chunk.to_record_batch()
+            rows += zip(batch.column("step").to_pylist(), batch.column("Image:buffer").to_pylist(),
+                        batch.column("Image:format").to_pylist())  # fmt: skip
+    rows.sort(key=lambda row: row[0])
+    assert [step for step, _, _ in rows] == list(range(EPISODE_STEPS))  # one image a step, on the step timeline
+    frames = np.array([np.frombuffer(bytes(buffer[0]), np.uint8) for _, buffer, _ in rows])
+    np.testing.assert_array_equal(frames.reshape(-1, IMAGE_SIZE, IMAGE_SIZE, 3), rendered.transpose(0, 2, 3, 1))
+    assert {(f[0]["width"], f[0]["height"]) for _, _, f in rows} == {(IMAGE_SIZE, IMAGE_SIZE)}
+    rewards = [v for c in chunks if c.entity_path == "/plots/reward" for v in c.to_record_batch().column("Scalars:scalars").to_pylist()]
+    assert len(rewards) == EPISODE_STEPS
+    views = [c.to_record_batch() for c in reader.store(store=reader.blueprints()[0]).stream().to_chunks()]
+    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin") for row in v.column(n).to_pylist()
+               for o in row or ()}  # fmt: skip
+    assert "/images/pixels" in origins and "/world" not in origins  # the frames in place of the runner's 3D view
 
 
 def test_a_runner_episode_logged_from_the_actor_s_fields_is_the_vector_one(tmp_path):
