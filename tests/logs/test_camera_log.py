@@ -132,6 +132,13 @@ def test_l2r_view_saves_a_camera_episode_with_its_frames(camera_episode, tmp_pat
     assert "/images/pixels" in origins and "/world" not in origins  # the frames in place of the runner's 3D view
 
 
+def test_rerun_opens_a_camera_episode_file_directly_with_its_frames(camera_episode):
+    path, rendered = camera_episode
+    chunks = [c for c in rr.chunk.McapReader(path).stream().to_chunks() if c.entity_path == "/pixels" and not c.is_static]
+    blobs = [b for c in chunks for b in c.to_record_batch().column("EncodedImage:blob").to_pylist()]
+    assert len(blobs) == EPISODE_STEPS and all(bytes(b[0]).startswith(b"\x89PNG") for b in blobs)
+
+
 def test_a_runner_episode_logged_from_the_actor_s_fields_is_the_vector_one(tmp_path):
     """The actor hands the logger the observation's fields; for the runner that is the one
     vector field, and the file has the runner's channels and the same Step bytes as before."""
