@@ -71,7 +71,8 @@ def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
         ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(*scenes, rrb.TextLogView(name="episodes", origin="/episodes"), row_shares=[5] * len(scenes) + [1]),
+            rrb.Vertical(*scenes, rrb.TextLogView(name="episodes", origin="/episodes"),
+                         row_shares=[5] * len(scenes) + [1]),
             rrb.Vertical(*plots),
             column_shares=[3, 2],
         ),
@@ -127,8 +128,9 @@ def log_episode(
     for name, frames in episode.images.items():  # frame k is step k's; a cut file may end its frames sooner
         n, (height, width) = len(frames), frames.shape[2:]
         image_format = rr.components.ImageFormat(width=width, height=height, color_model="RGB", channel_datatype="U8")
-        rec.send_columns(f"{IMAGES}/{name}", [rr.TimeColumn("time", duration=times[:n]), rr.TimeColumn("step", sequence=steps[:n])],
-                         rr.Image.columns(buffer=frames.transpose(0, 2, 3, 1).reshape(n, -1), format=[image_format] * n))  # fmt: skip
+        frame_index = [rr.TimeColumn("time", duration=times[:n]), rr.TimeColumn("step", sequence=steps[:n])]
+        rec.send_columns(f"{IMAGES}/{name}", frame_index, rr.Image.columns(
+            buffer=frames.transpose(0, 2, 3, 1).reshape(n, -1), format=[image_format] * n))  # fmt: skip
     if body is None:
         return
     obstacles = _obstacles(episode.episode.get("obstacles", ""))

@@ -34,8 +34,8 @@ first (never the newest, nor the current best). The format is in ``l2r.episodes.
 and docs/episodes.md.
 
 Cost: ``log_step`` copies the step into a preallocated block (a few microseconds); a
-background thread encodes blocks (frames as PNG) and writes zstd chunks. The queue between them is bounded:
-when the disk falls behind, the episode being logged is dropped and counted
+background thread encodes blocks (frames as PNG) and writes zstd chunks. The queue between
+them is bounded: when the disk falls behind, the episode being logged is dropped and counted
 (``stats["episodes_skipped"]``) instead of blocking the environment. ``stats`` also counts
 files written and removed, failures, and the writer thread's CPU seconds (``writer_cpu_s``).
 """
