@@ -157,8 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="of the --actors, how many step l2r/RunOpenSim-v0 (OpenSim 4.6, about 100 steps/s) instead "
                         "of the actors' environment: experience from the simulator that judges, mixed in replay")
     a.add_argument("--log-every", type=int, default=10,
-                   help="actors log every Nth training episode as MCAP under episodes/ (0: none); "
-                        "evaluation episodes are always logged")
+                   help="actors log every Nth training episode as MCAP under episodes/ (0: none; the runner and "
+                        "camera tasks only); evaluation episodes are always logged")
     a.add_argument("--actor-nice", type=int, default=10,
                    help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
                         "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
@@ -460,8 +460,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
               "--seed", str(args.seed),
               *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"])]  # a runner's speed limit
-    # MCAP episode logs record the runner's body: none for another task
-    logs = [] if args.no_episode_logs or family_of(args.env_id) != RUNNER else [
+    # MCAP episode logs record the runner's body or a camera task's frames: none for another task
+    logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS) else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
     for i in range(args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.

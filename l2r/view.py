@@ -7,7 +7,8 @@ Episode files (from ``l2r.actors.episode_log``) play as one recording, one episo
 other on the ``time`` timeline: the body drawn from the model's own shapes moving over the
 ground and obstacles, each muscle a line along its path coloured by activation (blue at
 rest, red fully active), and time series of reward, distance, pelvis height, activations and
-forces. Interrupted ``.mcap.part`` files play up to where they stop.
+forces. A camera task's episodes show the frames the policy saw, one image view per camera
+field, beside their reward. Interrupted ``.mcap.part`` files play up to where they stop.
 
 ``--live`` declares a viewer liveliness token, which tells actors to publish low-rate frames
 of the episodes they are running, and draws those frames as they come.
@@ -44,29 +45,35 @@ GAP_SECONDS = 0.5  # pause on the timeline between two episodes
 GROUND_ROTATION = rr.Quaternion(xyzw=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # +90 deg about x
 CAMERA = f"{GROUND}/camera"  # follows the pelvis along the track; the 3D view looks through it
 CAMERA_HEIGHT, CAMERA_DISTANCE = 1.0, 4.0  # m above the ground, and beside the track
+IMAGES = "images"  # a camera task's frames: images/<observation field>
 
 
 # ------------------------------------------------------------------------------ recordings
 
 
-def blueprint(follow: bool = True) -> rrb.Blueprint:
+def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
     """The layout: the runner in 3D (seen from its side through CAMERA, which moves with it, when
-    ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots."""
-    eye = rrb.EyeControls3D(tracking_entity=CAMERA) if follow else None
+    ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots;
+    or with ``images`` (a camera task's fields) its frames, the episodes and the reward."""
+    reward = rrb.TimeSeriesView(name="reward", origin="/plots/reward")
+    if images:
+        scenes = [rrb.Spatial2DView(name=name, origin=f"/{IMAGES}/{name}") for name in images]
+        plots = [reward]
+    else:
+        eye = rrb.EyeControls3D(tracking_entity=CAMERA) if follow else None
+        scenes = [rrb.Spatial3DView(name="runner", origin="/world", eye_controls=eye)]
+        plots = [
+            reward,
+            rrb.TimeSeriesView(name="distance and pelvis height (m)", contents=["/plots/distance/**", "/plots/pelvis_height/**"]),
+            rrb.TimeSeriesView(name="muscle activation", origin="/plots/muscle_activation"),
+            rrb.TimeSeriesView(name="muscle force (N)", origin="/plots/muscle_force"),
+            rrb.TimeSeriesView(name="ligament and contact forces", contents=["/plots/ligament_force/**", "/plots/contact_force/**"]),
+        ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial3DView(name="runner", origin="/world", eye_controls=eye),
-                rrb.TextLogView(name="episodes", origin="/episodes"),
-                row_shares=[5, 1],
-            ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(name="reward", origin="/plots/reward"),
-                rrb.TimeSeriesView(name="distance and pelvis height (m)", contents=["/plots/distance/**", "/plots/pelvis_height/**"]),
-                rrb.TimeSeriesView(name="muscle activation", origin="/plots/muscle_activation"),
-                rrb.TimeSeriesView(name="muscle force (N)", origin="/plots/muscle_force"),
-                rrb.TimeSeriesView(name="ligament and contact forces", contents=["/plots/ligament_force/**", "/plots/contact_force/**"]),
-            ),
+            rrb.Vertical(*scenes, rrb.TextLogView(name="episodes", origin="/episodes"),
+                         row_shares=[5] * len(scenes) + [1]),
+            rrb.Vertical(*plots),
             column_shares=[3, 2],
         ),
         rrb.TimePanel(state="expanded"),
@@ -79,9 +86,8 @@ def new_recording(recording_id: str | None = None) -> rr.RecordingStream:
 
 
 def log_episodes(rec: rr.RecordingStream, episodes: Sequence[Episode], body: BodyModel | None = None) -> None:
-    """Log episodes one after the other, drawn with ``body`` (default: the first file's)."""
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    rec.log(GROUND, rr.Transform3D(quaternion=GROUND_ROTATION), static=True)
+    """Log episodes one after the other, drawn with ``body`` (default: the first file's; none for a
+    camera task's)."""
     body = body or next((e.body for e in episodes if e.body is not None), None)
     if body is not None:
         log_body(rec, body)
@@ -97,6 +103,8 @@ def log_episodes(rec: rr.RecordingStream, episodes: Sequence[Episode], body: Bod
 
 def log_body(rec: rr.RecordingStream, body: BodyModel) -> None:
     """Static shapes under each body's frame, the floor, and the series' names."""
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    rec.log(GROUND, rr.Transform3D(quaternion=GROUND_ROTATION), static=True)
     for name in body.bodies:
         _log_shapes(rec, f"{GROUND}/bodies/{name}/shape", [s for s in body.shapes if s.body == name])
     _log_shapes(rec, f"{GROUND}/floor", body.ground_shapes())
@@ -115,6 +123,16 @@ def log_episode(
     rec.set_time("step", sequence=int(steps[0]))
     describe = ", ".join(f"{k}={v}" for k, v in {**episode.episode, **episode.result}.items())
     rec.log("episodes", rr.TextLog(f"episode {number}: {episode.path.name} ({describe})"))
+    s = episode.steps
+    rec.send_columns("plots/reward", index, rr.Scalars.columns(scalars=s["reward"]))
+    for name, frames in episode.images.items():  # frame k is step k's; a cut file may end its frames sooner
+        n, (height, width) = len(frames), frames.shape[2:]
+        image_format = rr.components.ImageFormat(width=width, height=height, color_model="RGB", channel_datatype="U8")
+        frame_index = [rr.TimeColumn("time", duration=times[:n]), rr.TimeColumn("step", sequence=steps[:n])]
+        rec.send_columns(f"{IMAGES}/{name}", frame_index, rr.Image.columns(
+            buffer=frames.transpose(0, 2, 3, 1).reshape(n, -1), format=[image_format] * n))  # fmt: skip
+    if body is None:
+        return
     obstacles = _obstacles(episode.episode.get("obstacles", ""))
     rec.log(f"{GROUND}/obstacles", rr.Ellipsoids3D(
         centers=[(x, y, 0.0) for x, y, _ in obstacles], half_sizes=[(r, r, r) for _, _, r in obstacles],
@@ -122,8 +140,7 @@ def log_episode(
     for series, names in (("ligament_force", "ligaments"), ("contact_force", "contacts")):
         if episode.names.get(names):  # one plot line per ligament and foot sphere, by the model's name
             rec.log(f"plots/{series}", rr.SeriesLines(names=list(episode.names[names])), static=True)
-    s = episode.steps
-    for name in ("reward", "distance", "pelvis_height"):
+    for name in ("distance", "pelvis_height"):
         rec.send_columns(f"plots/{name}", index, rr.Scalars.columns(scalars=s[name]))
     for name in ("muscle_activation", "muscle_force", "ligament_force"):
         if s[name].size:
@@ -132,7 +149,7 @@ def log_episode(
         per_sphere = np.linalg.norm(s["contact_force"].reshape(len(times), -1, 3), axis=2)
         rec.send_columns("plots/contact_force", index, rr.Scalars.columns(scalars=per_sphere))
 
-    if body is None or not episode.pos.size:
+    if not episode.pos.size:
         return
     bodies = episode.names.get("bodies") or body.bodies
     for i, name in enumerate(bodies):
@@ -189,15 +206,21 @@ def _log_shapes(rec: rr.RecordingStream, path: str, shapes: list[Shape]) -> None
             fill_mode=rr.components.FillMode.Solid), static=True)  # fmt: skip
 
 
+def image_fields(episodes: Sequence[Episode]) -> list[str]:
+    """The camera fields of these episodes, in the order they first come."""
+    return list(dict.fromkeys(name for episode in episodes for name in episode.images))
+
+
 def _obstacles(text: str) -> list[tuple[float, float, float]]:
     return [tuple(float(v) for v in item.split(",")) for item in text.split(";") if item]
 
 
 def write_recording(mcap_paths: Sequence[str | Path], rrd_path: str | Path) -> Path:
     """Convert episode files into one Rerun recording file (episodes in the given order)."""
+    episodes = [read_episode(p) for p in mcap_paths]
     rec = new_recording()
-    rec.save(str(rrd_path), default_blueprint=blueprint())
-    log_episodes(rec, [read_episode(p) for p in mcap_paths])
+    rec.save(str(rrd_path), default_blueprint=blueprint(images=image_fields(episodes)))
+    log_episodes(rec, episodes)
     rec.flush()
     rec.disconnect()
     return Path(rrd_path)
@@ -345,7 +368,7 @@ def view(s: ViewSettings) -> int:
     if files and not episodes:
         raise StartupFailure("none of the files is a readable episode")
 
-    layout = blueprint(follow=not s.live)
+    layout = blueprint(follow=not s.live, images=image_fields(episodes))
     rec = new_recording()
     if s.save:
         rec.save(str(s.save), default_blueprint=layout)

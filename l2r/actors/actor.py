@@ -38,7 +38,6 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, Keys, ObservationSpec,
     ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.protocol.observations import VECTOR_FIELD
 from l2r.sim.wrappers import ActionRepeat
 
 log = logging.getLogger("l2r.actor")
@@ -145,14 +144,6 @@ def fields_of(spec: ObservationSpec, observation, env_id: str) -> dict[str, np.n
         return spec.fields_of(observation)
     except ProtocolError as e:
         raise ObservationError(f"{env_id} returned an observation outside its own observation space: {e}") from None
-
-
-NO_VECTOR = np.zeros(0, np.float32)
-
-
-def logged(fields: dict[str, np.ndarray]) -> np.ndarray:
-    """What an episode log keeps of an observation: its vector (none of a camera's frames)."""
-    return fields.get(VECTOR_FIELD, NO_VECTOR)
 
 
 def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
@@ -300,7 +291,7 @@ class Actor:
             slot.length += int(info.get("inner_steps", 1))
             self.frames += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
-                slot.recorder.log_step(logged(obs), action, reward, info)
+                slot.recorder.log_step(obs, action, reward, info)
             self.live.publish(i, slot.episode, slot.length, reward, info)
             start_obs = None
             if terminated or truncated:
@@ -530,7 +521,7 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop:
             obs[i] = o
             frames.push(i, o)
             if recorders[i] is not None:
-                recorders[i].log_step(logged(o), action, reward, info)
+                recorders[i].log_step(o, action, reward, info)
             if terminated or truncated:
                 results[i] = (returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i])
                 if recorders[i] is not None:
@@ -551,7 +542,8 @@ def make_episode_logger(config: ActorConfig):
     options = dict(config.episode_log)
     policy = LogPolicy(every=options.pop("every", 10), evaluation=True)
     return EpisodeLogger(run=config.run, actor_id=config.actor_id, policy=policy,
-                         step_seconds=0.01 * config.action_repeat, **options)
+                         step_seconds=0.01 * config.action_repeat, with_body=family_of(config.env_id) == RUNNER,
+                         **options)
 
 
 def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event | None = None) -> int:

@@ -9,11 +9,15 @@ Usage (one logger per actor process, one recorder per running episode)::
                                     "evaluation": False, "obstacles": env.unwrapped.obstacles})
     ...
     obs, reward, terminated, truncated, info = env.step(action)
-    episode.log_step(obs, action, reward, info)      # the env's own info dict
+    episode.log_step(obs, action, reward, info)      # obs: the vector, or the observation's fields
     ...
     episode.end({"return": ret, "distance": info["distance"], "length": n,
                  "terminated": terminated, "truncated": truncated})
     logger.close()                                   # on shutdown: flushes what is queued
+
+Tasks without the runner's body (``with_body=False``: camera tasks) log the Step numbers they
+have (observation vector, action, reward, time) and each uint8[3, H, W] field of the
+observation as PNG frames, one channel per field.
 
 ``begin_episode`` always returns a recorder (a no-op one for episodes not logged), so the
 actor never branches. Recorders of different environments are independent.
@@ -30,8 +34,8 @@ first (never the newest, nor the current best). The format is in ``l2r.episodes.
 and docs/episodes.md.
 
 Cost: ``log_step`` copies the step into a preallocated block (a few microseconds); a
-background thread encodes blocks and writes zstd chunks. The queue between them is bounded:
-when the disk falls behind, the episode being logged is dropped and counted
+background thread encodes blocks (frames as PNG) and writes zstd chunks. The queue between
+them is bounded: when the disk falls behind, the episode being logged is dropped and counted
 (``stats["episodes_skipped"]``) instead of blocking the environment. ``stats`` also counts
 files written and removed, failures, and the writer thread's CPU seconds (``writer_cpu_s``).
 """
@@ -43,6 +47,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +59,7 @@ from l2r.episodes import schema
 from l2r.episodes.body import BodyModel
 from l2r.episodes.encode import StepLayout, TransformEncoder
 from l2r.episodes.write import CHUNK_BYTES, EpisodeFile, text
+from l2r.protocol.observations import VECTOR_FIELD
 from l2r.sim.env import FOOT_SPHERES
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.model import MODEL_PATH, load_model
@@ -88,6 +94,7 @@ class EpisodeLogger:
         block_steps: int = BLOCK_STEPS,
         chunk_bytes: int = CHUNK_BYTES,
         body: BodyModel | None = None,
+        with_body: bool = True,
     ):
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -95,14 +102,15 @@ class EpisodeLogger:
         self.disk_budget_bytes = int(disk_budget_bytes)
         self.step_seconds = float(step_seconds)
         self.block_steps, self.chunk_bytes = int(block_steps), int(chunk_bytes)
-        self.body = body or BodyModel.from_model(load_model())
-        self.model_version = _model_version(MODEL_PATH)
         self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0,
                       "writer_cpu_s": 0.0}
         self._layouts: dict[tuple, StepLayout] = {}
-        self._transforms = TransformEncoder(self.body.bodies)
-        self.pelvis = self.body.bodies.index("pelvis") + 1  # row of the pelvis in info["body_pos"]
-        self.body_json = self.body.to_json()
+        self.body = (body or BodyModel.from_model(load_model())) if with_body else None
+        if self.body is not None:
+            self.model_version = _model_version(MODEL_PATH)
+            self._transforms = TransformEncoder(self.body.bodies)
+            self.pelvis = self.body.bodies.index("pelvis") + 1  # row of the pelvis in info["body_pos"]
+            self.body_json = self.body.to_json()
         self._training_episodes = 0
         self._episodes = 0
         self._best_return = -np.inf
@@ -146,7 +154,8 @@ class EpisodeLogger:
     def layout(self, sizes: dict[str, int]) -> StepLayout:
         key = tuple(sorted(sizes.items()))
         if key not in self._layouts:
-            self._layouts[key] = StepLayout(sizes)
+            kept = [name for name, _ in schema.STEP_SCALARS if self.body is not None or name not in schema.BODY_SCALARS]
+            self._layouts[key] = StepLayout(sizes, kept)
         return self._layouts[key]
 
     def _submit(self, item: tuple) -> bool:
@@ -266,20 +275,27 @@ class Recorder:
                 log.error("episode log %s: step %d cannot be logged (%r); episode not logged", self.path.name, self._step, e)
 
     def _copy_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
+        vector, images = _split(obs)
         if self._block is None:
-            self._new_block(obs, action, info)
+            self._new_block(vector, action, info, images)
         i, c = self._row, self._columns
-        c["observation"][i] = obs
+        if "observation" in c:
+            c["observation"][i] = vector
         c["action"][i] = action
         c["reward"][i] = reward
         c["time"][i] = (self._step + 1) * self.logger.step_seconds
-        c["distance"][i] = info["distance"]
         for name in self._info_vectors:
             c[name][i] = info[name].reshape(-1)
-        pos = info["body_pos"]
-        self._pos[i] = pos[1:]
-        self._quat[i] = info["body_quat"][1:]
-        c["pelvis_height"][i] = pos[self.logger.pelvis, 1]
+        if self._pos is not None:
+            c["distance"][i] = info["distance"]
+            pos = info["body_pos"]
+            self._pos[i] = pos[1:]
+            self._quat[i] = info["body_quat"][1:]
+            c["pelvis_height"][i] = pos[self.logger.pelvis, 1]
+        if images.keys() != self._images.keys():
+            raise KeyError(f"image fields {sorted(images)}, the episode began with {sorted(self._images)}")
+        for name, frames in self._images.items():
+            frames[i] = images[name]
         self._step += 1
         self._row += 1
         if self._row == self.logger.block_steps:
@@ -306,21 +322,24 @@ class Recorder:
 
     # ------------------------------------------------------------------------------ blocks
 
-    def _new_block(self, obs: Any, action: Any, info: dict[str, Any]) -> None:
+    def _new_block(self, vector: Any, action: Any, info: dict[str, Any], images: dict[str, np.ndarray]) -> None:
         logger = self.logger
-        sizes = {"observation": np.size(obs), "action": np.size(action)}
+        sizes = {"observation": np.size(vector), "action": np.size(action)}
         self._info_vectors = [name for name in INFO_VECTORS if name in info]
         sizes.update({name: np.size(info[name]) for name in self._info_vectors})
         self.layout = logger.layout(sizes)
         rows = logger.block_steps
         self._block = self.layout.new_block(rows)
         self._columns = {name: self._block[name] for name in self._block.dtype.names if not name.startswith("_")}
-        n = len(logger.body.bodies)
-        self._pos = np.empty((rows, n, 3))
-        self._quat = np.empty((rows, n, 4))
+        self._images = {name: np.empty((rows, *frame.shape), np.uint8) for name, frame in images.items()}
+        self._pos = self._quat = None
+        if logger.body is not None:
+            n = len(logger.body.bodies)
+            self._pos = np.empty((rows, n, 3))
+            self._quat = np.empty((rows, n, 4))
 
     def _flush_block(self) -> None:
-        item = ("block", self, self._block, self._pos, self._quat, self._step - self._row, self._row)
+        item = ("block", self, self._block, self._pos, self._quat, self._step - self._row, self._row, self._images)
         if self._streaming:
             self._send(item)
         else:
@@ -329,8 +348,10 @@ class Recorder:
         if not self.dropped:
             self._block = self.layout.new_block(self.logger.block_steps)
             self._columns = {name: self._block[name] for name in self._columns}
-            self._pos = np.empty_like(self._pos)
-            self._quat = np.empty_like(self._quat)
+            self._images = {name: np.empty_like(frames) for name, frames in self._images.items()}
+            if self._pos is not None:
+                self._pos = np.empty_like(self._pos)
+                self._quat = np.empty_like(self._quat)
 
     def _send(self, item: tuple) -> None:
         if not self.dropped and not self.logger._submit(item):
@@ -346,15 +367,25 @@ def _open_file(logger: EpisodeLogger, recorder: Recorder) -> EpisodeFile:
     meta = recorder.meta
     obstacles = [tuple(float(v) for v in o) for o in meta.get("obstacles", ())]
     metadata = {k: text(v) for k, v in meta.items() if k != "obstacles"}
-    metadata.update(
-        run=logger.run, actor=str(logger.actor_id), kind=recorder.kind, format=schema.FORMAT_VERSION,
-        env_version=l2r.__version__, model=logger.model_version, step_seconds=text(logger.step_seconds),
-        obstacles=";".join(",".join(text(v) for v in o) for o in obstacles),
-    )  # fmt: skip
+    metadata.update(run=logger.run, actor=str(logger.actor_id), kind=recorder.kind, format=schema.FORMAT_VERSION,
+                    env_version=l2r.__version__)
     body = logger.body
+    if body is None:
+        metadata.update(step_seconds=text(logger.step_seconds))
+        return EpisodeFile(recorder.path, None, metadata, {}, recorder.start_ns, chunk_bytes=logger.chunk_bytes)
+    metadata.update(model=logger.model_version, step_seconds=text(logger.step_seconds),
+                    obstacles=";".join(",".join(text(v) for v in o) for o in obstacles))
     names = {"muscles": body.muscles, "ligaments": LIGAMENTS, "contacts": FOOT_SPHERES, "bodies": body.bodies}
     return EpisodeFile(recorder.path, body, metadata, names, recorder.start_ns, obstacles,
                        logger.chunk_bytes, logger._transforms, logger.body_json)  # fmt: skip
+
+
+def _split(obs: Any) -> tuple[Any, dict[str, np.ndarray]]:
+    """The vector an observation logs in Step, and its camera frames (uint8[3, H, W] fields) by name."""
+    if not isinstance(obs, Mapping):
+        return obs, {}
+    images = {name: a for name, a in obs.items() if a.dtype == np.uint8 and a.ndim == 3 and a.shape[0] == 3}
+    return obs.get(VECTOR_FIELD, ()), images
 
 
 def _model_version(path: Path) -> str:

@@ -10,6 +10,8 @@ costs about 50 µs a step for the frame transforms alone):
   message.
 - ``TransformEncoder``: ``foxglove.FrameTransforms`` for every body is a byte template with the
   frame names in place; the timestamps and the poses are scattered into it.
+- ``compressed_image``: a camera frame as ``foxglove.CompressedImage`` holding a PNG (Pillow's
+  encoder at its fastest level: the writer thread shares the actor's CPU with the renderer).
 
 Both produce standard protobuf that the registered schemas decode (the tests check this
 against the protobuf library).
@@ -17,12 +19,17 @@ against the protobuf library).
 
 from __future__ import annotations
 
+import io
 import struct
 from collections.abc import Iterator, Sequence
 
 import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from PIL import Image
 
-from l2r.episodes.schema import GROUND_FRAME, STEP_FIELD_NUMBER, STEP_SCALARS, STEP_VECTORS, WORLD_FRAME
+from l2r.episodes.schema import (
+    GROUND_FRAME, IMAGE_FORMAT, STEP_FIELD_NUMBER, STEP_SCALARS, STEP_VECTORS, WORLD_FRAME,
+)
 
 _FIXED64, _LEN, _VARINT = 1, 2, 0
 
@@ -62,14 +69,17 @@ def timestamp(ns: int) -> bytes:
 class StepLayout:
     """Blocks of ``l2r.episodes.Step`` rows as numpy structured arrays.
 
-    ``sizes`` gives the length of each vector field (missing or 0: the field is left out).
-    Fill a row through ``block[name][i] = value``; ``messages`` turns rows into protobuf.
+    ``sizes`` gives the length of each vector field (missing or 0: the field is left out);
+    ``scalars`` the scalar fields to keep (all by default). Fill a row through
+    ``block[name][i] = value``; ``messages`` turns rows into protobuf.
     """
 
-    def __init__(self, sizes: dict[str, int]):
+    def __init__(self, sizes: dict[str, int], scalars: Sequence[str] = tuple(name for name, _ in STEP_SCALARS)):
         fields: list[tuple] = []
         self._headers: list[tuple[str, bytes]] = []
         for name, number in STEP_SCALARS:
+            if name not in scalars:
+                continue
             self._headers.append((f"_{name}", _tag(number, _FIXED64)))
             fields += [(f"_{name}", f"V{len(self._headers[-1][1])}"), (name, "<f8")]
         for name, number in STEP_VECTORS:
@@ -91,6 +101,23 @@ class StepLayout:
         tag = _tag(STEP_FIELD_NUMBER, _VARINT)
         for i in range(count):
             yield tag + varint(first_step + i) + raw[i * size : (i + 1) * size]
+
+
+PNG_LEVEL = 1  # zlib's fastest: 84 x 84 frames in half the time of the default 6, 7 % larger
+
+
+def png(frame: np.ndarray) -> bytes:
+    """A uint8 (3, H, W) frame, channels first, as PNG."""
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(frame.transpose(1, 2, 0))).save(out, "PNG", compress_level=PNG_LEVEL)
+    return out.getvalue()
+
+
+def compressed_image(time_ns: int, field: str, frame: np.ndarray) -> bytes:
+    """``foxglove.CompressedImage`` of one frame: PNG data, the field's name as its frame id."""
+    message = CompressedImage(frame_id=field, data=png(frame), format=IMAGE_FORMAT)
+    message.timestamp.FromNanoseconds(int(time_ns))
+    return message.SerializeToString()
 
 
 class TransformEncoder:

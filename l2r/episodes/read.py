@@ -2,11 +2,12 @@
 
 The reader walks the file's records front to back and decodes every message with the schema
 registered in the file, so it reads complete files and interrupted ones (a ``.part`` left by a
-crash: everything up to the last whole chunk) alike.
+crash: everything up to the last whole chunk) alike. Camera frames come back decoded from PNG.
 """
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
+from PIL import Image
 
 from l2r.episodes import schema
 from l2r.episodes.body import BodyModel
@@ -31,6 +33,8 @@ class Episode:
     log_time: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))  # (steps, bodies, 3)
     quat: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 4)))  # (steps, bodies, 4) wxyz
+    images: dict[str, np.ndarray] = field(default_factory=dict)  # uint8 (frames, 3, H, W) by observation field:
+    # frame k is step k's; an interrupted file may hold fewer frames than steps
     complete: bool = False  # the file ended with its footer
 
     def __len__(self) -> int:
@@ -58,6 +62,7 @@ def read_episode(path: str | Path) -> Episode:
     metadata: dict[str, dict[str, str]] = {}
     rows: list = []
     tf: dict[int, object] = {}
+    frames: dict[str, list[np.ndarray]] = {}
     complete = False
     for record in iter_records(path):
         if isinstance(record, Schema):
@@ -68,12 +73,15 @@ def read_episode(path: str | Path) -> Episode:
             metadata[record.name] = dict(record.metadata)
         elif isinstance(record, Message) and record.channel_id in channels:
             channel = channels[record.channel_id]
-            if channel.topic not in (schema.TOPIC_STEP, schema.TOPIC_TF):
+            image = schemas.get(channel.schema_id) is not None and schemas[channel.schema_id].name == schema.IMAGE_MESSAGE
+            if channel.topic not in (schema.TOPIC_STEP, schema.TOPIC_TF) and not image:
                 continue
             if channel.id not in decoders:
                 decoders[channel.id] = factory.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
             message = decoders[channel.id](record.data)
-            if channel.topic == schema.TOPIC_STEP:
+            if image:
+                frames.setdefault(channel.topic.removeprefix("/"), []).append(_frame(message.data))
+            elif channel.topic == schema.TOPIC_STEP:
                 rows.append((record.log_time, message))
             else:
                 tf[record.log_time] = message
@@ -85,9 +93,14 @@ def read_episode(path: str | Path) -> Episode:
     names = {k: tuple(filter(None, step_channel.metadata.get(k, "").split(","))) for k in schema.NAME_KEYS} if step_channel else {}
     body = BodyModel.from_json(metadata["body"]["json"]) if "body" in metadata else None
     episode = Episode(path, metadata.get(schema.METADATA_EPISODE, {}), metadata.get(schema.METADATA_RESULT, {}),
-                      body, names, complete=complete)  # fmt: skip
+                      body, names, images={name: np.stack(f) for name, f in frames.items()}, complete=complete)  # fmt: skip
     _fill(episode, rows, tf)
     return episode
+
+
+def _frame(png: bytes) -> np.ndarray:
+    """A PNG image as uint8 (3, H, W), channels first as the observation had it."""
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).transpose(2, 0, 1)
 
 
 def _fill(episode: Episode, rows: list, tf: dict[int, object]) -> None:

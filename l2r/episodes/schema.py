@@ -7,7 +7,10 @@ l2r decodes it; the encodings are the ones Rerun and Foxglove decode on their ow
     /scene              foxglove.SceneUpdate (protobuf)      the body, ground, obstacles, once
     /tf                 foxglove.FrameTransforms (protobuf)  every body's pose, every step
     /step               l2r.episodes.Step (protobuf)         every number of the step
+    /<field>            foxglove.CompressedImage (protobuf)  every step: a camera field as PNG
 
+The runner's episodes have the first four; a camera task's have ``/step`` (without distance and
+pelvis height) and one image channel per uint8[3, H, W] field of its observation (``/pixels``).
 Bodies are frames named as in the model; their poses are in the frame ``ground`` (the model's
 frame: x forward, y up), which the frame ``world`` (z up, as the viewers expect) holds rotated.
 Metadata records: ``episode`` (who, what, written first) and ``result`` (written last).
@@ -21,6 +24,15 @@ TOPIC_ROBOT = "/robot_description"
 TOPIC_SCENE = "/scene"
 TOPIC_TF = "/tf"
 TOPIC_STEP = "/step"
+IMAGE_MESSAGE = "foxglove.CompressedImage"  # the schema of every image channel
+IMAGE_FORMAT = "png"
+BODY_SCALARS = ("distance", "pelvis_height")  # the runner's; a task without a body leaves them out
+
+
+def image_topic(field: str) -> str:
+    """The channel of an observation's image field: ``/pixels`` for ``pixels``."""
+    return f"/{field}"
+
 
 WORLD_FRAME = "world"
 GROUND_FRAME = "ground"

@@ -179,3 +179,10 @@ def test_a_run_resumes_with_the_recipe_it_resolved_and_the_flags_it_was_given(tm
     write_launch(tmp_path, args, argv, launch, {})
     resumed = planned("--resume", str(tmp_path))
     assert reached(resumed, RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"] | {"batch_size": 64}
+
+
+def test_actors_log_episodes_of_the_runner_and_of_camera_tasks_alone():
+    for env_id, logged in (("l2r/Run-v0", True), ("l2r/dmc-cartpole-swingup-v0", True), ("Hopper-v5", False)):
+        children = planned("--env-id", env_id, "--algo", "td3")
+        for name in ("actor-0", "evaluator-0"):
+            assert (actor_settings(children[name]).episode_log_dir is not None) == logged, (env_id, name)
