@@ -2,6 +2,7 @@
 
 import pytest
 
+from l2r.config import EXIT_CANNOT_START
 from l2r.learner.__main__ import cli, parse_settings
 
 
@@ -46,9 +47,9 @@ def test_malformed_torchrun_variables_are_usage_errors(variables, message, capsy
 
 def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(capsys, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
-    assert cli(["--device", "cuda", "--run", "nothing-here"]) == 1
+    assert cli(["--device", "cuda", "--run", "nothing-here"]) == EXIT_CANNOT_START
     assert "no CUDA device" in capsys.readouterr().err
-    assert cli(["--compile", "graphs", "--run", "nothing-here"]) == 1  # --device auto found no GPU
+    assert cli(["--compile", "graphs", "--run", "nothing-here"]) == EXIT_CANNOT_START  # --device auto found no GPU
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--compile graphs captures CUDA graphs: it needs a CUDA device" in err, err
 
