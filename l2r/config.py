@@ -60,15 +60,20 @@ def zenoh_error_text(error: zenoh.ZError) -> str:
     return " ".join(re.sub(r" at /\S+:\d+\.?", "", str(error)).split())
 
 
+def one_line(error: Exception) -> str:
+    return " ".join(str(error).split())
+
+
 def run_command(prog: str, body: Callable[[], int | None]) -> int:
-    """Run a command; a usage error or a failure to start is one line on stderr and exit 2 or 3."""
+    """Run a command; a usage error or a failure to start is one line on stderr and exit 2 or 3.
+    One line even where a library's message has several: a supervisor reads the last as the reason."""
     try:
         return body() or 0
     except UsageError as e:
-        print(f"{prog}: {e} (see {prog} --help)", file=sys.stderr)
+        print(f"{prog}: {one_line(e)} (see {prog} --help)", file=sys.stderr)
         return EXIT_USAGE
     except StartupFailure as e:
-        print(f"{prog}: {e}", file=sys.stderr)
+        print(f"{prog}: {one_line(e)}", file=sys.stderr)
         return EXIT_CANNOT_START
     except zenoh.ZError as e:  # opening the session: a port in use, an address that does not resolve
         print(f"{prog}: cannot open the Zenoh session: {zenoh_error_text(e)}", file=sys.stderr)

@@ -61,13 +61,14 @@ def test_config_file_supplies_defaults(tmp_path):
     assert (settings.run, settings.batch_size, settings.precision) == ("exp7", 32, "float32")
 
 
-def test_resume_from_a_corrupt_checkpoint_fails_clearly_and_keeps_the_file(tmp_path, caplog):
+def test_resume_from_a_corrupt_checkpoint_fails_clearly_and_keeps_the_file(tmp_path, capsys):
     path = tmp_path / "learner" / "checkpoint.pt"
     path.parent.mkdir()
     path.write_bytes(b"not a checkpoint")
     # Fails before any network traffic, so the endpoint need not exist.
     code = cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu",
                 "--connect", "tcp/127.0.0.1:9"])
-    assert code == 1
-    assert "cannot read checkpoint" in caplog.text
+    assert code == EXIT_CANNOT_START
+    err = capsys.readouterr().err  # one line, though torch's own message has several
+    assert len(err.splitlines()) == 1 and err.startswith(f"l2r-learner: cannot read checkpoint {path}"), err
     assert path.read_bytes() == b"not a checkpoint"
