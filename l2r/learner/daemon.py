@@ -214,6 +214,11 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
                               table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
                               frame_stack=frame_stack) as replay:
+                newest = replay.newest_version(stop)
+                if newest > state.version:  # resumed without a checkpoint, or from an older one
+                    log.info("the run's replay has seen policy version %d: going on above it, not from %d",
+                             newest, state.version)
+                    state.version = newest
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version
