@@ -15,10 +15,13 @@ what it should be.
 
 Exit codes, the same in every command (`run_command`):
     0  done
-    1  failure at run time: the settings are valid, but this machine cannot serve them now
-       (a port in use, too little memory, no CUDA device, a corrupt checkpoint)
+    1  failure at run time, which may pass: a crash, a Zenoh session that cannot open (a port
+       in use)
     2  bad usage: an unknown flag or key, a value of the wrong type or out of range, a file
        named that does not exist -- the command line, file or environment must change
+    3  cannot start: the settings are valid, but this machine cannot serve them (too little
+       memory for the capacity, no CUDA device, an unreadable checkpoint) -- the same command
+       fails the same way until something changes, so a supervisor does not restart it
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from l2r import __version__
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+EXIT_CANNOT_START = 3
 ENV_PREFIX = "L2R_"
 
 
@@ -48,7 +52,7 @@ class UsageError(Exception):
 
 
 class StartupFailure(Exception):
-    """Valid settings this machine cannot serve now (exit code 1)."""
+    """Valid settings this machine cannot serve, which starting again would repeat (exit code 3)."""
 
 
 def zenoh_error_text(error: zenoh.ZError) -> str:
@@ -56,16 +60,21 @@ def zenoh_error_text(error: zenoh.ZError) -> str:
     return " ".join(re.sub(r" at /\S+:\d+\.?", "", str(error)).split())
 
 
+def one_line(error: Exception) -> str:
+    return " ".join(str(error).split())
+
+
 def run_command(prog: str, body: Callable[[], int | None]) -> int:
-    """Run a command; a usage error or a failure to start is one line on stderr and exit 2 or 1."""
+    """Run a command; a usage error or a failure to start is one line on stderr and exit 2 or 3.
+    One line even where a library's message has several: a supervisor reads the last as the reason."""
     try:
         return body() or 0
     except UsageError as e:
-        print(f"{prog}: {e} (see {prog} --help)", file=sys.stderr)
+        print(f"{prog}: {one_line(e)} (see {prog} --help)", file=sys.stderr)
         return EXIT_USAGE
     except StartupFailure as e:
-        print(f"{prog}: {e}", file=sys.stderr)
-        return EXIT_FAILURE
+        print(f"{prog}: {one_line(e)}", file=sys.stderr)
+        return EXIT_CANNOT_START
     except zenoh.ZError as e:  # opening the session: a port in use, an address that does not resolve
         print(f"{prog}: cannot open the Zenoh session: {zenoh_error_text(e)}", file=sys.stderr)
         return EXIT_FAILURE

@@ -6,9 +6,11 @@ machine is. Each process has a progress counter (the learner's updates, an actor
 evaluator's env steps, the replay server's inserts). A process that exits after its counter
 rose is restarted after `RESTART_DELAY` and its count starts over; one that exits without its
 counter rising is restarted after a delay that doubles each time (at most `MAX_RESTART_DELAY`),
-and after `max_restarts` such restarts in a row the job gives up on it. Exit code 2 is a usage
-error, which the same command line would repeat, so the job gives up at once. Exit code 0 is a
-process that finished (the learner's --max-updates, an actor's --max-steps): it stays finished.
+and after `max_restarts` such restarts in a row the job gives up on it. Exit codes 2 (a usage
+error) and 3 (valid settings this machine cannot serve: too little memory for the capacity, an
+unreadable checkpoint) are mistakes a restart would repeat, not faults it could clear, so the job
+gives up at once, with the process's own last line as the reason. Exit code 0 is a process that
+finished (the learner's --max-updates, an actor's --max-steps): it stays finished.
 """
 
 from __future__ import annotations
@@ -25,11 +27,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from l2r.config import EXIT_CANNOT_START, EXIT_USAGE
+
 log = logging.getLogger("l2r.up")
 
 RESTART_DELAY = 1.0  # seconds before the first restart
 MAX_RESTART_DELAY = 30.0
-USAGE_ERROR = 2
+# Exits that the same command would repeat, as the job says them.
+MISTAKES = {EXIT_USAGE: "rejected its command line", EXIT_CANNOT_START: "cannot start on this machine"}
 
 # What a process is doing, as the status shows it.
 RUNNING, WAITING, FINISHED, FAILED, STOPPED = "running", "waiting to restart", "finished", "gave up", "stopped"
@@ -158,7 +163,7 @@ class ProcessGroup:
             return
         progressed = self.progress(*child.progress) > child.progress_at_start
         child.exits_without_progress = 0 if progressed else child.exits_without_progress + 1
-        if code == USAGE_ERROR or child.exits_without_progress > self.max_restarts:
+        if code in MISTAKES or child.exits_without_progress > self.max_restarts:
             child.state = FAILED
             log.error("%s %s; giving up: %s", child.name, child.last_exit, self.failure(child))
             return
@@ -168,9 +173,12 @@ class ProcessGroup:
                     "progress" if progressed else "no progress", delay, child.name)
 
     def failure(self, child: Child) -> str:
-        """What is wrong with a child that exits without progress, in words."""
-        if child.last_code == USAGE_ERROR:
-            return f"{child.name} rejected its command line ({child.last_exit}), which a restart would repeat"
+        """What is wrong with a child that exits without progress, in words: for a mistake, the
+        last line of its log, where a daemon says why it refused to start."""
+        if child.last_code in MISTAKES:
+            said = [line.strip() for line in last_lines(self.log_path(child)) if line.strip()]
+            return (f"{child.name} {MISTAKES[child.last_code]} ({child.last_exit}), which a restart would repeat"
+                    + (f": {said[-1]}" if said else ""))
         return (f"{child.name} exited {child.exits_without_progress} times in a row without progress "
                 f"(last: {child.last_exit})")
 

@@ -133,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0, help="base seed of the actors' episodes")
     r.add_argument("--max-restarts", type=int, default=3,
                    help="restarts of one process in a row without progress (learner updates, env steps, "
-                        "replay inserts) before the job gives up on it and exits with code 1")
+                        "replay inserts) before the job gives up on it and exits with code 1; a process that "
+                        "refuses to start (exit code 2 or 3) is given up on at once")
     a = p.add_argument_group("actors")
     a.add_argument("--env-id", default=PORT_ID,
                    help="gymnasium id of the task: the runner; another with Box actions, such as Hopper-v5 (the "

@@ -1,5 +1,6 @@
 """Settings of the commands: flags, --config file and L2R_ variables in that order, checked types,
-one-line errors with exit code 2 for bad usage and 1 for failures at run time, and --version."""
+one-line errors with exit code 2 for bad usage, 3 for settings this machine cannot serve and 1 for
+failures at run time, and --version."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from importlib.metadata import version
 import pytest
 
 from l2r.actors.__main__ import build_parser as actor_parser
-from l2r.config import UsageError, load
+from l2r.config import EXIT_CANNOT_START, UsageError, load
 from l2r.evaluate import build_parser as eval_parser
 from l2r.learner.__main__ import LearnerSettings, build_parser as learner_parser
 from l2r.replay.__main__ import ReplaySettings, build_parser as replay_parser
@@ -163,8 +164,8 @@ def test_a_port_in_use_is_one_line_and_exit_code_1():
         f"l2r-replay: cannot open the Zenoh session: Can not create a new TCP listener bound to tcp/127.0.0.1:{port}")
 
 
-def test_a_replay_larger_than_memory_is_one_line_and_exit_code_1():
+def test_a_replay_larger_than_memory_is_one_line_and_exit_code_3():
     result = run("l2r.replay", "--capacity", "2000000000")
-    assert result.returncode == 1, result.stderr
+    assert result.returncode == EXIT_CANNOT_START, result.stderr
     assert len(result.stderr.splitlines()) == 1, result.stderr
     assert result.stderr.startswith("l2r-replay: --capacity 2000000000 needs 584.3 GiB of memory; ")

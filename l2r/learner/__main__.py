@@ -18,6 +18,7 @@ from pydantic import field_validator  # noqa: E402
 from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
+from l2r.learner.checkpoint import CheckpointError  # noqa: E402
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
 from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
@@ -305,7 +306,7 @@ def train(s: LearnerSettings) -> int:
     configure_logging(s.log_level)
     try:
         return main(s.learner(), algo, s.zenoh_session_config())
-    except DeviceUnavailable as e:
+    except (DeviceUnavailable, CheckpointError) as e:  # a restart would meet the same device or file
         raise StartupFailure(str(e)) from None
 
 

@@ -161,7 +161,8 @@ class Meter:
 
 
 def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> int:
-    """Run a learner until SIGTERM/SIGINT or `max_updates`; returns the exit status."""
+    """Run a learner until SIGTERM/SIGINT or `max_updates`; returns the exit status. A checkpoint
+    it cannot resume from is a CheckpointError."""
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
@@ -188,9 +189,6 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
                  torch.get_num_threads(), config.compile, state.version, state.updates)
         _serve(config, algo, state, conf, device, stop)
         return 0
-    except CheckpointError as e:
-        log.error("%s", e)
-        return 1
     except Diverged as e:
         log.error("%s: stopping without a checkpoint; --resume continues from the last good one", e)
         return 1
@@ -216,6 +214,11 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
                               table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
                               frame_stack=frame_stack) as replay:
+                newest = replay.newest_version(stop)
+                if newest > state.version:  # resumed without a checkpoint, or from an older one
+                    log.info("the run's replay has seen policy version %d: going on above it, not from %d",
+                             newest, state.version)
+                    state.version = newest
                 if outlet:
                     outlet.publish(state)
                 replay.learner_version = state.version

@@ -21,6 +21,7 @@ left alone for a second. With ``frame_stack`` set, the same holds of a batch wit
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -30,7 +31,7 @@ import zenoh
 
 from l2r.protocol.keys import PRIORITY_QOS, SAMPLE_QOS, Keys, parse_alive
 from l2r.protocol.messages import (
-    NotReady, PriorityUpdate, ProtocolError, SampleBatch, SampleRequest, decode, encode,
+    NotReady, PriorityUpdate, ProtocolError, SampleBatch, SampleRequest, Stats, decode, encode,
 )
 from l2r.protocol.session import Rejections
 
@@ -98,6 +99,31 @@ class ReplayClient:
     def __iter__(self):
         while True:
             yield self.sample()
+
+    def newest_version(self, stop: threading.Event) -> int:
+        """The newest policy version the live replay shards have seen, in the experience they hold
+        or from a learner, once a first shard is alive (-1: none, or ``stop`` was set first). A
+        learner that starts without its checkpoint publishes above it, so versions never go back."""
+        if not self.shards:
+            log.info("waiting for a replay shard, to publish above the newest policy version it has seen")
+        while not self.shards:
+            if stop.wait(0.05):
+                return -1
+        newest = -1
+        for shard in self.shards:
+            for reply in self._session.get(self.keys.stats("replay", shard), timeout=self._timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    values = decode(reply.ok.payload, Stats).values
+                except ProtocolError as e:
+                    self.rejections.add(e, f"stats of replay shard {shard}")
+                    continue
+                # A shard older than `newest_version` still knows the learner versions it heard of.
+                seen = values.get("newest_version", values.get("learner_version", -1))
+                if math.isfinite(seen):
+                    newest = max(newest, int(seen))
+        return newest
 
     def update_priorities(self, batch: SampleBatch, priorities: np.ndarray) -> None:
         """Send new priorities (e.g. |TD error|) for the slots of ``batch`` back to its shard."""

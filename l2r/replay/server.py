@@ -94,6 +94,7 @@ class ReplayServer:
         self.rejections = Rejections(log)
         self.lock = threading.Lock()
         self.learner_version = -1
+        self.newest_stored_version = -1  # of the experience taken (snapshot, log, actors)
         self.sampled_batches = 0
         self.not_ready_replies = 0
         self.priority_updates = [0, 0]  # applied, stale
@@ -139,6 +140,7 @@ class ReplayServer:
             elif self.queue is not None:
                 self._skip_in_queue(chunk)
             self.sequences.stored(chunk.actor_id, chunk.size)
+            self.newest_stored_version = max(self.newest_stored_version, chunk.policy_version)
             self.limiter.inserted += chunk.size
             if self.wal is not None and payload is not None and not self.wal.failed:
                 try:
@@ -353,6 +355,8 @@ class ReplayServer:
                 "priority_updates": self.priority_updates[0],
                 "stale_priority_updates": self.priority_updates[1],
                 "learner_version": self.learner_version,
+                # What a learner that starts without its checkpoint must publish above.
+                "newest_version": max(self.learner_version, self.newest_stored_version),
                 "policy_lag": self.lag_sum / self.lag_batches if self.lag_batches else float("nan"),
                 "snapshot_pause_s": self.snapshot_pause,
             }
@@ -421,6 +425,7 @@ class ReplayServer:
                              f"server {'keeps none (--capacity 0)' if self.storage is None else 'keeps one'}")
         if self.storage is not None:
             self.storage.restore(arrays)
+            self.newest_stored_version = int(self.storage.versions.max())
         self.sequences.restore(meta["sequences"])
         self.limiter.inserted, self.limiter.sampled = meta["inserted"], meta["sampled"]
         self.learner_version = meta["learner_version"]

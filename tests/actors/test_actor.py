@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from l2r.config import EXIT_CANNOT_START
 from l2r.policy import build_policy, policy_state, uniform_log_prob
 from l2r.protocol import (
     EpisodeSummary, EvaluationRound, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config,
@@ -163,7 +164,7 @@ def test_an_environment_that_breaks_its_own_observation_space_stops_the_actor_wi
 def test_an_environment_whose_observations_l2r_cannot_take_stops_the_actor_at_start_with_one_line(peer):
     proc = peer.actor("--env-id", "tests.actors.standin:CountingStandIn-v0", "--num-envs", "1")
     out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 1, out
+    assert proc.returncode == EXIT_CANNOT_START, out
     assert out.strip().splitlines()[-1] == ("l2r-actor: tests.actors.standin:CountingStandIn-v0: observation 'state' "
                                             "is a Discrete space; l2r takes a Box or a Dict of Box spaces"), out
 

@@ -58,14 +58,16 @@ class Daemon:
 
 class Feeder:
     """An actor-like publisher: random transitions into replay, in chunks, until stopped: the runner's
-    41 observations and 18 actions, or random fields of `observation` and `act_dim` actions."""
+    41 observations and 18 actions, or random fields of `observation` and `act_dim` actions, as if
+    acted by the policy of `policy_version`."""
 
     def __init__(self, session: zenoh.Session, run: str, chunk: int = 50, period: float = 0.02,
-                 observation: ObservationSpec | None = None, act_dim: int = 18):
+                 observation: ObservationSpec | None = None, act_dim: int = 18, policy_version: int = 0):
         self._publisher = session.declare_publisher(Keys(run).experience(0), **EXPERIENCE_QOS.publisher())
         self._stop = threading.Event()
         self._chunk, self._period = chunk, period
         self._observation, self._act_dim = observation, act_dim
+        self._policy_version = policy_version
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
@@ -81,7 +83,7 @@ class Feeder:
         while not self._stop.is_set():
             t = self._chunk
             chunk = ExperienceChunk(
-                actor_id=0, env_id=0, epoch=epoch, seq=seq, policy_version=0,
+                actor_id=0, env_id=0, epoch=epoch, seq=seq, policy_version=self._policy_version,
                 obs=self._observations(rng, t + 1),
                 actions=rng.random((t, self._act_dim), dtype=np.float32), rewards=rng.normal(size=t).astype(np.float32),
                 terminated=np.zeros(t, bool), truncated=np.zeros(t, bool),

@@ -2,6 +2,7 @@
 
 import pytest
 
+from l2r.config import EXIT_CANNOT_START
 from l2r.learner.__main__ import cli, parse_settings
 
 
@@ -46,9 +47,9 @@ def test_malformed_torchrun_variables_are_usage_errors(variables, message, capsy
 
 def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(capsys, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
-    assert cli(["--device", "cuda", "--run", "nothing-here"]) == 1
+    assert cli(["--device", "cuda", "--run", "nothing-here"]) == EXIT_CANNOT_START
     assert "no CUDA device" in capsys.readouterr().err
-    assert cli(["--compile", "graphs", "--run", "nothing-here"]) == 1  # --device auto found no GPU
+    assert cli(["--compile", "graphs", "--run", "nothing-here"]) == EXIT_CANNOT_START  # --device auto found no GPU
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--compile graphs captures CUDA graphs: it needs a CUDA device" in err, err
 
@@ -60,13 +61,14 @@ def test_config_file_supplies_defaults(tmp_path):
     assert (settings.run, settings.batch_size, settings.precision) == ("exp7", 32, "float32")
 
 
-def test_resume_from_a_corrupt_checkpoint_fails_clearly_and_keeps_the_file(tmp_path, caplog):
+def test_resume_from_a_corrupt_checkpoint_fails_clearly_and_keeps_the_file(tmp_path, capsys):
     path = tmp_path / "learner" / "checkpoint.pt"
     path.parent.mkdir()
     path.write_bytes(b"not a checkpoint")
     # Fails before any network traffic, so the endpoint need not exist.
     code = cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu",
                 "--connect", "tcp/127.0.0.1:9"])
-    assert code == 1
-    assert "cannot read checkpoint" in caplog.text
+    assert code == EXIT_CANNOT_START
+    err = capsys.readouterr().err  # one line, though torch's own message has several
+    assert len(err.splitlines()) == 1 and err.startswith(f"l2r-learner: cannot read checkpoint {path}"), err
     assert path.read_bytes() == b"not a checkpoint"

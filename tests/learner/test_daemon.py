@@ -9,10 +9,10 @@ import torch
 
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.policy import act, build_policy, load_policy_state
-from l2r.protocol import Keys, Weights, decode
+from l2r.protocol import Keys, Stats, Weights, decode
 from l2r.protocol.session import wait_alive
 
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for
 from tests.learner.conftest import Feeder, WeightsWatcher, learner_args
 
 
@@ -63,6 +63,30 @@ def test_learner_trains_publishes_versions_and_resumes_after_a_kill(network, tmp
         assert final.version == watcher.versions[-1] and final.updates > saved.updates
     finally:
         feeder.stop()
+
+
+@pytest.mark.slow
+def test_a_learner_without_a_checkpoint_publishes_above_the_versions_the_replay_holds(network, tmp_path):
+    # The replay holds experience of version 40, as after a run whose learner lost its checkpoint.
+    feeder = Feeder(network.session, network.run, policy_version=40)
+    watcher = WeightsWatcher(network.session, network.run)
+    try:
+        assert wait_for(lambda: replay_stats(network).get("newest_version") == 40, timeout=30), replay_stats(network)
+        learner = network.start("l2r.learner", *learner_args(network, tmp_path / "run"), name="learner")
+        watcher.wait(lambda v: len(v) >= 3 and any(m["samples_per_s"] > 0 for m in watcher.metrics), 90,
+                     "versions and a report of sampled batches", learner)
+        assert min(watcher.versions) > 40, watcher.versions
+        lags = [m["policy_lag"] for m in watcher.metrics if m["samples_per_s"] > 0]
+        assert lags and min(lags) >= 0, lags
+        assert "the run's replay has seen policy version 40: going on above it, not from 0" in learner.log()
+        assert learner.stop() == 0
+    finally:
+        feeder.stop()
+
+
+def replay_stats(network) -> dict:
+    replies = [r.ok for r in network.session.get(Keys(network.run).stats("replay", 0), timeout=5) if r.ok]
+    return decode(replies[0].payload, Stats).values if replies else {}
 
 
 @pytest.mark.slow

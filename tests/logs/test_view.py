@@ -12,6 +12,7 @@ import pytest
 import rerun as rr
 
 from l2r.actors.episode_log import EpisodeLogger, LogPolicy
+from l2r.config import EXIT_CANNOT_START
 from l2r.episodes import schema
 from l2r.sim.env import FOOT_SPHERES, RunEnv
 from l2r.sim.ligaments import LIGAMENTS
@@ -143,4 +144,4 @@ def test_view_rejects_bad_input_clearly(episodes, tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
     result = view(str(junk), "--save", str(tmp_path / "x.rrd"))
-    assert result.returncode == 1 and "junk.mcap" in result.stderr
+    assert result.returncode == EXIT_CANNOT_START and "junk.mcap" in result.stderr

@@ -13,6 +13,7 @@ import msgpack
 import zenoh
 
 from l2r.actors.actor_id import ask_actor_id
+from l2r.config import EXIT_CANNOT_START
 from l2r.protocol import PROTOCOL_VERSION, ActorId, ActorIdRequest, Keys, decode, encode, session_config
 from tests.conftest import free_port
 
@@ -65,7 +66,7 @@ def test_a_shard_without_snapshots_gives_no_id_and_the_actor_says_why(start_repl
     assert reply.err.payload.to_string().startswith("invalid: "), "an empty name must be refused"
     actor = subprocess.run([sys.executable, "-m", "l2r.actors", "--actor-id", "auto", "--run", replay.run,
                             "--connect", replay.endpoint], capture_output=True, text=True, timeout=120)
-    assert actor.returncode == 1, actor.stderr
+    assert actor.returncode == EXIT_CANNOT_START, actor.stderr
     assert actor.stderr.strip().splitlines()[-1] == (
         "l2r-actor: replay shard 0 gave no actor id: unavailable: replay shard 0 has no --snapshot-dir, so it could "
         "not remember the actor ids it gave after a restart; give each actor its own --actor-id instead")

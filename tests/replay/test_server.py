@@ -102,7 +102,7 @@ def test_snapshot_restores_after_kill_9(start_replay, connect, stats_of, run_nam
     args = ("--snapshot-dir", str(tmp_path / "snap"), "--snapshot-interval", "0.5")
     replay = start_replay(*args)
     session = connect(replay)
-    publish(session, run_name, [make_chunk(actor_id=2, seq=s, steps=50) for s in range(4)])
+    publish(session, run_name, [make_chunk(actor_id=2, seq=s, steps=50, version=7) for s in range(4)])
     stats_of(session).wait(lambda v: v["size"] == 200)
     session.close()
     snapshot = tmp_path / "snap" / "replay-shard0.npz"
@@ -120,6 +120,7 @@ def test_snapshot_restores_after_kill_9(start_replay, connect, stats_of, run_nam
     publish(session, run_name, [make_chunk(actor_id=2, seq=3, steps=50)])  # already stored before the kill
     values = stats.wait(lambda v: v["duplicates"] >= 1)
     assert values["size"] == 200 and values["actor.2.transitions"] == 200
+    assert values["newest_version"] == 7  # known again, so a learner without its checkpoint starts above it
     with ReplayClient(session, run_name, batch_size=256) as client:
         seqs = np.concatenate([(b.obs[:, 0] - 2_000_000) // 1000 for b in drain(client, 4)])
         assert set(seqs.astype(int)) == {0, 1, 2, 3}

@@ -1,6 +1,7 @@
 """Supervision of `l2r up`'s processes: restarts back off, a process that keeps exiting without
 progress is given up on after a set number of restarts however fast it fails, one that makes
-progress is not, a usage error is given up on at once and a clean exit is final."""
+progress is not, a mistake (a usage error, a process that cannot start) is given up on at once with
+its own reason, and a clean exit is final."""
 
 import subprocess
 import sys
@@ -61,13 +62,19 @@ def test_a_process_that_makes_progress_between_exits_is_restarted_on(tmp_path, s
     group.stop()
 
 
-def test_a_usage_error_is_given_up_on_at_once_and_a_clean_exit_is_final(tmp_path, short_delays):
-    group = ProcessGroup([exiting(2)], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
+@pytest.mark.parametrize("code, mistake", [(2, "rejected its command line"), (3, "cannot start on this machine")])
+def test_a_mistake_is_given_up_on_at_once_with_the_process_s_own_reason(tmp_path, short_delays, code, mistake):
+    refusing = Child("proc", [sys.executable, "-c", f"import sys; print('proc: --capacity 9 needs 9 GiB', file=sys.stderr); "
+                                                    f"raise SystemExit({code})"], tier=0, progress=("actor", "0", "env_steps"))
+    group = ProcessGroup([refusing], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
     group.start()
     failed = supervise_until_settled(group)
-    assert failed is group.children[0] and failed.restarts == 0
-    assert "rejected its command line (exit code 2)" in group.failure(failed)
+    assert failed is refusing and failed.restarts == 0
+    assert group.failure(failed) == (f"proc {mistake} (exit code {code}), which a restart would repeat: "
+                                     "proc: --capacity 9 needs 9 GiB")
 
+
+def test_a_clean_exit_is_final(tmp_path, short_delays):
     group = ProcessGroup([exiting(0)], tmp_path, progress=lambda *key: 0, max_restarts=5, on_exit=lambda c, code: None)
     group.start()
     assert supervise_until_settled(group) is None

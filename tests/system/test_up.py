@@ -2,7 +2,8 @@
 loopback Zenoh. A killed actor is restarted, a killed learner resumes from its checkpoint,
 metrics reach TensorBoard and CSV files, `l2r eval` loads what the run left with the action
 repeat it trained with; `--resume` reuses the run's flags and continues its counters; the
-env-step budget ends a job; a learner that cannot start ends the job with its error on screen."""
+env-step budget ends a job; a learner or replay server that cannot start ends the job at once,
+without a restart, with its reason on screen."""
 
 import csv
 import json
@@ -175,18 +176,38 @@ def test_the_env_step_budget_ends_a_job_and_resume_reuses_its_flags_and_counters
     assert times == sorted(times) and steps == sorted(steps)  # the counters went on, not back to 0
 
 
+def exits(run_dir: Path, process: str) -> list[str]:
+    return [row["exit_code"] for row in rows(run_dir / "metrics" / "exits.csv") if row["process"] == process]
+
+
 @pytest.mark.slow
-def test_a_learner_that_cannot_start_ends_the_job_with_its_error_on_screen(tmp_path):
+def test_a_learner_that_cannot_start_ends_the_job_at_once_with_its_error_on_screen(tmp_path):
     run_dir = tmp_path / "broken"
     (run_dir / "learner").mkdir(parents=True)
     (run_dir / "learner" / "checkpoint.pt").write_bytes(b"PK\x03\x04 truncated")
     (run_dir / "launch.json").write_text(json.dumps({"args": {"actors": 1, "evaluators": 0, "seconds": 900}}))
-    proc = l2r_up(tmp_path / "up.out", "--resume", str(run_dir), "--max-restarts", "1")
-    out = finish(proc, tmp_path / "up.out", 300)  # well within the 900 s budget: the rule counts restarts, not time
+    proc = l2r_up(tmp_path / "up.out", "--resume", str(run_dir))
+    out = finish(proc, tmp_path / "up.out", 300)  # well within the 900 s budget
     assert proc.returncode == 1, out
-    assert "failed: gave up: learner exited 2 times in a row without progress (last: exit code 1)" in out
+    assert ("failed: gave up: learner cannot start on this machine (exit code 3), which a restart would repeat: "
+            f"l2r-learner: cannot read checkpoint {run_dir / 'learner' / 'checkpoint.pt'}") in out
     tail = out[out.index("the last lines of"):]
     assert "cannot read checkpoint" in tail  # the learner's own error, last on screen
     assert "l2r eval" not in out and "best_eval.rrd" not in out  # nothing to evaluate or watch
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["exit_code"] == 1 and summary["restarts_by_process"] == {"learner": 1}
+    assert summary["exit_code"] == 1 and summary["restarts_by_process"] == {}
+    assert exits(run_dir, "learner") == ["3"] and "restarting learner" not in up_log(run_dir)
+
+
+@pytest.mark.slow
+def test_a_replay_capacity_beyond_memory_ends_the_job_at_once_without_a_restart(tmp_path):
+    proc = l2r_up(tmp_path / "up.out", "--capacity", "2000000000", "--seconds", "900", "--actors", "1",
+                  "--evaluators", "0", "--name", "huge", "--runs-dir", str(tmp_path))
+    out = finish(proc, tmp_path / "up.out", 120)  # a job that restarted the replay would run for 900 s
+    assert proc.returncode == 1, out
+    assert ("l2r up: failed: gave up: replay cannot start on this machine (exit code 3), which a restart would "
+            "repeat: l2r-replay: --capacity 2000000000 needs 584.3 GiB of memory; ") in out, out
+    run_dir = next(tmp_path.glob("huge-*"))
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["restarts_by_process"] == {} and summary["last_exit_by_process"]["replay"] == "exit code 3"
+    assert exits(run_dir, "replay") == ["3"] and "restarting replay" not in up_log(run_dir)
