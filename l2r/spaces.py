@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 import gymnasium
+import numpy as np
 
 from l2r.protocol.observations import ObservationSpec
 
@@ -29,3 +32,18 @@ def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
         return ObservationSpec.from_space(env.observation_space), int(math.prod(env.action_space.shape))
     finally:
         env.close()
+
+
+def checked_action(task: str, action: Any, shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarray:
+    """`action` as an array of `dtype` clipped to [-1, 1], or a ValueError naming `task` and what is
+    wrong with it (not numbers, another shape than `shape`, non-finite entries): what l2r's own
+    tasks, whose actions all lie in [-1, 1], check in `step`."""
+    try:
+        action = np.asarray(action, dtype=dtype)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{task}: the action is not an array of numbers ({e})") from None
+    if action.shape != shape:
+        raise ValueError(f"{task}: the action has shape {action.shape}, expected {shape}")
+    if not np.isfinite(action).all():
+        raise ValueError(f"{task}: the action has non-finite entries: {action.tolist()}")
+    return np.clip(action, -1.0, 1.0)

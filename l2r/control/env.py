@@ -15,6 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from l2r.control import rendering
+from l2r.spaces import checked_action
 
 rendering.choose_backend()  # before mujoco and dm_control are imported: both read MUJOCO_GL then
 
@@ -116,7 +117,7 @@ class ControlEnv(gym.Env):
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self.episode_over:
             raise RuntimeError(f"{self.name}: step() before the first reset() or after the episode ended; call reset()")
-        action = self.check_action(action)
+        action = checked_action(self.name, action, self.action_space.shape, np.float64)
         suite_action = self.suite_low + (action + 1.0) * 0.5 * (self.suite_high - self.suite_low)
         reward = 0.0
         for inner_steps in range(1, self.action_repeat + 1):
@@ -130,18 +131,6 @@ class ControlEnv(gym.Env):
         truncated = time_step.last() and not terminated
         self.episode_over = time_step.last()
         return self.observation(time_step.observation), reward, terminated, truncated, {"inner_steps": inner_steps}
-
-    def check_action(self, action: Any) -> np.ndarray:
-        """The action as a float64 array inside [-1, 1], or a ValueError saying what is wrong."""
-        try:
-            action = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{self.name}: the action is not an array of numbers ({e})") from None
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"{self.name}: the action has shape {action.shape}, expected {self.action_space.shape}")
-        if not np.isfinite(action).all():
-            raise ValueError(f"{self.name}: the action has non-finite entries: {action.tolist()}")
-        return np.clip(action, -1.0, 1.0)
 
     def pixels(self) -> np.ndarray:
         """The camera's view of the current state, uint8, channels first."""

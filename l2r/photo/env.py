@@ -35,6 +35,7 @@ import numpy as np
 
 from l2r.photo import photos
 from l2r.photo.pipeline import NEUTRAL, PARAMETERS, actions_from_params, finish, params_from_actions
+from l2r.spaces import checked_action
 
 MAX_STEPS = 10
 REWARD_SCALE = 0.01
@@ -117,7 +118,7 @@ class PhotoTuneEnv(gym.Env):
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self.episode_over:
             raise RuntimeError("PhotoTune: step() before the first reset() or after the episode ended; call reset()")
-        self.params = params_from_actions(self.check_action(action))
+        self.params = params_from_actions(checked_action("PhotoTune", action, self.action_space.shape))
         self.image = finish(self.source[None], self.params)[0]
         psnr = float(psnr_db(self.image[None], self.goal[None])[0])
         reward = REWARD_SCALE * (psnr - self.psnr)
@@ -125,18 +126,6 @@ class PhotoTuneEnv(gym.Env):
         ruined = collapsed(self.image)
         self.episode_over = ruined or self.steps >= self.max_steps
         return self.observation(), reward, self.episode_over, False, {"psnr_db": psnr, "collapsed": ruined}
-
-    def check_action(self, action: Any) -> np.ndarray:
-        """The action as a float32 array inside [-1, 1], or a ValueError saying what is wrong."""
-        try:
-            action = np.asarray(action, dtype=np.float32)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"PhotoTune: the action is not an array of numbers ({e})") from None
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"PhotoTune: the action has shape {action.shape}, expected {self.action_space.shape}")
-        if not np.isfinite(action).all():
-            raise ValueError(f"PhotoTune: the action has non-finite entries: {action.tolist()}")
-        return np.clip(action, -1.0, 1.0)
 
     def observation(self) -> dict[str, np.ndarray]:
         current = photos.downsample(self.image)
