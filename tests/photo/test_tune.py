@@ -152,3 +152,13 @@ def test_tune_says_in_one_line_what_is_wrong_with_its_files(tmp_path):
     assert mismatch.returncode == 1 and mismatch.stderr.count("\n") == 1, mismatch.stderr
     assert "128 x 96" in mismatch.stderr and "64 x 64" in mismatch.stderr
     assert not (tmp_path / "o.png").exists()
+
+
+def test_l2r_eval_of_a_photo_policy_speaks_of_the_psnr_each_episode_ends_at(tmp_path):
+    checkpoint = untrained_policy_checkpoint(tmp_path / "best.pt")
+    run = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(checkpoint), "--env-id", TUNE_ID,
+                          "--episodes", "2", "--json"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout)
+    assert result["score"] == "psnr" and len(result["psnrs_db"]) == 2
+    assert result["mean_psnr"] == pytest.approx(sum(result["psnrs_db"]) / 2) and 3.0 < result["mean_psnr"] < 100.0
