@@ -134,8 +134,8 @@ def cli(argv: list[str] | None = None) -> int:
               file=sys.stderr)
     torch.set_num_threads(1)
     try:
-        results = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
-                           args.env_id, args.progress_every)
+        episodes = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
+                            args.env_id, args.progress_every)
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
@@ -146,7 +146,6 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
     score = score_of(args.env_id)
-    episodes = results
     mean = sum(map(score.of, episodes)) / len(episodes)
     if args.json:
         print(json.dumps({
@@ -154,7 +153,8 @@ def cli(argv: list[str] | None = None) -> int:
             "env_id": args.env_id, "difficulty": args.difficulty, "action_repeat": action_repeat, "seeds": [args.seed + i for i in range(args.episodes)],
             "distances": [e.distance for e in episodes], "returns": [e.episode_return for e in episodes],
             "lengths": [e.length for e in episodes],
-            **({"psnrs_db": [e.psnr_db for e in episodes]} if score.field == "psnr_db" else {}), "score": score.name, f"mean_{score.name}": mean,
+            **({"psnrs_db": [e.psnr_db for e in episodes]} if score.field == "psnr_db" else {}),
+            "score": score.name, f"mean_{score.name}": mean,
         }))
         return 0
     runner = family_of(args.env_id) == RUNNER

@@ -156,7 +156,8 @@ def write_png(path: Path, image: np.ndarray) -> None:
 
 def print_tune(args: argparse.Namespace, result: dict) -> None:
     for i, q in enumerate(result["queries"], 1):
-        print(f"query {i:4d}: {q['psnr_db']:6.2f} dB   result {q['result_psnr_db']:6.2f} dB, SSIM {q['result_ssim']:.4f}")
+        print(f"query {i:4d}: {q['psnr_db']:6.2f} dB   "
+              f"result {q['result_psnr_db']:6.2f} dB, SSIM {q['result_ssim']:.4f}")
     print("parameters: " + ", ".join(f"{name} {value:.4f}" for name, value in result["params"].items()))
     print(f"{args.out}: PSNR {result['psnr_db']:.2f} dB, SSIM {result['ssim']:.4f} to {args.goal} at full resolution "
           f"(the input: {result['input_psnr_db']:.2f} dB), {result['tuner']}, {len(result['queries'])} queries")

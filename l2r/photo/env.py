@@ -106,7 +106,8 @@ class PhotoTuneEnv(gym.Env):
         tunes S towards G instead (float32 [3, 256, 256] in [0, 1]: `l2r photo tune`'s way)."""
         super().reset(seed=seed)
         if options and "goal" in options:
-            self.photo_name, self.source, self.goal = "given", *(self.check_image(options, k) for k in ("source", "goal"))
+            self.photo_name = "given"
+            self.source, self.goal = (self.check_image(options, name) for name in ("source", "goal"))
         else:
             self.draw()
         self.goal_small = photos.downsample(self.goal)

@@ -162,3 +162,18 @@ def test_l2r_eval_of_a_photo_policy_speaks_of_the_psnr_each_episode_ends_at(tmp_
     result = json.loads(run.stdout)
     assert result["score"] == "psnr" and len(result["psnrs_db"]) == 2
     assert result["mean_psnr"] == pytest.approx(sum(result["psnrs_db"]) / 2) and 3.0 < result["mean_psnr"] < 100.0
+
+
+def test_compare_crops_the_held_out_inputs_of_a_fivek_folder(tmp_path):
+    photo = photos.load_photo("astronaut").transpose(1, 2, 0)
+    for folder in ("input", "expertC_gt"):
+        (tmp_path / folder).mkdir()
+        for k in range(10):  # the last tenth in name order, a9, is held out
+            iio.imwrite(tmp_path / folder / f"a{k}.png", np.roll(photo, 40 * k, axis=1)[:300, :300])
+    problems = tune.held_out_problems(2, seed=0, folder=tmp_path)
+    assert [p.name for p in problems] == ["a9@0", "a9@1"]
+    run = l2r_photo("compare", str(tmp_path), "--photos", "1", "--budgets", "10", "--json")
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["problems"] == ["a9@0"]
+    missing = l2r_photo("compare", str(tmp_path / "nowhere"), "--photos", "1", "--budgets", "10")
+    assert missing.returncode == 1 and missing.stderr.count("\n") == 1 and "is not a folder" in missing.stderr

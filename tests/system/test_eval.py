@@ -32,7 +32,7 @@ def test_eval_uses_the_action_repeat_stored_in_the_checkpoint(tmp_path):
     torch.set_num_threads(1)
     policy = load_checkpoint(tmp_path).policy()
     stepped_by_5 = evaluate(policy, 1, 0, 0, action_repeat=5)[0]
-    assert (result["returns"][0], result["distances"][0], result["lengths"][0]) == stepped_by_5
+    assert (result["returns"][0], result["distances"][0], result["lengths"][0]) == stepped_by_5[:3]
     assert evaluate(policy, 1, 0, 0, action_repeat=3)[0] != stepped_by_5  # the repeat shows in the result
 
 
