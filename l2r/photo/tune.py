@@ -49,10 +49,6 @@ class Trace:
         """The index of the best of the first `budget` queries (all: None)."""
         return int(np.argmax(self.psnr_db[:budget]))
 
-    def best_so_far(self) -> np.ndarray:
-        """The PSNR of the best query up to each query."""
-        return np.maximum.accumulate(self.psnr_db)
-
 
 def finished(problem: Problem, actions: np.ndarray) -> np.ndarray:
     """The problem's source through the pipeline with these actions' parameters."""

@@ -33,10 +33,12 @@ def test_the_photo_tuner_trains_evaluates_and_keeps_its_best_policy_by_psnr(tmp_
     logs = run_dir / "logs"
     assert "observation {goal: uint8[3, 64, 64], pixels: uint8[3, 64, 64], state: float32[16]}" in \
         (logs / "replay.log").read_text()
+    trained = [float(r["psnr"]) for r in rows(run_dir / "metrics" / "episodes.csv")]
+    assert trained and all(0.0 < p <= 100.0 for p in trained), trained  # the actors' episodes too
     evaluations = rows(run_dir / "metrics" / "evaluation.csv")
     assert evaluations and max(int(r["version"]) for r in evaluations) > 1, evaluations
     psnrs = [float(r["psnr"]) for r in evaluations]
-    assert all(3.0 < p <= 100.0 for p in psnrs), psnrs  # PSNRs in dB, not returns (hundredths of a dB gained)
+    assert all(0.0 < p <= 100.0 for p in psnrs), psnrs  # PSNRs in dB (of images in [0, 1]), never NaN
     best = torch.load(run_dir / "learner" / "best.pt", weights_only=False)
     assert best["evaluation"]["score"] == "psnr"
     chosen = [float(r["psnr"]) for r in evaluations if int(r["version"]) == best["evaluation"]["version"]]
