@@ -62,7 +62,7 @@ from l2r.supervise import Child, ProcessGroup, last_lines
 
 log = logging.getLogger("l2r.up")
 
-VECTOR_CAPACITY, IMAGE_CAPACITY, PHOTO_CAPACITY = 1_000_000, 100_000, 16_384  # the last RLPixTuner's replay size
+VECTOR_CAPACITY, IMAGE_CAPACITY, PHOTO_CAPACITY = 1_000_000, 100_000, 16_384  # photo: RLPixTuner's replay size
 IMAGE_SIDE_FRACTION = 0.0625
 
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
