@@ -10,6 +10,7 @@ from l2r.config import EXIT_USAGE
 SUBCOMMANDS = {
     "up": ("l2r.up", "run a whole training job on this host (replay, learner, actors)"),
     "eval": ("l2r.evaluate", "run deterministic episodes of a checkpoint and print their scores"),
+    "photo": ("l2r.photo.cli", "tune a photo's finishing towards a goal image; compare tuners on held-out photos"),
     "view": ("l2r.view", "replay MCAP episode logs into Rerun, or watch a run live"),
     "router": ("l2r.router", "run a Zenoh router (a stand-in for zenohd)"),
     "validate": ("l2r.sim.validate", "compare the MuJoCo body with OpenSim reference figures"),

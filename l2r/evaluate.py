@@ -1,5 +1,5 @@
 """`l2r eval`: deterministic episodes of a trained policy, the task's score per episode (l2r.families):
-the distance on the runner, the return on another task."""
+the distance on the runner, the last image's PSNR to its goal on a photo task, the return on another task."""
 
 from __future__ import annotations
 
@@ -7,14 +7,15 @@ import argparse
 import json
 import sys
 import time
-from types import SimpleNamespace
 
 import gymnasium
 import numpy as np
 import torch
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0 and l2r/RunOpenSim-v0)
-from l2r.actors.actor import ActorConfig, ObservationError, make_task, observation_spec, run_deterministic
+from l2r.actors.actor import (
+    ActorConfig, EpisodeResult, ObservationError, make_task, observation_spec, run_deterministic,
+)
 from l2r.actors.frame_stack import frame_stack_of
 from l2r.config import CommandParser
 from l2r.families import RUNNER, family_of, score_of
@@ -29,10 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = CommandParser(
         prog="l2r eval",
         description="Run deterministic episodes (the policy's mean action) of a learner checkpoint "
-                    "and print the score of each: the distance the runner's pelvis travelled, or the return "
-                    "on another task (--env-id Hopper-v5). Distances to compare "
-                    "with the 2017 challenge's are stated with --env-id l2r/RunOpenSim-v0: the episodes "
-                    "then run on OpenSim 4.6, the simulator of 2017, rather than on the MuJoCo port.",
+                    "and print the score of each: the distance the runner's pelvis travelled, the last image's "
+                    "PSNR to its goal on a photo task (l2r/PhotoTune-v0), or the return on another task "
+                    "(--env-id Hopper-v5). Distances to compare with the 2017 challenge's are stated with "
+                    "--env-id l2r/RunOpenSim-v0: the episodes then run on OpenSim 4.6, the simulator of 2017, "
+                    "rather than on the MuJoCo port.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("checkpoint", metavar="CHECKPOINT_OR_RUN_DIR",
@@ -90,8 +92,8 @@ class WrongTask(ValueError):
 
 
 def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: int,
-             env_id: str = "l2r/Run-v0", progress_every: float = 0.0) -> list[tuple[float, float, int]]:
-    """(return, distance, steps) of ``episodes`` deterministic episodes, all stepped as one batch
+             env_id: str = "l2r/Run-v0", progress_every: float = 0.0) -> list[EpisodeResult]:
+    """The results of ``episodes`` deterministic episodes, all stepped as one batch
     as an evaluator of `l2r up` steps them; progress on stderr every ``progress_every`` seconds (0: none)."""
     progress = Progress(episodes, progress_every)
     envs = [Counted(make_task(env_id, difficulty), progress) for _ in range(episodes)]
@@ -132,8 +134,8 @@ def cli(argv: list[str] | None = None) -> int:
               file=sys.stderr)
     torch.set_num_threads(1)
     try:
-        results = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
-                           args.env_id, args.progress_every)
+        episodes = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
+                            args.env_id, args.progress_every)
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
@@ -144,15 +146,15 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1
     score = score_of(args.env_id)
-    episodes = [SimpleNamespace(episode_return=ret, distance=distance, length=length)
-                for ret, distance, length in results]
     mean = sum(map(score.of, episodes)) / len(episodes)
     if args.json:
         print(json.dumps({
             "checkpoint": str(checkpoint.path), "version": checkpoint.version, "updates": checkpoint.updates,
             "env_id": args.env_id, "difficulty": args.difficulty, "action_repeat": action_repeat, "seeds": [args.seed + i for i in range(args.episodes)],
             "distances": [e.distance for e in episodes], "returns": [e.episode_return for e in episodes],
-            "lengths": [e.length for e in episodes], "score": score.name, f"mean_{score.name}": mean,
+            "lengths": [e.length for e in episodes],
+            **({"psnrs_db": [e.psnr_db for e in episodes]} if score.field == "psnr_db" else {}),
+            "score": score.name, f"mean_{score.name}": mean,
         }))
         return 0
     runner = family_of(args.env_id) == RUNNER

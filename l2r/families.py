@@ -3,7 +3,8 @@
 A task's family comes from its id: `runner` for the Learning to Run runner (`l2r/Run-v0` and
 `l2r/RunOpenSim-v0`), `pixels` for the camera tasks of `l2r.control` (`l2r/dmc-cartpole-swingup-v0`:
 the DeepMind Control suite seen through 84 × 84 frames), `standard` for any other gymnasium task
-(Hopper-v5, Walker2d-v5). The family picks the
+(Hopper-v5, Walker2d-v5), `photo` for the photo-finishing tasks of `l2r.photo` (`l2r/PhotoTune-v0`).
+The family picks the
 recipe a job trains with (l2r.recipes) and its score: what `l2r up` keeps `learner/best.pt` by and
 names the best evaluation episode by, and what the status line, the final report, summary.json,
 the evaluators' log and `l2r eval` speak of.
@@ -13,18 +14,23 @@ This module imports nothing of the daemons', so each of them and every command c
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-RUNNER, PIXELS, STANDARD = "runner", "pixels", "standard"
-FAMILIES = (RUNNER, PIXELS, STANDARD)
+RUNNER, PIXELS, PHOTO, STANDARD = "runner", "pixels", "photo", "standard"
+FAMILIES = (RUNNER, PIXELS, PHOTO, STANDARD)
 
 
 RUNNER_IDS = "l2r/Run"  # the prefix of the runner's ids (l2r.sim's PORT_ID and OPENSIM_ID), no other l2r/ task's
 CAMERA_IDS = "l2r/dmc-"  # the prefix of l2r.control's ids
+PHOTO_IDS = "l2r/Photo"  # the prefix of l2r.photo's ids
 
 
 def family_of(env_id: str) -> str:
-    return RUNNER if env_id.startswith(RUNNER_IDS) else PIXELS if env_id.startswith(CAMERA_IDS) else STANDARD
+    for prefix, family in ((RUNNER_IDS, RUNNER), (CAMERA_IDS, PIXELS), (PHOTO_IDS, PHOTO)):
+        if env_id.startswith(prefix):
+            return family
+    return STANDARD
 
 
 @dataclass(frozen=True)
@@ -40,8 +46,10 @@ class Score:
     """The EpisodeSummary field that holds it."""
 
     def of(self, episode) -> float:
-        """This score of an EpisodeSummary."""
-        return float(getattr(episode, self.field))
+        """This score of an EpisodeSummary (or anything with its field); NaN where the field is
+        unset (an episode summary from an actor older than the field)."""
+        value = getattr(episode, self.field)
+        return math.nan if value is None else float(value)
 
     def shown(self, value: float | None, spec: str = ".2f") -> str:
         """'12.34 m', '3012.50'; '-' for no value."""
@@ -56,7 +64,7 @@ SCORES = {
     RUNNER: Score("distance", "m", "distance"),  # how far the pelvis went
     STANDARD: Score("return", "", "episode_return"),  # the sum of the task's own rewards
     PIXELS: Score("return", "", "episode_return"),  # the suite's rewards, as DrQ-v2 reports them
-    # Photo tasks will score by PSNR in dB, once their episode summaries carry it.
+    PHOTO: Score("psnr", "dB", "psnr_db"),  # the last image's PSNR to its goal, as RLPixTuner reports its tuner
 }
 
 

@@ -2,10 +2,10 @@
 
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
 comes from the task (l2r.families): `runner` for the Learning to Run runner (`l2r/Run-v0`,
-`l2r/RunOpenSim-v0`), `pixels` for the camera tasks (`l2r/dmc-...`), `standard` for any other gymnasium task
-(Hopper-v5, Walker2d-v5). `l2r up --recipe` picks another
-family's recipe, and each setting has an `l2r up` flag of its own name that replaces the
-recipe's value.
+`l2r/RunOpenSim-v0`), `pixels` for the camera tasks (`l2r/dmc-...`), `photo` for the
+photo-finishing tasks (`l2r/PhotoTune-v0`), `standard` for any other gymnasium task (Hopper-v5,
+Walker2d-v5). `l2r up --recipe` picks another family's recipe, and each setting has an `l2r up`
+flag of its own name that replaces the recipe's value.
 
 The settings span the three daemons: the replay server's (`REPLAY_FLAGS`), the actors'
 (`ACTOR_SETTINGS`) and the learner's (every other one, an `l2r-learner` flag of the same name).
@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
-from l2r.families import PIXELS, RUNNER, STANDARD, family_of
+from l2r.families import PHOTO, PIXELS, RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS
 from l2r.policy import ACTIVATIONS
 
@@ -104,6 +104,24 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         # action_repeat 1: the camera task itself holds each action for DrQ-v2's 2 suite steps.
         random_steps=2_000, envs_per_actor=1, action_repeat=1,
     ),
+    # The pixels recipe made RLPixTuner's where its training script (bash/train.sh, envs/run_sb3.py)
+    # says: the discount 0.9, tau 0.007 (its EMA rate 0.993), the exploration std 0.02, the
+    # target's noise 0.04 clipped at 0.01 (a quarter of it), the actor every 2nd update and
+    # [400, 300] networks (Stable-Baselines3's TD3 defaults, which it keeps), learning after 100
+    # random steps. Its 10-step episodes, 64 x 64 images and reward (the PSNR change x 0.01) are
+    # the env's own. l2r's: one learning rate where it has 5e-4 for the actor and 5e-5 for the
+    # critics (DrQ-v2's 1e-4, between), batches of 128 (its script's default is 2), one gradient
+    # step per env step. Both images are aligned with each other, so no random shift (a shift per
+    # field would misalign them), and no frame stack: the state holds the parameters so far.
+    (PHOTO, "td3"): dict(
+        hidden="400,300", activation="relu", layer_norm=False, batch_size=128, lr=1e-4, gamma=0.9, tau=0.007,
+        reward_scale=1.0, update_repeat=1, publish_every=10,
+        n_step=1, policy_delay=2, target_noise=0.04, scheduled_target_noise=False, noise_clip=0.01,
+        exploration_std_start=0.02, exploration_std_end=0.02, exploration_std_updates=250_000,
+        relative_x=False, normalize_obs=False, mirror=False,
+        min_replay=100, samples_per_insert=128.0, hold_actors=True,
+        random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0,
+    ),
 }
 
 # What each setting is, for its `l2r up` flag's help.
@@ -150,6 +168,8 @@ SETTINGS: dict[str, str] = {
     "envs_per_actor": "environments per actor, batched in one policy call",
     "action_repeat": "0.01 s environment steps per action on the runner, environment steps per action on another "
                      "task (stored in checkpoints for `l2r eval`)",
+    "frame_stack": "image observations: frames stacked into each observation (TD3; unset: the learner's 3)",
+    "augment_pad": "image observations: pixels of DrQ's random shift (TD3; 0: none; unset: the learner's 4)",
 }
 # Settings whose values are one of a few names.
 CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS}

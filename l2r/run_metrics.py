@@ -22,7 +22,8 @@ status.csv, and the learner counts its updates on from its checkpoint.
 
 Evaluations are judged by the task family's score (l2r.families), and the status figures that
 speak of it take its name: `eval_distance` and `best_eval_distance` on the runner,
-`eval_return` and `best_eval_return` on a standard task.
+`eval_psnr` and `best_eval_psnr` on a photo task, `eval_return` and `best_eval_return` on a
+standard task; a photo task's episodes.csv and evaluation.csv have a `psnr` column.
 """
 
 from __future__ import annotations
@@ -278,7 +279,8 @@ class RunMetrics:
             row = self._leading() | {
                 "actor": ep.actor_id, "env": ep.env_id, "simulator": simulator, "return": ep.episode_return,
                 "distance": ep.distance,
-                "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty}
+                "length": ep.length, "version": ep.policy_version, "seed": ep.seed, "difficulty": ep.difficulty,
+                self.score.name: self.score.of(ep)}  # a photo task's psnr beside the columns of every task
             if ep.evaluation and (self.best_eval is None
                                   or self._score_of_row(row) > self._score_of_row(self.best_eval)):
                 self.best_eval = row

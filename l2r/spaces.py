@@ -20,6 +20,7 @@ def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
     """The observation spec and action width of a gymnasium task (l2r's own ids included);
     ValueError, saying why, for one l2r cannot train on."""
     import l2r.control  # noqa: F401  (registers the camera tasks' ids)
+    import l2r.photo  # noqa: F401  (registers the photo tasks')
     import l2r.sim  # noqa: F401  (registers the runner's)
 
     try:

@@ -43,11 +43,12 @@ import numpy as np
 import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id can name them)
+import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import CommandParser
 from l2r.episodes.read import find_episode
-from l2r.families import FAMILIES, PIXELS, RUNNER, family_of, score_of
+from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
@@ -61,7 +62,7 @@ from l2r.supervise import Child, ProcessGroup, last_lines
 
 log = logging.getLogger("l2r.up")
 
-VECTOR_CAPACITY, IMAGE_CAPACITY = 1_000_000, 100_000
+VECTOR_CAPACITY, IMAGE_CAPACITY, PHOTO_CAPACITY = 1_000_000, 100_000, 16_384  # photo: RLPixTuner's replay size
 IMAGE_SIDE_FRACTION = 0.0625
 
 # Flags a --resume does not take from launch.json: they name the run directory, not the job, or
@@ -141,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "replay server and learner then take its observation spec, the job trains with the standard "
                         "recipe, and the runner's own options are off: --relative-x, --mirror, the actors' blow-up "
                         "check); or a camera task, l2r/dmc-<domain>-<task>-v0 such as l2r/dmc-cartpole-swingup-v0 "
-                        "(84 x 84 frames, DrQ-v2's pixels recipe, --algo td3)")
+                        "(84 x 84 frames, DrQ-v2's pixels recipe, --algo td3); or the photo tuner l2r/PhotoTune-v0 "
+                        "(RLPixTuner's photo recipe, --algo td3, scored by PSNR in dB)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--evaluators", type=int, default=1,
@@ -176,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "policy versions")
     le.add_argument("--capacity", type=int,
                     help=f"replay capacity in transitions (SAC, TD3); unset: {VECTOR_CAPACITY:,}, and {IMAGE_CAPACITY:,} "
-                         f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start)")
+                         f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start), "
+                         f"{PHOTO_CAPACITY:,} for photo tasks")
     le.add_argument("--queue-capacity", type=int,
                     help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
     le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,
@@ -194,9 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
     rc = p.add_argument_group("recipe: every hyperparameter of the job, from the recipe of the task's family and "
                               "algorithm (docs/training.md, \"Recipes\") unless its flag is given")
     rc.add_argument("--recipe", choices=FAMILIES,
-                    help="train with this family's recipe (unset: the family of --env-id: runner for the runner's l2r/Run ids, "
-                         "pixels for the camera tasks' l2r/dmc- ids, standard for any other task), e.g. --recipe runner "
-                         "on Hopper-v5 to set the two against each other")
+                    help="train with this family's recipe (unset: the family of --env-id: runner for the runner's "
+                         "l2r/Run ids, pixels for the camera tasks' l2r/dmc- ids, photo for the photo tasks' "
+                         "l2r/Photo ids, standard for any other task), e.g. --recipe runner on Hopper-v5 to set the "
+                         "two against each other")
     for name, text in SETTINGS.items():
         rc.add_argument(f"--{name.replace('_', '-')}", **_recipe_flag(name, text))
     o = p.add_argument_group("output")
@@ -385,7 +389,8 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
 
 def replay_capacity(args: argparse.Namespace) -> int:
     """--capacity, else the default for the task's observations."""
-    return args.capacity or (IMAGE_CAPACITY if family_of(args.env_id) == PIXELS else VECTOR_CAPACITY)
+    capacities = {PIXELS: IMAGE_CAPACITY, PHOTO: PHOTO_CAPACITY}
+    return args.capacity or capacities.get(family_of(args.env_id), VECTOR_CAPACITY)
 
 
 def task_flags(env_id: str) -> tuple[list[str], list[str]]:
@@ -508,7 +513,8 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
     episode = metrics.best_eval
     summary["best_eval_episode"] = None if episode is None else {
         "actor": int(episode["actor"]), "seed": int(episode["seed"]), "version": int(episode["version"]),
-        "distance": float(episode["distance"]), "return": float(episode["return"]), "length": int(episode["length"])}
+        "distance": float(episode["distance"]), "return": float(episode["return"]), "length": int(episode["length"]),
+        score: float(episode[score])}  # a photo task's psnr beside the others
     summary["best_policy"] = None if best.best is None else {"path": str(best.path), **best.best}
     if episode is not None:
         found = find_episode(run_dir / "episodes", kind="eval", actor=int(episode["actor"]), seed=int(episode["seed"]),

@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import gymnasium
 import numpy as np
@@ -25,6 +26,7 @@ import torch
 import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks, l2r/dmc-<domain>-<task>-v0)
+import l2r.photo  # noqa: F401  (registers the photo tasks, l2r/PhotoTune-v0)
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
@@ -295,7 +297,7 @@ class Actor:
             self.live.publish(i, slot.episode, slot.length, reward, info)
             start_obs = None
             if terminated or truncated:
-                self.end_episode(i, slot, float(info.get("distance", 0.0)), terminated, truncated)
+                self.end_episode(i, slot, info, terminated, truncated)
                 start_obs = slot.obs
                 self.stacks.reset(i, start_obs)
             else:
@@ -318,13 +320,14 @@ class Actor:
             "env_id": self.config.env_id, "seed": seed, "difficulty": self.config.difficulty, "evaluation": True,
             "policy_version": self.weights.version, "obstacles": getattr(env.unwrapped, "obstacles", [])})
 
-    def end_episode(self, i: int, slot: EnvSlot, final_x: float, terminated: bool, truncated: bool) -> None:
+    def end_episode(self, i: int, slot: EnvSlot, info: dict, terminated: bool, truncated: bool) -> None:
+        """Publish the summary of env i's episode, whose last step's info is `info`, and start the next."""
         summary = EpisodeSummary(
             actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
-            distance=final_x - slot.start_x, length=slot.length,
+            distance=float(info.get("distance", 0.0)) - slot.start_x, length=slot.length,
             policy_version=-1 if self.acting_randomly else self.weights.version,
             difficulty=self.config.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
-            time=time.time())
+            time=time.time(), psnr_db=final_psnr(info))
         self.summaries.put(encode(summary))
         if slot.recorder is not None:
             slot.recorder.end({"return": summary.episode_return, "distance": summary.distance,
@@ -374,11 +377,12 @@ class Actor:
             results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
                                         self.record_evaluation if self.episode_logger is not None else None,
                                         self.config.max_speed, self.weights.frame_stack, self.config.env_id)
-            for env_index, (seed, (ret, distance, length)) in enumerate(zip(seeds, results)):
+            for env_index, (seed, result) in enumerate(zip(seeds, results)):
                 summary = EpisodeSummary(
-                    actor_id=self.config.actor_id, env_id=env_index, episode_return=ret, distance=distance,
-                    length=length, policy_version=version, difficulty=self.config.difficulty, seed=seed,
-                    evaluation=True, time=time.time())
+                    actor_id=self.config.actor_id, env_id=env_index, episode_return=result.episode_return,
+                    distance=result.distance, length=result.length, policy_version=version,
+                    difficulty=self.config.difficulty, seed=seed, evaluation=True, time=time.time(),
+                    psnr_db=result.psnr_db)
                 self.summaries.put(encode(summary))
                 self.episodes += 1
                 scores.append(score.of(summary))
@@ -485,10 +489,24 @@ class Resender:
         self._acks.undeclare()
 
 
+def final_psnr(info: dict) -> float | None:
+    """A photo task's score from its last step's info: the PSNR to the goal (None on other tasks)."""
+    return None if "psnr_db" not in info else float(info["psnr_db"])
+
+
+class EpisodeResult(NamedTuple):
+    """One deterministic episode, in the terms of EpisodeSummary (so a family's Score reads it)."""
+
+    episode_return: float
+    distance: float
+    length: int
+    psnr_db: float | None = None
+
+
 def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop: threading.Event | None = None,
                       record=None, max_speed: float = ActorConfig.max_speed, frame_stack: int = 1,
-                      env_id: str = "the environment") -> list[tuple[float, float, int]]:
-    """Run one deterministic episode per env (batched policy calls); (return, distance, steps) each.
+                      env_id: str = "the environment") -> list[EpisodeResult]:
+    """Run one deterministic episode per env (batched policy calls); its EpisodeResult each.
 
     The policy acts on stacks of the last ``frame_stack`` observations, as in training.
     ``record(env, seed)``, if given, is called after each reset and returns an episode
@@ -523,9 +541,10 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop:
             if recorders[i] is not None:
                 recorders[i].log_step(o, action, reward, info)
             if terminated or truncated:
-                results[i] = (returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i])
+                results[i] = EpisodeResult(returns[i], float(info.get("distance", 0.0)) - start_x[i], lengths[i],
+                                           final_psnr(info))
                 if recorders[i] is not None:
-                    recorders[i].end({"return": returns[i], "distance": results[i][1], "length": lengths[i],
+                    recorders[i].end({"return": returns[i], "distance": results[i].distance, "length": lengths[i],
                                       "terminated": terminated, "truncated": truncated})
             else:
                 still.append(i)

@@ -28,6 +28,7 @@ a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the curre
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -76,16 +77,22 @@ class PhotoTuneEnv(gym.Env):
 
     split: "train" or "test", the photos episodes are cropped from (l2r.photo.photos.SPLITS).
     max_steps: steps (pipeline queries) per episode.
+    sources: photos to crop from instead of the split's, by name ([3, H, W] uint8 or uint16: a
+        FiveK folder's, say).
     """
 
     metadata = {"render_modes": []}
 
-    def __init__(self, split: str = "train", max_steps: int = MAX_STEPS):
+    def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
+                 sources: Mapping[str, np.ndarray] | None = None):
         photos.check_split(split)
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        if sources is not None and not sources:
+            raise ValueError("PhotoTune: sources holds no photo")
         self.split, self.max_steps = split, max_steps
-        self.photos: dict[str, np.ndarray] | None = None  # loaded at the first reset: the spaces need none
+        # loaded at the first reset: the spaces need none
+        self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
         side = photos.OBSERVATION_SIZE
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
         self.observation_space = gym.spaces.Dict({
@@ -96,7 +103,22 @@ class PhotoTuneEnv(gym.Env):
         self.episode_over = True
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
+        """A new episode on a crop and goal drawn from the split; `options={"source": S, "goal": G}`
+        tunes S towards G instead (float32 [3, 256, 256] in [0, 1]: `l2r photo tune`'s way)."""
         super().reset(seed=seed)
+        if options and "goal" in options:
+            self.photo_name = "given"
+            self.source, self.goal = (self.check_image(options, name) for name in ("source", "goal"))
+        else:
+            self.draw()
+        self.goal_small = photos.downsample(self.goal)
+        self.image, self.params, self.steps = self.source, NEUTRAL, 0
+        self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
+        self.episode_over = False
+        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name}
+
+    def draw(self) -> None:
+        """A crop of a photo of the split and its goal, neither collapsed."""
         if self.photos is None:
             self.photos = photos.load_split(self.split)
         names = list(self.photos)
@@ -109,11 +131,15 @@ class PhotoTuneEnv(gym.Env):
                 break
         else:
             raise RuntimeError(f"{MAX_DRAWS} crops and goals of the {self.split} photos in a row were collapsed")
-        self.goal_small = photos.downsample(self.goal)
-        self.image, self.params, self.steps = self.source, NEUTRAL, 0
-        self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
-        self.episode_over = False
-        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name}
+
+    @staticmethod
+    def check_image(options: dict, name: str) -> np.ndarray:
+        side = photos.WORKING_SIZE
+        image = np.asarray(options.get(name), dtype=np.float32)
+        if image.shape != (3, side, side) or not np.isfinite(image).all():
+            raise ValueError(f"PhotoTune: reset option {name!r} must be a finite float image [3, {side}, {side}], "
+                             f"got shape {list(image.shape)}")
+        return np.clip(image, 0.0, 1.0)
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self.episode_over:

@@ -357,7 +357,7 @@ class EpisodeSummary(Message):
     SCHEMA: ClassVar[dict[str, str]] = {
         "actor_id": "int", "env_id": "int", "episode_return": "float", "distance": "float",
         "length": "int", "policy_version": "int", "difficulty": "int", "seed": "int",
-        "evaluation": "bool", "time": "float",
+        "evaluation": "bool", "time": "float", "psnr_db": "float?",
     }
     actor_id: int
     env_id: int
@@ -369,6 +369,9 @@ class EpisodeSummary(Message):
     seed: int
     evaluation: bool = False
     time: float = 0.0  # sender's wall clock (s since epoch)
+    psnr_db: float | None = None
+    """The last image's PSNR to its goal, in dB: a photo task's score (its last step's
+    `info["psnr_db"]`); None on other tasks, and from actors older than the field."""
 
 
 @dataclass

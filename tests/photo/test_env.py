@@ -8,7 +8,7 @@ from gymnasium.utils.env_checker import check_env
 import numpy as np
 import pytest
 
-import l2r.photo  # noqa: F401  (registers the id)
+import l2r.photo.env  # registers the id (l2r.photo)
 from l2r.photo import photos
 from l2r.photo.env import collapsed, image_statistics, psnr_db
 from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
@@ -146,3 +146,24 @@ def test_bad_actions_are_refused_in_words(env):
         env.step(np.full(9, np.nan))
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         gymnasium.make("l2r/PhotoTune-v0", max_steps=0)
+
+
+def test_a_given_source_and_goal_replace_the_draw(env):
+    rng = np.random.default_rng(0)
+    source = photos.random_crop(photos.load_photo("coffee"), rng)
+    goal = finish(source[None], params_from_actions(DARKEN * 0.3))[0]
+    obs, info = env.reset(seed=1, options={"source": source, "goal": goal})
+    assert info["photo"] == "given" and info["psnr_db"] == pytest.approx(psnr(source, goal), abs=1e-3)
+    np.testing.assert_array_equal(obs["goal"], photos.to_uint8(photos.downsample(goal)))
+    _, _, _, _, info = env.step(DARKEN * 0.3)
+    assert info["psnr_db"] == 100.0  # the goal's own parameters reach it exactly
+    with pytest.raises(ValueError, match=r"reset option 'goal' must be a finite float image \[3, 256, 256\]"):
+        env.reset(options={"source": source, "goal": goal[:, :64, :64]})
+
+
+def test_photos_given_to_the_env_are_the_ones_it_crops():
+    photo = photos.load_photo("rocket")
+    given = l2r.photo.env.PhotoTuneEnv(sources={"mine": photo})
+    assert {given.reset(seed=seed)[1]["photo"] for seed in range(3)} == {"mine"}
+    with pytest.raises(ValueError, match="sources holds no photo"):
+        l2r.photo.env.PhotoTuneEnv(sources={})

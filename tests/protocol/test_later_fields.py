@@ -8,7 +8,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from l2r.protocol import ExperienceChunk, ProtocolError, ReplayAck, SampleBatch, SampleRequest, decode, encode
+from l2r.protocol import (
+    EpisodeSummary, ExperienceChunk, ProtocolError, ReplayAck, SampleBatch, SampleRequest, decode, encode,
+)
 from tests.protocol.factories import every_message, make_chunk
 
 
@@ -52,6 +54,15 @@ def test_a_field_left_unset_is_left_out_so_earlier_peers_get_the_bytes_they_know
     assert b"table" not in encode(SampleRequest(64, 1, False, 3))
     assert b"log_probs" not in encode(make_chunk(steps=3))
     assert b"n_step" not in encode(SampleRequest(64)) and b"gamma" not in encode(SampleRequest(64))
+
+
+def test_an_episode_summary_carries_a_psnr_from_photo_tasks_alone():
+    episode = EpisodeSummary(actor_id=1, env_id=0, episode_return=0.2, distance=0.0, length=10, policy_version=3,
+                             difficulty=0, seed=7)
+    assert b"psnr_db" not in encode(episode)  # other tasks' summaries are the bytes they were
+    episode.psnr_db = 31.5
+    assert decode(encode(episode)).psnr_db == 31.5
+    assert decode(without(episode, "psnr_db")).psnr_db is None
 
 
 def test_the_new_fields_round_trip():

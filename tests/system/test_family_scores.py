@@ -1,5 +1,5 @@
 """`l2r up` judges evaluations by the score of the task's family (l2r.families), and speaks of them
-in its terms: the runner's distance, a standard task's return. A real BestPolicy and RunMetrics
+in its terms: the runner's distance, a photo task's PSNR, a standard task's return. A real BestPolicy and RunMetrics
 hear weights and evaluation rounds over loopback Zenoh as in a job; `after_run` and
 `final_report` then write and say what the job left."""
 
@@ -14,6 +14,7 @@ from l2r.best_policy import BestPolicy
 from l2r.families import score_of
 from l2r.learner.checkpoint import best_policy_path, load_checkpoint, save_policy_checkpoint
 from l2r.live_status import status_line
+from l2r.photo import TUNE_ID
 from l2r.policy import build_policy, policy_state
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Weights, encode, session_config
 from l2r.run_metrics import RunMetrics
@@ -22,12 +23,13 @@ from l2r.up import after_run, final_report, parse_args
 from tests.conftest import free_port, wait_for
 
 SPEC = {"obs_dim": 11, "act_dim": 3, "hidden": [8], "activation": "relu", "layer_norm": False}
-# Policy versions, each evaluated on seeds 0 and 1: (return, distance) of each episode. By mean
-# return v2 beats v1, by mean distance it does not; the best single episode is v2's on seed 1 by
-# return, v1's on seed 0 by distance. The last round beats every other by both means (so once
-# best.pt holds it, every round before has been judged), but by neither in a single episode.
-ROUNDS = {1: [(10.0, 3.0), (12.0, 2.0)], 2: [(60.0, 1.0), (80.0, 0.5)], 3: [(30.0, 2.0), (20.0, 1.5)],
-          4: [(75.0, 2.6), (75.0, 2.6)]}
+# Policy versions, each evaluated on seeds 0 and 1: (return, distance, PSNR) of each episode. By
+# mean return v2 beats v1, by mean distance and PSNR it does not; by mean PSNR v3 beats v1, by
+# mean distance it does not. The best single episode is v2's on seed 1 by return, v1's on seed 0
+# by distance, v3's on seed 0 by PSNR. The last round beats every other by each mean (so once
+# best.pt holds it, every round before has been judged), but by none in a single episode.
+ROUNDS = {1: [(10.0, 3.0, 20.0), (12.0, 2.0, 22.0)], 2: [(60.0, 1.0, 15.0), (80.0, 0.5, 16.0)],
+          3: [(30.0, 2.0, 25.0), (20.0, 1.5, 24.0)], 4: [(75.0, 2.6, 24.8), (75.0, 2.6, 24.8)]}
 EVALUATOR = 0
 
 
@@ -55,10 +57,11 @@ def job(run_dir, env_id: str, caplog) -> tuple[dict, BestPolicy, str, list[int]]
             assert wait_for(lambda: len(best._weights) == len(ROUNDS), 10)
             with caplog.at_level(logging.INFO, logger="l2r.up"):
                 for version, results in ROUNDS.items():
-                    for seed, (ret, distance) in enumerate(results):
+                    for seed, (ret, distance, psnr) in enumerate(results):
                         episodes.put(encode(EpisodeSummary(
                             actor_id=EVALUATOR, env_id=seed, episode_return=ret, distance=distance, length=100,
-                            policy_version=version, difficulty=0, seed=seed, evaluation=True)))
+                            policy_version=version, difficulty=0, seed=seed, evaluation=True,
+                            psnr_db=psnr if env_id == TUNE_ID else None)))
                 assert wait_for(lambda: metrics.episodes == 8 and best.best and best.best["version"] == 4, 10)
             saved = [int(v) for v in re.findall(r"best evaluated policy so far: v(\d+)", caplog.text)]
             line = status_line(metrics.record_status(), score)
@@ -70,8 +73,8 @@ def job(run_dir, env_id: str, caplog) -> tuple[dict, BestPolicy, str, list[int]]
     return summary, best, line, saved
 
 
-def report(run_dir, env_id: str, summary: dict) -> str:
-    args, _ = parse_args(["--env-id", env_id, "--runs-dir", str(run_dir.parent)])
+def report(run_dir, env_id: str, summary: dict, *argv: str) -> str:
+    args, _ = parse_args(["--env-id", env_id, "--runs-dir", str(run_dir.parent), *argv])
     return "\n".join(final_report(run_dir, summary, args, updates_before=0))
 
 
@@ -113,6 +116,25 @@ def test_the_runner_keeps_the_policy_and_the_episode_of_the_longest_distance_and
     assert "best evaluation distance 3.00 m" in said
     assert f"(v4, mean distance 2.60 m): l2r eval {best.path}\n" in said
     assert "a longer run: l2r up" in said
+
+
+def test_a_photo_task_keeps_the_policy_and_the_episode_of_the_best_psnr_and_speaks_of_decibels(tmp_path, caplog):
+    summary, best, line, saved = job(tmp_path, TUNE_ID, caplog)
+
+    assert saved == [1, 3, 4]
+    kept = load_checkpoint(best_policy_path(tmp_path))
+    assert kept.evaluation == {"version": 4, "score": "psnr", "mean_psnr": 24.8, "episodes": 2, "seeds": [0, 1],
+                               "evaluator": EVALUATOR}
+    assert (summary["best_eval_episode"]["version"], summary["best_eval_episode"]["seed"]) == (3, 0)
+    assert summary["best_eval_episode"]["psnr"] == 25.0
+    assert (summary["score"], summary["best_eval_score"], summary["best_eval_psnr"]) == ("psnr", 25.0, 25.0)
+    csv_header = (tmp_path / "metrics" / "evaluation.csv").read_text().splitlines()[0]
+    assert csv_header.endswith(",psnr")
+
+    assert "| eval psnr 21.45 dB |" in line
+    said = report(tmp_path, TUNE_ID, summary, "--algo", "td3")
+    assert "best evaluation psnr 25.00 dB" in said
+    assert f"(v4, mean psnr 24.80 dB): l2r eval {best.path} --env-id {TUNE_ID}" in said
 
 
 def earlier_best(run_dir, evaluation: dict) -> None:

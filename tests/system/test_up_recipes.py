@@ -9,7 +9,7 @@ import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
-from l2r.recipes import PIXELS, RECIPES, RUNNER, SETTINGS, STANDARD
+from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, SETTINGS, STANDARD
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
 
@@ -111,7 +111,8 @@ def test_the_runner_trains_as_before_recipes(algo):
 @pytest.mark.parametrize("family, algo", RECIPES)
 def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, algo):
     recipe = RECIPES[family, algo]
-    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", STANDARD: "Walker2d-v5"}[family]
+    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: "l2r/PhotoTune-v0",
+              STANDARD: "Walker2d-v5"}[family]
     assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == recipe
 
 
@@ -156,9 +157,10 @@ def test_every_setting_of_the_recipes_is_described_and_of_one_type():
 def test_each_flag_s_help_names_the_recipes_values():
     help_ = {action.dest: action.help for action in build_parser()._actions}
     assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
-                                          "runner/td3 10, standard/td3 1, pixels/td3 1")
-    assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off")
-    assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2, pixels/td3 1")
+                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1")
+    assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off, "
+                                    "photo/td3 off")
+    assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2, pixels/td3 1, photo/td3 2")
 
 
 def test_a_learner_arg_still_wins_over_the_recipe():

@@ -1,0 +1,45 @@
+"""`l2r up` on the photo tuner, end to end: real replay, learner, actor and evaluator processes over
+loopback Zenoh, the actor editing real photos with the pipeline, the learner training TD3 on the
+current and goal images and the state with the photo recipe, and best.pt kept by PSNR."""
+
+import json
+import re
+import uuid
+
+import pytest
+import torch
+
+from l2r.photo import TUNE_ID
+from tests.system.test_up import finish, l2r_up, rows
+
+pytestmark = pytest.mark.slow
+
+
+def test_the_photo_tuner_trains_evaluates_and_keeps_its_best_policy_by_psnr(tmp_path):
+    name = f"test-{uuid.uuid4().hex[:6]}"
+    proc = l2r_up(tmp_path / "up.out", "--env-id", TUNE_ID, "--algo", "td3", "--env-steps", "500",
+                  "--seconds", "300", "--name", name, "--runs-dir", str(tmp_path), "--hidden", "32,32",
+                  "--batch-size", "16", "--samples-per-insert", "4", "--random-steps", "50", "--min-replay", "50",
+                  "--capacity", "1000", "--publish-every", "5", "--eval-episodes", "2", "--eval-interval", "3",
+                  "--status-interval", "2", "--learner-arg=--checkpoint-interval=3")
+    out = finish(proc, tmp_path / "up.out", 300)
+    assert proc.returncode == 0, out
+    run_dir = next(tmp_path.glob(f"{name}-*"))
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["env_steps"] >= 500 and summary["updates"] > 0, summary
+    assert summary["score"] == "psnr", summary
+    assert re.search(r"\| eval psnr \d+\.\d\d dB \|", out), out  # the status line speaks of PSNR
+
+    logs = run_dir / "logs"
+    assert "observation {goal: uint8[3, 64, 64], pixels: uint8[3, 64, 64], state: float32[16]}" in \
+        (logs / "replay.log").read_text()
+    trained = [float(r["psnr"]) for r in rows(run_dir / "metrics" / "episodes.csv")]
+    assert trained and all(0.0 < p <= 100.0 for p in trained), trained  # the actors' episodes too
+    evaluations = rows(run_dir / "metrics" / "evaluation.csv")
+    assert evaluations and max(int(r["version"]) for r in evaluations) > 1, evaluations
+    psnrs = [float(r["psnr"]) for r in evaluations]
+    assert all(0.0 < p <= 100.0 for p in psnrs), psnrs  # PSNRs in dB (of images in [0, 1]), never NaN
+    best = torch.load(run_dir / "learner" / "best.pt", weights_only=False)
+    assert best["evaluation"]["score"] == "psnr"
+    chosen = [float(r["psnr"]) for r in evaluations if int(r["version"]) == best["evaluation"]["version"]]
+    assert best["evaluation"]["mean_psnr"] == pytest.approx(sum(chosen) / len(chosen))
