@@ -34,7 +34,7 @@ from l2r.actors.frame_stack import FrameStack
 from l2r.actors.weights import WeightFollower
 from l2r.config import StartupFailure
 from l2r.episodes.live import LiveFrames
-from l2r.families import RUNNER, family_of, score_of
+from l2r.families import PHOTO, RUNNER, family_of, score_of
 from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, Keys, ObservationSpec,
@@ -207,7 +207,9 @@ class Actor:
         seeds = [episode_seed(config, i, 0) for i in range(config.num_envs)]
         envs = [make_env(config, seed) for seed in seeds]
         self.observation = observation_spec(envs[0], config.env_id)
-        self.camera = any(field.dtype == np.uint8 for field in self.observation.fields.values())
+        # Photos are images too, but no camera renders them: no frames to count.
+        images = any(field.dtype == np.uint8 for field in self.observation.fields.values())
+        self.camera = images and family_of(config.env_id) != PHOTO
         self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
         for env, seed in zip(envs, seeds):
             obs, info = env.reset(seed=seed)

@@ -29,6 +29,7 @@ def test_the_photo_tuner_trains_evaluates_and_keeps_its_best_policy_by_psnr(tmp_
     assert summary["env_steps"] >= 500 and summary["updates"] > 0, summary
     assert summary["score"] == "psnr", summary
     assert re.search(r"\| eval psnr \d+\.\d\d dB \|", out), out  # the status line speaks of PSNR
+    assert "frames/s" not in out  # a photo is no camera frame
 
     logs = run_dir / "logs"
     assert "observation {goal: uint8[3, 64, 64], pixels: uint8[3, 64, 64], state: float32[16]}" in \
