@@ -99,7 +99,10 @@ class EpisodeFile:
 
     def discard(self) -> None:
         """Give the episode up: close and remove the partial file."""
-        self.file.close()
+        try:
+            self.file.close()
+        except OSError:
+            pass  # a full disk refusing what the file still buffered: given up with it
         self.part.unlink(missing_ok=True)
 
 
