@@ -1,0 +1,57 @@
+"""`l2r up` on a disk of its own (a tmpfs the test mounts): a run that may not fit is refused
+before anything starts, and a disk that fills while the job runs stops it with one line that
+names the run directory and its free space, no traceback, the newest checkpoint whole for
+`l2r eval` and the command that resumes it."""
+
+import json
+import re
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import ROOT, wait_for
+from tests.system.test_up import SMALL, finish, l2r_up
+
+
+def test_a_run_that_may_not_fit_on_its_disk_is_refused_in_one_line(small_disk):
+    disk = small_disk(8)
+    # The default replay table (a million transitions) alone is estimated at about 900 MB.
+    done = subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--runs-dir", str(disk.path), "--seconds", "5"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "MB free at" in lines[0] and "replay" in lines[0] and "--force" in lines[0], lines
+    assert not any(disk.path.iterdir()), "a refused run left a run directory"
+
+
+@pytest.mark.slow
+def test_a_disk_that_fills_stops_the_job_in_one_line_and_keeps_the_newest_checkpoint(small_disk, tmp_path):
+    disk = small_disk(48)
+    # Small enough to fit the start-up estimate: 5,000 transitions, 2 MB of episodes per actor.
+    proc = l2r_up(tmp_path / "up.out", "--seconds", "600", "--runs-dir", str(disk.path), "--capacity", "5000",
+                  "--actor-arg=--log-budget-mb=2", "--envs-per-actor", "2", "--eval-interval", "3", *SMALL)
+    try:
+        run_dir = wait_for(lambda: next(disk.path.glob("l2r-*"), None), timeout=60)
+        assert run_dir, "no run directory"
+        checkpoint = run_dir / "learner" / "checkpoint.pt"
+        assert wait_for(checkpoint.exists, timeout=240), "no checkpoint"
+        disk.fill()
+        proc.wait(120)
+    finally:
+        out = finish(proc, tmp_path / "up.out", 10)
+    assert proc.returncode == 1, out
+    assert "Traceback" not in out and "Logging error" not in out, out
+    stop = [line for line in out.splitlines() if line.startswith("l2r up: failed:")]
+    assert len(stop) == 1 and f"disk full at {run_dir}: " in stop[0] and " MB free" in stop[0], out
+    # One line per cause (metrics, up.log, the stop), not one per failed write.
+    causes = [re.sub(r"^[\d-]+ [\d:,]+ ", "", line).split("disk full at")[0] for line in out.splitlines()
+              if "disk full at" in line]
+    assert len(causes) == len(set(causes)), out
+    assert f"l2r up --resume {run_dir}" in out
+    assert "learner stopped (exit code 0)" in out  # its last checkpoint refused, in a line of its own log
+
+    ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--episodes", "1", "--json"],
+                        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert ev.returncode == 0, ev.stderr
+    assert json.loads(ev.stdout.strip().splitlines()[-1])["version"] >= 1
