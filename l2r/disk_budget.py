@@ -15,7 +15,8 @@ The estimate is the most each part can grow to, from the run's flags (docs/train
                   an hour's worth when the run has no time limit
 
 `l2r up` refuses a run whose estimate exceeds the free space (less what a resumed run directory
-already holds), unless --force. While it runs, it stops the job when the free space falls below
+already holds), unless --force. While it runs, its status line shows the free space once it is
+below `LOW_FACTOR` reserves, and it stops the job when the free space falls below
 `reserve_bytes`: room for the learner's last checkpoint, so that the newest one is whole.
 """
 
@@ -33,6 +34,7 @@ from l2r.supervise import Child
 
 METRICS_BYTES_PER_HOUR = 16 * MB
 RESERVE_MARGIN = 1 * MB  # beyond the last checkpoint: summary.json, the last log lines
+LOW_FACTOR = 10  # the status line shows the free space once it is below this many reserves
 
 
 def _mlp_parameters(widths: list[int]) -> int:

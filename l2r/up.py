@@ -721,10 +721,13 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
                         reason[0] = spent
                         break
                     if time.monotonic() >= next_status:
-                        display.update(metrics.record_status(), children)
+                        figures, free = metrics.record_status(), free_bytes(run_dir)
+                        reserve = disk_budget.reserve_bytes(run_dir, checkpoint_estimate)
+                        if free < disk_budget.LOW_FACTOR * reserve:
+                            figures["disk_free_mb"] = free / MB
+                        display.update(figures, children)
                         next_status += args.status_interval
-                        free = free_bytes(run_dir)
-                        if free < disk_budget.reserve_bytes(run_dir, checkpoint_estimate):
+                        if free < reserve:
                             reason[0], code = f"disk full at {run_dir}: {free / MB:.1f} MB free", 1
                             break
                 display.update(metrics.record_status(), children)
