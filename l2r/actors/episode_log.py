@@ -195,8 +195,8 @@ class EpisodeLogger:
                 elif what == "block":
                     open_files[recorder].write_block(recorder.layout, *item[2:])
                 elif what == "end":
-                    done = open_files.pop(recorder)
-                    done.finish(item[2])
+                    open_files[recorder].finish(item[2])
+                    del open_files[recorder]  # only now: a file that failed to finish is discarded below
                     self.stats["episodes_written"] += 1
                     self.write_failures.succeeded()
                     if recorder.kind == "best":
