@@ -26,6 +26,7 @@ from pathlib import Path
 
 import zenoh
 
+from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.families import Score
 from l2r.learner.checkpoint import CheckpointError, best_policy_path, load_checkpoint, save_policy_checkpoint
 from l2r.protocol import EpisodeSummary, EvaluationRound, Keys, LearnerVersion, Weights, watched
@@ -41,6 +42,7 @@ class BestPolicy:
     def __init__(self, session: zenoh.Session, keys: Keys, run_dir: Path, episodes_per_round: int,
                  action_repeat: int, score: Score, judges: set[int] | None = None):
         self.path = best_policy_path(run_dir)
+        self.write_failures = FailureLog(log, "best evaluated policy")
         self.score = score
         self.judges = judges  # the evaluators (actor ids) whose rounds count; None: all of them
         self.episodes_per_round, self.action_repeat = episodes_per_round, action_repeat
@@ -134,8 +136,15 @@ class BestPolicy:
                 return
             evaluation = {"version": ep.policy_version, "score": self.score.name, f"mean_{self.score.name}": mean,
                           "episodes": len(round_), "seeds": sorted(round_), "evaluator": ep.actor_id}
-            save_policy_checkpoint(self.path, weights.params, weights.spec, ep.policy_version,
-                                   self._updates.get(ep.policy_version, -1), self.action_repeat, evaluation)
+            try:
+                save_policy_checkpoint(self.path, weights.params, weights.spec, ep.policy_version,
+                                       self._updates.get(ep.policy_version, -1), self.action_repeat, evaluation)
+            except OSError as e:
+                if e.errno not in DISK_ERRORS:
+                    raise
+                self.write_failures.failed(e, self.path, f"the policy v{ep.policy_version} is not kept")
+                return
+            self.write_failures.succeeded()
             self.best = evaluation
             log.info("best evaluated policy so far: v%d, mean %s, saved as %s", ep.policy_version,
                      self.score.text(mean), self.path)

@@ -37,7 +37,8 @@ def status_line(s: dict, score: Score) -> str:
             + f" | eval {score.text(s[f'eval_{score.name}'])}"
             + ("" if opensim is None else f" (OpenSim {score.shown(opensim)})")
             + f" | lag {s['policy_lag']:.0f}"
-            f" | replay {s['replay_size']:,}")
+            f" | replay {s['replay_size']:,}"
+            + ("" if s.get("disk_free_mb") is None else f" | disk {s['disk_free_mb']:,.1f} MB free"))
 
 
 def restarts_note(children: list[Child]) -> str:

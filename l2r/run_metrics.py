@@ -28,21 +28,25 @@ standard task; a photo task's episodes.csv and evaluation.csv have a `psnr` colu
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import math
 import os
+import socket
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, BinaryIO, TextIO
 
 import zenoh
 from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
-from tensorboard.summary.writer.event_file_writer import EventFileWriter
+from tensorboard.summary.writer.record_writer import RecordWriter
 
+from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.families import RUNNER, family_of, score_of
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Stats, watched
 from l2r.sim import OPENSIM_ID, PORT_ID
@@ -55,11 +59,17 @@ EPISODE_COLUMNS = ["actor", "env", "simulator", "return", "distance", "length", 
 
 class CsvLog:
     """A CSV file that gains columns as new values appear. A new column rewrites the file
-    (values first appear in the first minutes of a run, so this is rare and the file small)."""
+    (values first appear in the first minutes of a run, so this is rare and the file small).
 
-    def __init__(self, path: Path, columns: list[str]):
+    A write the disk refuses (l2r.durable.DISK_ERRORS) is reported to `failures` once per cause;
+    rows are then dropped until a `flush` opens the file again, cut back to its last whole row."""
+
+    def __init__(self, path: Path, columns: list[str], failures: FailureLog):
         self.path = path
         self.columns = list(columns)
+        self.failures = failures
+        self._file: TextIO | None = None
+        self._reopened_at: int | None = None  # where the file ended when a flush opened it again
         if path.exists() and path.stat().st_size:
             with open(path, newline="") as f:
                 header = next(csv.reader(f), [])
@@ -73,29 +83,73 @@ class CsvLog:
         self._writer = csv.DictWriter(self._file, self.columns, restval="")
 
     def write(self, row: dict) -> None:
-        new = [k for k in row if k not in self.columns]
-        if new:
-            self._rewrite(self.columns + new)
-        self._writer.writerow(row)
+        if self._file is None:
+            return  # dropped until a flush opens the file again
+        with self._on_failure("rows are dropped until a write succeeds"):
+            new = [k for k in row if k not in self.columns]
+            if new:
+                self._rewrite(self.columns + new)
+            self._writer.writerow(row)
 
     def _rewrite(self, columns: list[str]) -> None:
         self._file.close()
         with open(self.path, newline="") as f:
             rows = list(csv.DictReader(f))
         tmp = self.path.with_name(f".{self.path.name}.tmp")
-        with open(tmp, "w", newline="") as f:
-            writer = csv.DictWriter(f, columns, restval="")
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, self.path)
+        try:
+            with open(tmp, "w", newline="") as f:
+                writer = csv.DictWriter(f, columns, restval="")
+                writer.writeheader()
+                writer.writerows(rows)
+            os.replace(tmp, self.path)
+        finally:
+            tmp.unlink(missing_ok=True)
         self.columns = columns
         self._open()
 
     def flush(self) -> None:
-        self._file.flush()
+        with self._on_failure("rows are dropped until a write succeeds"):
+            if self._file is None:
+                self._reopen()
+            self._file.flush()
+            if self._reopened_at is not None and self._file.tell() > self._reopened_at:  # rows reached the disk
+                self._reopened_at = None
+                self.failures.succeeded()
+
+    def _reopen(self) -> None:
+        """Open the file again after a failed write, without the row that write cut short."""
+        with open(self.path, "rb+") as f:
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(0, size - 65536))
+            tail = f.read()
+            f.truncate(size - len(tail) + tail.rfind(b"\n") + 1)
+        self._open()
+        self._reopened_at = self._file.tell()
+
+    @contextlib.contextmanager
+    def _on_failure(self, consequence: str):
+        try:
+            yield
+        except OSError as e:
+            if e.errno not in DISK_ERRORS:
+                raise
+            self.failures.failed(e, self.path, consequence)
+            _close_quietly(self._file)
+            self._file = None
 
     def close(self) -> None:
-        self._file.close()
+        with self._on_failure("its last rows are lost"):
+            if self._file is not None:
+                self._file.close()
+
+
+def _close_quietly(file: IO | None) -> None:
+    """Close a file whose writes failed: what it still buffers is lost."""
+    try:
+        if file is not None:
+            file.close()
+    except OSError:
+        pass
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
@@ -127,20 +181,66 @@ class RunCounters:
 
 class ScalarEvents:
     """TensorBoard event files of scalars, as plain `simple_value`s: what every reader of event
-    files understands (TensorBoard, its EventAccumulator, pandas readers)."""
+    files understands (TensorBoard, its EventAccumulator, pandas readers).
 
-    def __init__(self, directory: Path):
-        self._writer = EventFileWriter(str(directory))
+    Written here, on the callers' threads (TensorBoard's own writer has a thread whose failures are
+    tracebacks). After a write the disk refuses, events are dropped until a `flush` starts a new
+    file (TensorBoard reads every file of the directory; the old one ends at its last whole event)."""
+
+    def __init__(self, directory: Path, failures: FailureLog):
+        self.directory = directory
+        self.failures = failures
+        self._files = 0
+        self._file: BinaryIO | None = None
+        self._start_file()
+
+    def _start_file(self) -> None:
+        path = self.directory / (f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}."
+                                 f"{os.getpid()}.{self._files}")
+        self._files += 1
+        self._file = open(path, "wb")
+        self._records = RecordWriter(self._file)
+        try:
+            self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
+            self._file.flush()
+        except OSError:
+            _close_quietly(self._file)
+            path.unlink(missing_ok=True)  # no empty file per failed try
+            raise
+
+    def _write(self, event: Event) -> None:
+        self._records.write(event.SerializeToString())
 
     def add(self, tag: str, value: float, step: int, wall_time: float) -> None:
+        if self._file is None:
+            return  # dropped until a flush starts a new file
         summary = Summary(value=[Summary.Value(tag=tag, simple_value=value)])
-        self._writer.add_event(Event(wall_time=wall_time, step=int(step), summary=summary))
+        with self._on_failure():
+            self._write(Event(wall_time=wall_time, step=int(step), summary=summary))
 
     def flush(self) -> None:
-        self._writer.flush()
+        with self._on_failure():
+            if self._file is None:
+                self._start_file()
+                self.failures.succeeded()
+            self._file.flush()
+
+    @contextlib.contextmanager
+    def _on_failure(self):
+        try:
+            yield
+        except OSError as e:
+            if e.errno not in DISK_ERRORS:
+                raise
+            self.failures.failed(e, self.directory / "events.out.tfevents", "TensorBoard events are dropped until "
+                                 "a write succeeds")
+            _close_quietly(self._file)
+            self._file = None
 
     def close(self) -> None:
-        self._writer.close()
+        with self._on_failure():
+            if self._file is not None:
+                self._file.close()
 
 
 class Counter:
@@ -179,8 +279,10 @@ class RunMetrics:
         # The evaluation episode with the best score, as its row of evaluation.csv.
         self.best_eval = max(read_rows(directory / "evaluation.csv"), key=self._score_of_row, default=None)
 
-        self._tensorboard = ScalarEvents(directory)
-        self._csv = {name: CsvLog(directory / f"{name}.csv", columns) for name, columns in {
+        # One line per cause of failed writes, whichever file meets it first.
+        self.write_failures = FailureLog(log, "metrics")
+        self._tensorboard = ScalarEvents(directory, self.write_failures)
+        self._csv = {name: CsvLog(directory / f"{name}.csv", columns, self.write_failures) for name, columns in {
             "learner": LEADING, "actors": LEADING + ["role", "instance"], "replay": LEADING + ["shard"],
             "episodes": LEADING + EPISODE_COLUMNS, "evaluation": LEADING + EPISODE_COLUMNS,
             "status": LEADING, "exits": LEADING + ["process", "exit_code", "reason"]}.items()}

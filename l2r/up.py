@@ -46,7 +46,9 @@ import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id 
 import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
-from l2r.config import CommandParser
+from l2r import disk_budget
+from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
+from l2r.durable import DISK_ERRORS, MB, disk_failure, free_bytes
 from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
@@ -55,6 +57,7 @@ from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
 from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values
 from l2r.replay.queue import QueueConfig
+from l2r.replay.storage import StorageConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.spaces import task_spaces
@@ -80,6 +83,37 @@ class _HelpDefaults(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         return action.help if action.default is None else super()._get_help_string(action)
+
+
+class RunLogHandler(logging.FileHandler):
+    """logs/up.log, whose failed writes are one line on the console per spell of failing (not a
+    traceback per record); its records still reach the console meanwhile."""
+
+    def __init__(self, path: Path, console: logging.Handler):
+        super().__init__(path)
+        self.console = console
+        self.failing: str | None = None
+        self._failed_now = False
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._failed_now = False
+        super().emit(record)
+        if self.failing and not self._failed_now:
+            self.console.handle(logging.makeLogRecord({"name": log.name, "levelno": logging.INFO, "levelname": "INFO",
+                                                       "msg": f"{self.baseFilename}: writing again"}))
+            self.failing = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if not (isinstance(error, OSError) and error.errno in DISK_ERRORS):
+            super().handleError(record)
+            return
+        self._failed_now = True
+        if self.failing is None:
+            self.failing = disk_failure(error, self.baseFilename)
+            self.console.handle(logging.makeLogRecord({
+                "name": log.name, "levelno": logging.ERROR, "levelname": "ERROR",
+                "msg": f"{self.failing}: up.log misses lines until a write succeeds (the console has them)"}))
 
 
 def loopback(port: int) -> str:
@@ -112,8 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "Metrics go to RUN_DIR/metrics (TensorBoard and CSV: tensorboard --logdir runs/). "
                     "The defaults are a short CPU demo (what `make run` starts); raise --seconds for real "
                     "training.",
-        epilog="Exit codes: 0 the budget was spent (or Ctrl-C); 1 the job gave up on a process, or the "
-               "learner made no update; 2 bad usage.",
+        epilog="Exit codes: 0 the budget was spent (or Ctrl-C); 1 the job gave up on a process, the disk "
+               "filled, or the learner made no update; 2 bad usage, or a run that may not fit on its disk.",
         formatter_class=_HelpDefaults,
     )
     p.add_argument("--config", type=Path, metavar="FILE.toml",
@@ -132,6 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "replaces the stored one): the learner resumes its checkpoint, replay restores its "
                         "snapshot, time and env-step counters go on")
     r.add_argument("--seed", type=int, default=0, help="base seed of the actors' episodes")
+    r.add_argument("--force", action="store_true",
+                   help="start even when the run may write more than its disk has free (the start-up estimate "
+                        "of replay, episode logs, checkpoints and metrics, docs/training.md \"Disk use\"): a "
+                        "warning instead of exit code 2. While it runs, the job stops when the free space falls "
+                        "below what the learner's last checkpoint needs, whatever this flag says")
     r.add_argument("--max-restarts", type=int, default=3,
                    help="restarts of one process in a row without progress (learner updates, env steps, "
                         "replay inserts) before the job gives up on it and exits with code 1; a process that "
@@ -529,7 +568,12 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
                 summary["best_eval_recording"] = str(write_recording([found], run_dir / "best_eval.rrd"))
             except Exception as e:  # a convenience: the run's results are saved whatever happens here
                 log.warning("no recording of the best evaluation episode (%s): %s", found.name, e)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    try:
+        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    except OSError as e:
+        if e.errno not in DISK_ERRORS:
+            raise
+        log.error("summary.json not written: %s", disk_failure(e, run_dir / "summary.json"))
     return summary
 
 
@@ -564,6 +608,8 @@ def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates
         lines.append("no learner checkpoint was written")
     else:
         lines.append(f"evaluate the newest checkpoint: {eval_command(run_dir, args.env_id)}")
+    if summary["exit_code"]:
+        lines.append(f"continue the run (once its cause is cleared): l2r up --resume {run_dir}")
     if summary["best_policy"]:
         bp = summary["best_policy"]
         lines.append(f"evaluate the best evaluated policy (v{bp['version']}, mean "
@@ -583,13 +629,47 @@ def cli(argv: list[str] | None = None) -> int:
     if args.resume and (spent := budget_spent(args, RunCounters.read(args.resume / "metrics"))):
         print(f"l2r up: nothing to do: the run's {spent} (give a larger budget to train on)", file=sys.stderr)
         return 0
+    if not fits_on_disk(args):
+        return EXIT_USAGE
+    try:
+        return train(args, argv, launch)
+    except OSError as e:  # a write of l2r up's own that its disk refused (the daemons' are theirs to report)
+        if e.errno not in DISK_ERRORS:
+            raise
+        print(f"l2r up: failed: {disk_failure(e)}", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+def fits_on_disk(args: argparse.Namespace) -> bool:
+    """Whether what the run may write fits in the free space of its disk; one line if not (a
+    warning with --force, which then goes on)."""
+    where = args.resume or args.runs_dir
+    children = plan_children(args, "estimate", where, 0, 0)
+    capacity = 0 if args.algo == "ppo" else replay_capacity(args)  # PPO's queue table is not snapshotted
+    side = IMAGE_SIDE_FRACTION if family_of(args.env_id) == PIXELS else StorageConfig.side_fraction
+    parts = disk_budget.estimate(args, recipe_of(args).values, capacity, side, children)
+    needed = sum(parts.values()) - disk_budget.already_written(args.resume)
+    free = free_bytes(where)
+    if needed <= free:
+        return True
+    line = (f"the run may write {disk_budget.describe(parts)}, more than the {free / MB:,.0f} MB free at {where}"
+            f"{' (less what the run directory holds)' if args.resume else ''}")
+    if args.force:
+        print(f"l2r up: warning: {line}; going on (--force)", file=sys.stderr)
+        return True
+    print(f"l2r up: {line}; free space, lower --capacity or the episode logs' budget "
+          f"(--actor-arg=--log-budget-mb=N, --no-episode-logs), or pass --force", file=sys.stderr)
+    return False
+
+
+def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int:
     run_dir = make_run_dir(args)
     (run_dir / "logs").mkdir(exist_ok=True)
     display = StatusDisplay(score_of(args.env_id))
-    file_handler = logging.FileHandler(run_dir / "logs" / "up.log")
+    console = display.log_handler()
+    file_handler = RunLogHandler(run_dir / "logs" / "up.log", console)
     file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, display.log_handler()],
-                        force=True)
+    logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, console], force=True)
     run = run_dir.name
     replay_port, learner_port = free_port(), free_port()
     write_launch(run_dir, args, argv, launch, {"replay_port": replay_port, "learner_port": learner_port})
@@ -613,6 +693,8 @@ def cli(argv: list[str] | None = None) -> int:
     conf = session_config(connect=[loopback(replay_port), loopback(learner_port)], listen=["tcp/127.0.0.1:0"])
     print(f"l2r up: run directory {run_dir}  (Zenoh run {run!r}; Ctrl-C stops cleanly)", file=sys.stderr)
     code, spent = 0, None
+    observation, act_dim = task_spaces(args.env_id)
+    checkpoint_estimate = disk_budget.checkpoint_bytes(observation.vector_width or 0, act_dim, recipe.values["hidden"])
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
         simulators = simulator_of_each_actor(children)
@@ -645,8 +727,15 @@ def cli(argv: list[str] | None = None) -> int:
                         reason[0] = spent
                         break
                     if time.monotonic() >= next_status:
-                        display.update(metrics.record_status(), children)
+                        figures, free = metrics.record_status(), free_bytes(run_dir)
+                        reserve = disk_budget.reserve_bytes(run_dir, checkpoint_estimate)
+                        if free < disk_budget.LOW_FACTOR * reserve:
+                            figures["disk_free_mb"] = free / MB
+                        display.update(figures, children)
                         next_status += args.status_interval
+                        if free < reserve:
+                            reason[0], code = f"disk full at {run_dir}: {free / MB:.1f} MB free", 1
+                            break
                 display.update(metrics.record_status(), children)
         finally:
             print(f"l2r up: stopping ({reason[0]})", file=sys.stderr)

@@ -1,12 +1,16 @@
-"""What tests in every directory share: the repository root, a free loopback port, and waiting for a
-condition."""
+"""What tests in every directory share: the repository root, a free loopback port, waiting for a
+condition, and a small file system of their own to fill."""
 
 from __future__ import annotations
 
+import errno
 import socket
+import subprocess
 import time
 from pathlib import Path
 from typing import Callable, TypeVar
+
+import pytest
 
 T = TypeVar("T")
 
@@ -30,3 +34,48 @@ def wait_for(predicate: Callable[[], T], timeout: float = 15.0, interval: float 
             return value
         time.sleep(interval)
     return predicate()
+
+
+class SmallDisk:
+    """A tmpfs of a few MB mounted for one test (CI runs as root), and ballast to fill it with."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.ballast = path / "ballast"
+
+    def fill(self) -> None:
+        """Write ballast until the file system is full (tmpfs: every later write gets ENOSPC)."""
+        block = b"\0" * (1 << 16)
+        with open(self.ballast, "ab", buffering=0) as f:
+            try:
+                while f.write(block):
+                    pass
+            except OSError as e:
+                if e.errno != errno.ENOSPC:
+                    raise
+
+    def free(self) -> None:
+        self.ballast.unlink()
+
+
+@pytest.fixture
+def small_disk(tmp_path, request):
+    """``small_disk(mb)``: a SmallDisk of ``mb`` MB under tmp_path, unmounted after the test;
+    the test is skipped where mounting is not permitted (not root, a container without the
+    capability)."""
+    mounted: list[Path] = []
+
+    def mount(mb: int) -> SmallDisk:
+        path = tmp_path / f"disk{len(mounted)}"
+        path.mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={mb}m", "tmpfs", str(path)],
+                              capture_output=True, text=True)
+        if done.returncode:
+            pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}): a full disk "
+                        "is tested as root")
+        mounted.append(path)
+        return SmallDisk(path)
+
+    yield mount
+    for path in mounted:
+        subprocess.run(["umount", "-l", str(path)], check=False)

@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 import l2r
+from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.episodes import schema
 from l2r.episodes.body import BodyModel
 from l2r.episodes.encode import StepLayout, TransformEncoder
@@ -97,6 +98,7 @@ class EpisodeLogger:
         with_body: bool = True,
     ):
         self.directory = Path(directory)
+        self.write_failures = FailureLog(log, "episode logs")
         self.directory.mkdir(parents=True, exist_ok=True)
         self.run, self.actor_id, self.policy = run, int(actor_id), policy
         self.disk_budget_bytes = int(disk_budget_bytes)
@@ -193,14 +195,18 @@ class EpisodeLogger:
                 elif what == "block":
                     open_files[recorder].write_block(recorder.layout, *item[2:])
                 elif what == "end":
-                    done = open_files.pop(recorder)
-                    done.finish(item[2])
+                    open_files[recorder].finish(item[2])
+                    del open_files[recorder]  # only now: a file that failed to finish is discarded below
                     self.stats["episodes_written"] += 1
+                    self.write_failures.succeeded()
                     if recorder.kind == "best":
                         self._best_file = recorder.path
                     self._enforce_budget(keep=recorder.path)
-            except Exception:
-                log.exception("episode log %s: write failed; the episode is dropped", recorder.path.name)
+            except Exception as e:
+                if isinstance(e, OSError) and e.errno in DISK_ERRORS:  # one line per cause, not per episode
+                    self.write_failures.failed(e, recorder.path, "episodes are dropped until one is written")
+                else:
+                    log.exception("episode log %s: write failed; the episode is dropped", recorder.path.name)
                 self.stats["write_errors"] += 1
                 recorder.dropped = True  # its later items are discarded quietly
                 _discard(open_files.pop(recorder, None))

@@ -47,23 +47,27 @@ class EpisodeFile:
         self.path, self.start_ns, self.names = path, start_ns, names
         self.part = path.with_name(path.name + ".part")
         self.file = open(self.part, "wb")
-        w = self.writer = Writer(self.file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
-        w.start(profile=schema.PROFILE, library=f"l2r {l2r.__version__}")
-        w.add_metadata(schema.METADATA_EPISODE, metadata)
-        self.tf: int | None = None
-        if body is not None:
-            self.transforms = transforms or TransformEncoder(body.bodies)
-            w.add_metadata("body", {"json": body_json or body.to_json()})
-            string = w.register_schema(schema.STRING_SCHEMA_NAME, "ros2msg", schema.STRING_SCHEMA)
-            robot = w.register_channel(schema.TOPIC_ROBOT, "cdr", string)
-            w.add_message(robot, start_ns, cdr_string(body.urdf(obstacles)), start_ns)
-            scene_update = body.scene_update(start_ns, obstacles)
-            scene = w.register_channel(schema.TOPIC_SCENE, "protobuf", _register(w, type(scene_update)))
-            w.add_message(scene, start_ns, scene_update.SerializeToString(), start_ns)
-            self.tf = w.register_channel(schema.TOPIC_TF, "protobuf", _register(w, FrameTransforms))
-        self.step: int | None = None  # registered with the first block, when the vector sizes are known
-        self.images: dict[str, int] = {}  # image channels by field, registered with the first block too
-        self.file.flush()
+        try:  # a header the disk refuses leaves no .part behind
+            w = self.writer = Writer(self.file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+            w.start(profile=schema.PROFILE, library=f"l2r {l2r.__version__}")
+            w.add_metadata(schema.METADATA_EPISODE, metadata)
+            self.tf: int | None = None
+            if body is not None:
+                self.transforms = transforms or TransformEncoder(body.bodies)
+                w.add_metadata("body", {"json": body_json or body.to_json()})
+                string = w.register_schema(schema.STRING_SCHEMA_NAME, "ros2msg", schema.STRING_SCHEMA)
+                robot = w.register_channel(schema.TOPIC_ROBOT, "cdr", string)
+                w.add_message(robot, start_ns, cdr_string(body.urdf(obstacles)), start_ns)
+                scene_update = body.scene_update(start_ns, obstacles)
+                scene = w.register_channel(schema.TOPIC_SCENE, "protobuf", _register(w, type(scene_update)))
+                w.add_message(scene, start_ns, scene_update.SerializeToString(), start_ns)
+                self.tf = w.register_channel(schema.TOPIC_TF, "protobuf", _register(w, FrameTransforms))
+            self.step: int | None = None  # registered with the first block, when the vector sizes are known
+            self.images: dict[str, int] = {}  # image channels by field, registered with the first block too
+            self.file.flush()
+        except BaseException:
+            self.discard()
+            raise
 
     def write_block(self, layout: StepLayout, block: np.ndarray, pos: np.ndarray | None, quat: np.ndarray | None,
                     first_step: int, count: int, images: dict[str, np.ndarray]) -> None:  # fmt: skip
@@ -99,7 +103,10 @@ class EpisodeFile:
 
     def discard(self) -> None:
         """Give the episode up: close and remove the partial file."""
-        self.file.close()
+        try:
+            self.file.close()
+        except OSError:
+            pass  # a full disk refusing what the file still buffered: given up with it
         self.part.unlink(missing_ok=True)
 
 

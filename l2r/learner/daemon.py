@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import zenoh
 
+from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import ppo, sac, td3
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
@@ -47,6 +48,8 @@ from l2r.protocol import (
 )
 
 log = logging.getLogger("l2r.learner")
+# A checkpoint the disk refuses is one line per cause, and training goes on: the last one written stays whole.
+CHECKPOINT_FAILURES = FailureLog(log, "checkpoint")
 
 
 @dataclass
@@ -468,7 +471,15 @@ def _checkpoint(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState)
                   config.checkpoint)
         return
     started = time.monotonic()
-    path = save_checkpoint(config.checkpoint, state, algo, 0 if config.observation else config.obs_dim, config.act_dim,
-                           config.action_repeat, config.keep_checkpoints)
+    try:
+        path = save_checkpoint(config.checkpoint, state, algo, 0 if config.observation else config.obs_dim,
+                               config.act_dim, config.action_repeat, config.keep_checkpoints)
+    except OSError as e:
+        if e.errno not in DISK_ERRORS:
+            raise
+        CHECKPOINT_FAILURES.failed(e, config.checkpoint, f"checkpoint of {state.updates} updates NOT written; "
+                                   f"{config.checkpoint} stays the last one written")
+        return
+    CHECKPOINT_FAILURES.succeeded()
     log.info("checkpoint %s (version %d, %d updates) in %.2f s", path, state.version, state.updates,
              time.monotonic() - started)

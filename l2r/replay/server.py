@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from l2r.durable import FailureLog, disk_failure
 from l2r.protocol import (
     ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
     PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode, with_reply_pool,
@@ -35,7 +36,7 @@ from l2r.replay.queue import QueueConfig, QueueTable
 from l2r.replay.rate_limiter import RateLimiter
 from l2r.replay.sequences import MAX_ACTORS, SequenceTracker
 from l2r.replay.storage import Overtaken, StateCopy, Storage, StorageConfig, observation_bytes
-from l2r.replay.wal import WriteAheadLog
+from l2r.replay.wal import SyncPoint, WriteAheadLog
 
 log = logging.getLogger("l2r.replay")
 
@@ -102,6 +103,9 @@ class ReplayServer:
         self.lag_batches = 0
         self.snapshot_pause = 0.0
         self._acked_received = 0  # chunks received when the last ack was built
+        self.refused_unlogged = 0  # chunks refused while the write-ahead log failed
+        self._refused_before, self._wal_failed_at = 0, 0.0
+        self.snapshot_failures = FailureLog(log, "snapshot")
         self._hold_sent: bool | None = None  # the hold flag of the last ack
         self._queue_skipped = 0  # chunks without log-probabilities the replay table took and the queue could not
         self._last = (time.monotonic(), 0, 0)  # time, inserted, sampled batches at the last report
@@ -131,6 +135,9 @@ class ReplayServer:
         """Store a new chunk and log its ``payload`` (None: it comes from the log); raises
         ProtocolError for a chunk of one actor too many."""
         with self.lock:
+            if payload is not None and self.wal is not None and self.wal.failed:
+                self.refused_unlogged += 1  # its actor keeps it and sends it again once the log writes
+                return
             if not self.sequences.accept(chunk.actor_id, chunk.epoch, chunk.seq):
                 return
             if self.storage is not None:
@@ -142,7 +149,7 @@ class ReplayServer:
             self.sequences.stored(chunk.actor_id, chunk.size)
             self.newest_stored_version = max(self.newest_stored_version, chunk.policy_version)
             self.limiter.inserted += chunk.size
-            if self.wal is not None and payload is not None and not self.wal.failed:
+            if self.wal is not None and payload is not None:
                 try:
                     self.wal.append(payload)
                 except OSError as e:
@@ -169,10 +176,25 @@ class ReplayServer:
             chunks += 1
         return chunks, self.limiter.inserted - inserted
 
-    def _wal_failed(self, error: OSError) -> None:
-        self.wal.failed = f"{type(error).__name__}: {error}"
-        log.error("write-ahead log failed (%s): no more acks, so actors keep their chunks; the shard "
-                  "goes on storing in memory. Free the disk and restart it.", self.wal.failed)
+    def _wal_failed(self, error: OSError, point: SyncPoint | None = None) -> None:
+        """Stop acknowledging and storing until the log writes again (``_retry_wal``); under the lock."""
+        self.wal.fail(error, point)
+        self._wal_failed_at = time.monotonic()
+        log.error("write-ahead log failed (%s): no acks and no new chunks stored until it writes again (tried "
+                  "every %.1f s); actors keep their chunks and send them again then",
+                  disk_failure(error, self.wal.path(self.wal.segment)), self.config.ack_interval)
+
+    def _retry_wal(self) -> bool:
+        """Whether the log writes again: a failed one tries now; under the lock."""
+        try:
+            written = self.wal.retry()
+        except OSError:
+            return False
+        log.info("write-ahead log writes again after %.1f s (%d chunks stored before it failed are logged now); "
+                 "acks resume, %d chunks refused meanwhile come again from their actors",
+                 time.monotonic() - self._wal_failed_at, written, self.refused_unlogged - self._refused_before)
+        self._refused_before = self.refused_unlogged
+        return True
 
     def on_sample_query(self, query: zenoh.Query) -> None:
         try:
@@ -299,8 +321,10 @@ class ReplayServer:
             holds = ([self.queue.holding] if self.queue is not None else []) + \
                     ([self.limiter.inserts_ahead()] if self.limiter.hold_inserts else [])
             hold = any(holds) if holds else None  # None: the field is left out (nothing can hold)
+            if self.wal is not None and self.wal.failed and not self._retry_wal():
+                return None
             news = self.sequences.received != self._acked_received or hold or hold != self._hold_sent
-            if not news or (self.wal is not None and self.wal.failed):
+            if not news:
                 return None
             received = self.sequences.received
             rows = self.sequences.acks()
@@ -313,7 +337,8 @@ class ReplayServer:
             try:
                 self.wal.sync(durable)
             except OSError as e:
-                self._wal_failed(e)
+                with self.lock:
+                    self._wal_failed(e, durable)
                 return None
         self._acked_received, self._hold_sent = received, hold
         actors, epochs, highest, missing = zip(*rows) if rows else ((), (), (), ())
@@ -359,6 +384,8 @@ class ReplayServer:
                 "newest_version": max(self.learner_version, self.newest_stored_version),
                 "policy_lag": self.lag_sum / self.lag_batches if self.lag_batches else float("nan"),
                 "snapshot_pause_s": self.snapshot_pause,
+                "refused_unlogged": self.refused_unlogged,
+                "log_failed": int(self.wal is not None and self.wal.failed is not None),
             }
             if self.storage is not None:
                 values |= {"chunk_links": self.storage.chunk_links, "link_mismatches": self.storage.link_mismatches,
@@ -466,8 +493,9 @@ def _save(server: ReplayServer, path: Path) -> None:
     try:
         size = snapshot.write(path, arrays, meta)
     except OSError as e:
-        log.error("snapshot to %s failed (%s); the previous one is kept", path, e)
+        server.snapshot_failures.failed(e, path, "the previous one is kept (tried again every snapshot interval)")
         return
+    server.snapshot_failures.succeeded()
     if "wal_segment" in meta:  # the snapshot is durable: the log before it is not needed any more
         server.wal.delete_before(meta["wal_segment"])
     log.info("snapshot: %d transitions, %.1f MiB to %s in %.2f s (inserts and samples held up %.1f ms at most)",

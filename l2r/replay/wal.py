@@ -13,6 +13,11 @@ segment when it takes its copy (``rotate``); once the snapshot file is durable t
 before it are deleted, so the log holds about one snapshot interval. At start the shard
 replays the segments from its snapshot's on (``records``); a record cut short by the crash
 ends its segment.
+
+A write or fsync that fails (a full disk) leaves the log ``failed``: the shard stops storing and
+acknowledging. The log keeps the payloads appended since its last good fsync, and ``retry``
+writes them to a new segment (the failed one may end in a record cut short) and fsyncs it; once
+that succeeds, the log is whole again and the shard acknowledges again.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ class SyncPoint:
     closed: list[BinaryIO] = field(default_factory=list)
     current: BinaryIO | None = None
     directory: bool = False  # a segment was created since the last sync
+    payloads: list[bytes] = field(default_factory=list)  # appended since the last flush, kept until synced
 
 
 class WriteAheadLog:
@@ -53,6 +59,8 @@ class WriteAheadLog:
         self.failed: str | None = None  # the error that stopped the log; nothing is acknowledged after it
         self._file: BinaryIO | None = None
         self._pending = SyncPoint()
+        self._unsynced: list[bytes] = []  # while failed: every payload not known durable, in order
+        self._abandoned: list[BinaryIO] = []  # while failed: segments a write or fsync failed on
 
     def segments(self) -> list[int]:
         """Numbers of the segments on disk, ascending."""
@@ -92,6 +100,7 @@ class WriteAheadLog:
         self._pending.directory = True
 
     def append(self, payload: bytes) -> None:
+        self._pending.payloads.append(payload)
         self._file.write(HEADER.pack(len(payload), zlib.crc32(payload)))
         self._file.write(payload)
 
@@ -126,7 +135,41 @@ class WriteAheadLog:
             if old < segment:
                 self.path(old).unlink(missing_ok=True)
 
+    def fail(self, error: OSError, point: SyncPoint | None = None) -> None:
+        """Stop the log after ``error``, keeping what it has not made durable: the payloads of a
+        ``point`` whose sync failed, and those appended since. Called under the shard's lock."""
+        self.failed = f"{type(error).__name__}: {error}"
+        self._unsynced = (point.payloads if point else []) + self._pending.payloads
+        self._abandoned += [*(point.closed if point else []), *self._pending.closed, self._file]
+        self._pending = SyncPoint()
+
+    def retry(self) -> int:
+        """After ``fail``: write the payloads kept to a new segment and fsync it; return how many.
+        Raises OSError, and then stays failed. Called under the shard's lock."""
+        try:
+            self._open(self.segment + 1)
+            for payload in self._unsynced:
+                self.append(payload)
+            self.sync(self.flush())
+        except OSError:
+            if self._file not in self._abandoned:  # the new segment: acknowledged nothing, frees its space
+                _close_quietly(self._file)
+                self.path(self.segment).unlink(missing_ok=True)
+            self._file, self._pending = self._abandoned[-1], SyncPoint()
+            raise
+        for f in self._abandoned:
+            _close_quietly(f)  # what they still buffer is in the new segment too: replayed as duplicates
+        written, self._unsynced, self._abandoned, self.failed = len(self._unsynced), [], [], None
+        return written
+
     def close(self) -> None:
         self.sync(self.flush())
         self._file.close()
+
+
+def _close_quietly(f: BinaryIO) -> None:
+    try:
+        f.close()
+    except OSError:
+        pass
 

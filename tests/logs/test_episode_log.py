@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import subprocess
@@ -25,6 +26,7 @@ from l2r.episodes.read import read_episode
 from l2r.episodes.write import EpisodeFile
 from l2r.sim.env import RunEnv
 from l2r.view import write_recording
+from tests.conftest import wait_for
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
 
 WRITER = Path(__file__).with_name("episode_writer.py")
@@ -225,3 +227,24 @@ def test_a_slow_disk_skips_the_episode_instead_of_blocking(tmp_path, monkeypatch
     assert not waited_for_the_disk, "log_step waited for the disk"
     assert logger.stats["episodes_skipped"] == 1
     assert not list(tmp_path.glob("*.mcap")) and not list(tmp_path.glob("*.part"))
+
+
+def test_a_full_disk_drops_episodes_with_one_line_and_logging_goes_on_once_there_is_room(small_disk, caplog):
+    caplog.set_level(logging.INFO)
+    disk = small_disk(2)
+    env = RunEnv(difficulty=DIFFICULTY)
+    logger = small_logger(disk.path, policy=LogPolicy(every=1))
+    disk.fill()
+    for seed in range(4):
+        log_episode(logger, env, seed, steps=40)
+    assert wait_for(lambda: logger.stats["write_errors"] == 4), logger.stats
+    refused = [r.getMessage() for r in caplog.records if "disk full at" in r.getMessage()]
+    assert len(refused) == 1 and "episodes are dropped" in refused[0], refused
+    assert not [r for r in caplog.records if r.exc_info], "a traceback for a full disk"
+    assert not list(disk.path.glob("*.part")), "a dropped episode left its partial file"
+
+    disk.free()
+    log_episode(logger, env, 10, steps=40)
+    logger.close()
+    assert logger.stats["episodes_written"] == 1 and kinds(disk.path) == ["train"]
+    assert any("episode logs: writing again" in r.getMessage() for r in caplog.records)

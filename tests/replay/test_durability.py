@@ -4,6 +4,8 @@ log, but still replays one an earlier session left."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from l2r.protocol import EXPERIENCE_QOS, Keys, encode
@@ -100,3 +102,38 @@ def test_no_wal_still_replays_the_log_an_earlier_session_left(start_replay, conn
     send(session, run_name, range(5, 10))
     acks_of(session).wait(all_stored_up_to(9))
     assert {path: path.stat().st_size for path in snap.glob("replay-shard0.wal.*")} == logged  # nor adds to it
+
+
+def test_a_full_disk_stops_acks_until_space_comes_back_and_loses_nothing_acknowledged(
+        start_replay, connect, ask_stats, acks_of, run_name, small_disk):
+    disk = small_disk(4)
+    snap = disk.path / "snap"
+    args = ("--snapshot-dir", str(snap), "--snapshot-interval", "3600")
+    replay = start_replay(*args)
+    session = connect(replay)
+    acks = acks_of(session)
+    send(session, run_name, range(10))
+    acks.wait(all_stored_up_to(9))
+
+    disk.fill()
+    send(session, run_name, range(10, 20))  # stored, but their log cannot be written: no ack names them
+    assert wait_for(lambda: "write-ahead log failed" in replay.log()), replay.log()[-2000:]
+    failure = [line for line in replay.log().splitlines() if "write-ahead log failed" in line]
+    assert len(failure) == 1 and f"disk full at {snap}" in failure[0] and "MB free" in failure[0], failure
+    send(session, run_name, range(20, 25))  # refused while the log fails: their sender keeps them
+    time.sleep(1.0)
+    assert acks.acks[-1].of(2, 1)[0] == 9, "acknowledged chunks the log does not hold"
+    assert "Traceback" not in replay.log()
+
+    disk.free()
+    freed = time.monotonic()
+    acks.wait(lambda ack: ack.of(2, 1)[0] >= 19, timeout=5)
+    assert time.monotonic() - freed < 2.0, "no ack within 2 s of space coming back"
+    send(session, run_name, range(20, 25))  # what an actor resends of the chunks refused
+    acks.wait(all_stored_up_to(24))
+    assert "write-ahead log writes again" in replay.log()
+
+    replay.proc.kill()
+    replay.proc.wait()
+    again = start_replay(*args, endpoint=replay.endpoint)
+    assert ask_stats(connect(again))["size"] == 250, again.log()[-3000:]

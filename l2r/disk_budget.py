@@ -1,0 +1,85 @@
+"""What a run of `l2r up` may write, estimated before it starts, and the free space it keeps.
+
+The estimate is the most each part can grow to, from the run's flags (docs/training.md, "Disk use"):
+
+    replay        3 x the replay table's bytes (l2r.replay.storage.storage_bytes) for --capacity
+                  transitions, or --env-steps if fewer: the snapshot, the next one written beside
+                  it before the rename, and the write-ahead log between them
+    episodes      each actor's and evaluator's log budget (l2r-actor --log-budget-mb, 1024 MB
+                  unless an --actor-arg sets it): none with --no-episode-logs or on a task whose
+                  episodes are not logged
+    checkpoints   --keep-checkpoints, the one being written and best.pt, each four float32 copies
+                  of the vector networks' parameters (the networks, their targets or Adam's two
+                  moments); a camera task's encoder is not counted
+    metrics       16 MB an hour of --seconds (a 30-minute run of the runner's recipe wrote 8 MB),
+                  an hour's worth when the run has no time limit
+
+`l2r up` refuses a run whose estimate exceeds the free space (less what a resumed run directory
+already holds), unless --force. While it runs, its status line shows the free space once it is
+below `LOW_FACTOR` reserves, and it stops the job when the free space falls below
+`reserve_bytes`: room for the learner's last checkpoint, so that the newest one is whole.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.durable import MB
+from l2r.learner.checkpoint import checkpoint_path
+from l2r.replay.storage import StorageConfig, storage_bytes
+from l2r.spaces import task_spaces
+from l2r.supervise import Child
+
+METRICS_BYTES_PER_HOUR = 16 * MB
+RESERVE_MARGIN = 1 * MB  # beyond the last checkpoint: summary.json, the last log lines
+LOW_FACTOR = 10  # the status line shows the free space once it is below this many reserves
+
+
+def _mlp_parameters(widths: list[int]) -> int:
+    return sum(a * b + b for a, b in zip(widths, widths[1:]))
+
+
+def checkpoint_bytes(obs_dim: int, act_dim: int, hidden: str) -> int:
+    """A checkpoint's size: four float32 copies of an actor (mean and log-std heads) and twin critics."""
+    layers = [int(w) for w in hidden.split(",")]
+    actor = _mlp_parameters([obs_dim, *layers, 2 * act_dim])
+    critics = 2 * _mlp_parameters([obs_dim + act_dim, *layers, 1])
+    return 4 * 4 * (actor + critics)
+
+
+def estimate(args: argparse.Namespace, recipe: dict, capacity: int, side_fraction: float,
+             children: list[Child]) -> dict[str, int]:
+    """Bytes the run may write, by part (see the module docstring)."""
+    observation, act_dim = task_spaces(args.env_id)
+    transitions = min(capacity, args.env_steps) if args.env_steps else capacity
+    replay = 3 * storage_bytes(StorageConfig(capacity=transitions, act_dim=act_dim, side_fraction=side_fraction,
+                                             observation=observation)) if transitions else 0
+    actors = [actor_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.actors"]
+    episodes = sum(int(s.log_budget_mb * 2**20) for s in actors if s.episode_log_dir is not None)
+    obs_dim = observation.vector_width or 0
+    checkpoints = (args.keep_checkpoints + 2) * checkpoint_bytes(obs_dim, act_dim, recipe["hidden"])
+    metrics = int(METRICS_BYTES_PER_HOUR * (args.seconds or 3600) / 3600)
+    return {"replay": replay, "episode logs": episodes, "checkpoints": checkpoints, "metrics": metrics}
+
+
+def already_written(run_dir: Path | None) -> int:
+    """Bytes of the files a resumed run directory holds (they count in its estimate)."""
+    if run_dir is None or not run_dir.is_dir():
+        return 0
+    return sum(p.stat().st_size for p in run_dir.rglob("*") if p.is_file())
+
+
+def reserve_bytes(run_dir: Path, estimated_checkpoint: int) -> int:
+    """Free space below which the run stops: its newest checkpoint's size (or the estimate before
+    there is one) and a margin, so that the learner's last save can be written whole."""
+    newest = checkpoint_path(run_dir)
+    size = newest.stat().st_size if newest.is_file() else estimated_checkpoint
+    return size + int(RESERVE_MARGIN)
+
+
+def describe(parts: dict[str, int]) -> str:
+    """`1.2 GB (replay 870 MB, episode logs 2147 MB, ...)`."""
+    return f"{sum(parts.values()) / MB:,.0f} MB (" + ", ".join(
+        f"{name} {size / MB:,.0f} MB" for name, size in parts.items()) + ")"
