@@ -3,10 +3,12 @@
 The estimate is the most each part can grow to, from the run's flags (docs/training.md, "Disk use"):
 
     replay        3 x the replay table's bytes (l2r.replay.storage.storage_bytes) for --capacity
-                  transitions, or --env-steps if fewer: the snapshot, the next one written beside
-                  it before the rename, and the write-ahead log between them
+                  transitions, or --env-steps if fewer, or what a run of --seconds can make at
+                  MAX_ENV_STEPS_PER_S per actor if fewer still: the snapshot, the next one written
+                  beside it before the rename, and the write-ahead log between them
     episodes      each actor's and evaluator's log budget (l2r-actor --log-budget-mb, 1024 MB
-                  unless an --actor-arg sets it): none with --no-episode-logs or on a task whose
+                  unless an --actor-arg sets it), or what it can write in --seconds at
+                  MAX_EPISODE_BYTES_PER_S if less: none with --no-episode-logs or on a task whose
                   episodes are not logged
     checkpoints   --keep-checkpoints, the one being written and best.pt, each four float32 copies
                   of the vector networks' parameters (the networks, their targets or Adam's two
@@ -33,6 +35,11 @@ from l2r.spaces import task_spaces
 from l2r.supervise import Child
 
 METRICS_BYTES_PER_HOUR = 16 * MB
+# Ceilings of a time-limited run (docs/training.md): the fastest actor measured made 5,073 env
+# steps/s (PPO on Hopper-v5, four envs; the runner's ~2,000), and the runner's job logged 454 MB
+# of episodes in 30 minutes, 0.25 MB/s for its three processes: four times that per process.
+MAX_ENV_STEPS_PER_S = 5_000
+MAX_EPISODE_BYTES_PER_S = 1 * MB
 RESERVE_MARGIN = 1 * MB  # beyond the last checkpoint: summary.json, the last log lines
 LOW_FACTOR = 10  # the status line shows the free space once it is below this many reserves
 
@@ -53,11 +60,17 @@ def estimate(args: argparse.Namespace, recipe: dict, capacity: int, side_fractio
              children: list[Child]) -> dict[str, int]:
     """Bytes the run may write, by part (see the module docstring)."""
     observation, act_dim = task_spaces(args.env_id)
+    actors = [actor_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.actors"]
     transitions = min(capacity, args.env_steps) if args.env_steps else capacity
+    if args.seconds:  # a run of a few minutes cannot fill a large table
+        training = sum(1 for s in actors if not s.evaluate)
+        transitions = min(transitions, int(args.seconds * MAX_ENV_STEPS_PER_S * max(training, 1)))
     replay = 3 * storage_bytes(StorageConfig(capacity=transitions, act_dim=act_dim, side_fraction=side_fraction,
                                              observation=observation)) if transitions else 0
-    actors = [actor_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.actors"]
-    episodes = sum(int(s.log_budget_mb * 2**20) for s in actors if s.episode_log_dir is not None)
+    budgets = [int(s.log_budget_mb * 2**20) for s in actors if s.episode_log_dir is not None]
+    if args.seconds:
+        budgets = [min(budget, int(args.seconds * MAX_EPISODE_BYTES_PER_S)) for budget in budgets]
+    episodes = sum(budgets)
     obs_dim = observation.vector_width or 0
     checkpoints = (args.keep_checkpoints + 2) * checkpoint_bytes(obs_dim, act_dim, recipe["hidden"])
     metrics = int(METRICS_BYTES_PER_HOUR * (args.seconds or 3600) / 3600)
