@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from l2r.config import EXIT_CANNOT_START
 from l2r.learner.__main__ import cli
 from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.ppo import (
@@ -132,7 +133,7 @@ def test_a_queue_batch_ends_trajectories_at_episode_and_piece_ends():
     assert batch.terminated.tolist() == [0, 1, 0, 0, 0, 0, 0, 0]
 
 
-def test_a_ppo_checkpoint_restores_its_state_and_a_sac_learner_refuses_it(tmp_path, caplog):
+def test_a_ppo_checkpoint_restores_its_state_and_a_sac_learner_refuses_it(tmp_path, capsys):
     config = PPOConfig(batch_size=128, epochs=1, minibatches=2, hidden=(16,))
     state = init_state(config, 41, 18, seed=0)
     update(state, batch_from_sample(sample_batch(obs_dim=41, act_dim=18)), config)
@@ -147,5 +148,5 @@ def test_a_ppo_checkpoint_restores_its_state_and_a_sac_learner_refuses_it(tmp_pa
     assert saved.policy().spec == state.actor.spec
     # Resuming needs the algorithm that trained it: one line, before any traffic.
     assert cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu",
-                "--connect", "tcp/127.0.0.1:9"]) == 1
-    assert "holds PPO, not a SAC training state: use --algo ppo" in caplog.text
+                "--connect", "tcp/127.0.0.1:9"]) == EXIT_CANNOT_START
+    assert "holds PPO, not a SAC training state: use --algo ppo" in capsys.readouterr().err

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from l2r.config import EXIT_CANNOT_START
 from l2r.actors.actor import run_deterministic
 from l2r.learner.__main__ import cli, parse_settings
 from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
@@ -246,18 +247,17 @@ def test_a_checkpoint_restores_training_exactly_and_eval_reads_its_policy(tmp_pa
     np.testing.assert_array_equal(act(policy, obs, True), act(actor_as_saved, obs, True))
 
 
-def test_a_td3_learner_refuses_a_sac_checkpoint_and_a_sac_learner_a_td3_one(tmp_path, caplog):
+def test_a_td3_learner_refuses_a_sac_checkpoint_and_a_sac_learner_a_td3_one(tmp_path, capsys):
     sac_config = SACConfig(hidden=(16,), precision="float32")
     save_checkpoint(checkpoint_path(tmp_path / "sac"), init_sac_state(sac_config, 41, 18), sac_config, 41, 18)
     td3_config = small_config(hidden=(16,))
     save_checkpoint(checkpoint_path(tmp_path / "td3"), init_state(td3_config, 41, 18), td3_config, 41, 18)
     for run_dir, algo, message in (("sac", "td3", "holds SAC, not a TD3 training state: use --algo sac"),
                                    ("td3", "sac", "holds TD3, not a SAC training state: use --algo td3")):
-        caplog.clear()
         # Fails before any network traffic, so the endpoint need not exist.
         assert cli(["--run", "x", "--run-dir", str(tmp_path / run_dir), "--resume", "--device", "cpu",
-                    "--algo", algo, "--connect", "tcp/127.0.0.1:9"]) == 1
-        assert message in caplog.text
+                    "--algo", algo, "--connect", "tcp/127.0.0.1:9"]) == EXIT_CANNOT_START
+        assert message in capsys.readouterr().err
 
 
 def test_the_policy_an_actor_builds_from_the_weights_explores_within_bounds_and_acts_deterministically_if_asked():
