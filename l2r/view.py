@@ -21,7 +21,9 @@ For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode fi
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 import time
 import urllib.parse
 import uuid
@@ -260,18 +262,19 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
         log_frame(rec, body, frame, root)
         counts["frames"] += 1
 
+    # Handled here, not left to KeyboardInterrupt: a process started in the background by a shell
+    # inherits SIGINT ignored, and Python then never raises it; SIGTERM stops it the same way.
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     with zenoh.open(conf) as session:
         subscriber = session.declare_subscriber(keys.all_frames, on_frame)  # before the token asks for frames
         token = session.liveliness().declare_token(keys.alive("viewer", uuid.uuid4().hex[:12]))
         print(f"l2r view: watching run {run!r} (frames on {keys.all_frames}); Ctrl-C stops", file=sys.stderr)
-        deadline = None if duration is None else time.monotonic() + duration
-        try:
-            while deadline is None or time.monotonic() < deadline:
-                time.sleep(0.1)
-        except KeyboardInterrupt:
-            pass
+        stop.wait(duration)
         subscriber.undeclare()
         token.undeclare()
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
     print(f"l2r view: {counts['frames']} frames from {len(seen)} environment(s) drawn", file=sys.stderr)
     return 0
 

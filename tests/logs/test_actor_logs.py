@@ -46,7 +46,7 @@ def test_an_actor_logs_episodes_that_replay_exactly_and_shows_them_live(tmp_path
                 cwd=ROOT, capture_output=True, text=True, timeout=120, env=env_vars)  # fmt: skip
             token.undeclare()
             viewer.send_signal(signal.SIGINT)  # Ctrl-C: the viewer saves what it drew and leaves
-            _, viewer_err = viewer.communicate(timeout=180)  # saving what it drew takes a loaded machine a while
+            _, viewer_err = viewer.communicate(timeout=60)
         finally:
             viewer.kill()
     assert result.returncode == 0, result.stderr[-3000:]
