@@ -44,9 +44,9 @@ import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id can name them)
 import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
+from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
-from l2r import disk_budget
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.durable import DISK_ERRORS, MB, disk_failure, free_bytes
 from l2r.episodes.read import find_episode
