@@ -14,6 +14,7 @@ import errno
 import logging
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -92,3 +93,35 @@ def write_durably(path: Path, write: Callable[[BinaryIO], object]) -> None:
     finally:
         tmp.unlink(missing_ok=True)
     fsync_directory(path.parent)
+
+
+class FileLogHandler(logging.FileHandler):
+    """A log file (`l2r up`'s logs/up.log) whose failed writes are one line on `console` per spell
+    of failing, not a traceback per record; the records still reach the console meanwhile."""
+
+    def __init__(self, path: Path, console: logging.Handler):
+        super().__init__(path)
+        self.console = console
+        self.failing: str | None = None
+        self._failed_now = False
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._failed_now = False
+        super().emit(record)
+        if self.failing and not self._failed_now:
+            self.console.handle(logging.makeLogRecord({"name": record.name, "levelno": logging.INFO,
+                                                       "levelname": "INFO", "msg": f"{self.baseFilename}: writing again"}))
+            self.failing = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if not (isinstance(error, OSError) and error.errno in DISK_ERRORS):
+            super().handleError(record)
+            return
+        self._failed_now = True
+        if self.failing is None:
+            self.failing = disk_failure(error, self.baseFilename)
+            self.console.handle(logging.makeLogRecord({
+                "name": record.name, "levelno": logging.ERROR, "levelname": "ERROR",
+                "msg": f"{self.failing}: {Path(self.baseFilename).name} misses lines until a write succeeds "
+                       "(the console has them)"}))

@@ -48,7 +48,7 @@ from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.best_policy import BestPolicy
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
-from l2r.durable import DISK_ERRORS, MB, disk_failure, free_bytes
+from l2r.durable import DISK_ERRORS, MB, FileLogHandler, disk_failure, free_bytes
 from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import checkpoint_path
@@ -83,37 +83,6 @@ class _HelpDefaults(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         return action.help if action.default is None else super()._get_help_string(action)
-
-
-class RunLogHandler(logging.FileHandler):
-    """logs/up.log, whose failed writes are one line on the console per spell of failing (not a
-    traceback per record); its records still reach the console meanwhile."""
-
-    def __init__(self, path: Path, console: logging.Handler):
-        super().__init__(path)
-        self.console = console
-        self.failing: str | None = None
-        self._failed_now = False
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self._failed_now = False
-        super().emit(record)
-        if self.failing and not self._failed_now:
-            self.console.handle(logging.makeLogRecord({"name": log.name, "levelno": logging.INFO, "levelname": "INFO",
-                                                       "msg": f"{self.baseFilename}: writing again"}))
-            self.failing = None
-
-    def handleError(self, record: logging.LogRecord) -> None:
-        error = sys.exc_info()[1]
-        if not (isinstance(error, OSError) and error.errno in DISK_ERRORS):
-            super().handleError(record)
-            return
-        self._failed_now = True
-        if self.failing is None:
-            self.failing = disk_failure(error, self.baseFilename)
-            self.console.handle(logging.makeLogRecord({
-                "name": log.name, "levelno": logging.ERROR, "levelname": "ERROR",
-                "msg": f"{self.failing}: up.log misses lines until a write succeeds (the console has them)"}))
 
 
 def loopback(port: int) -> str:
@@ -667,7 +636,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     (run_dir / "logs").mkdir(exist_ok=True)
     display = StatusDisplay(score_of(args.env_id))
     console = display.log_handler()
-    file_handler = RunLogHandler(run_dir / "logs" / "up.log", console)
+    file_handler = FileLogHandler(run_dir / "logs" / "up.log", console)
     file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, console], force=True)
     run = run_dir.name

@@ -14,9 +14,8 @@ import sys
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from l2r.durable import FailureLog
+from l2r.durable import FailureLog, FileLogHandler
 from l2r.run_metrics import CsvLog, ScalarEvents
-from l2r.up import RunLogHandler
 from tests.conftest import ROOT, wait_for
 from tests.system.test_up import SMALL, finish, l2r_up
 
@@ -112,7 +111,7 @@ def test_metrics_on_a_full_disk_say_so_once_and_write_whole_rows_again_once_it_h
 def test_up_log_on_a_full_disk_is_one_line_on_the_console_not_a_traceback_per_record(small_disk, capsys):
     disk = small_disk(1)
     console = Console()
-    handler = RunLogHandler(disk.path / "up.log", console)
+    handler = FileLogHandler(disk.path / "up.log", console)
     logger = logging.getLogger("test.up_log")
     logger.propagate = False
     logger.addHandler(handler)
