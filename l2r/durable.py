@@ -16,7 +16,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import IO, BinaryIO, Callable
 
 # What a disk, not the program, makes fail: no space or quota left, a read-only or failing device,
 # a directory deleted under a running process.
@@ -43,6 +43,15 @@ def disk_failure(error: OSError, path: Path | str | None = None) -> str:
     if error.errno == errno.ENOENT:
         return f"{path} no longer exists (deleted while the run wrote to it?)"
     return f"{os.strerror(error.errno) if error.errno else error} at {path}"
+
+
+def close_quietly(file: IO | None) -> None:
+    """Close a file whose writes failed: what it still buffers is lost, and so is the error."""
+    try:
+        if file is not None:
+            file.close()
+    except OSError:
+        pass
 
 
 class FailureLog:

@@ -46,7 +46,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.record_writer import RecordWriter
 
-from l2r.durable import DISK_ERRORS, FailureLog
+from l2r.durable import DISK_ERRORS, FailureLog, close_quietly
 from l2r.families import RUNNER, family_of, score_of
 from l2r.protocol import EpisodeSummary, Keys, LearnerVersion, Stats, watched
 from l2r.sim import OPENSIM_ID, PORT_ID
@@ -57,7 +57,31 @@ LEADING = ["time", "wall_time", "env_steps", "updates"]
 EPISODE_COLUMNS = ["actor", "env", "simulator", "return", "distance", "length", "version", "seed", "difficulty"]
 
 
-class CsvLog:
+ROWS_DROPPED = "rows are dropped until a write succeeds"
+EVENTS_DROPPED = "TensorBoard events are dropped until a write succeeds"
+
+
+class DroppingFile:
+    """A metrics file that, after a write the disk refuses (l2r.durable.DISK_ERRORS), reports it to
+    `failures` once per cause and closes: its writes are dropped until a flush opens it again."""
+
+    failures: FailureLog
+    where: Path  # the path its failures name
+    _file: IO | None
+
+    @contextlib.contextmanager
+    def _on_failure(self, consequence: str):
+        try:
+            yield
+        except OSError as e:
+            if e.errno not in DISK_ERRORS:
+                raise
+            self.failures.failed(e, self.where, consequence)
+            close_quietly(self._file)
+            self._file = None
+
+
+class CsvLog(DroppingFile):
     """A CSV file that gains columns as new values appear. A new column rewrites the file
     (values first appear in the first minutes of a run, so this is rare and the file small).
 
@@ -65,7 +89,7 @@ class CsvLog:
     rows are then dropped until a `flush` opens the file again, cut back to its last whole row."""
 
     def __init__(self, path: Path, columns: list[str], failures: FailureLog):
-        self.path = path
+        self.path = self.where = path
         self.columns = list(columns)
         self.failures = failures
         self._file: TextIO | None = None
@@ -85,7 +109,7 @@ class CsvLog:
     def write(self, row: dict) -> None:
         if self._file is None:
             return  # dropped until a flush opens the file again
-        with self._on_failure("rows are dropped until a write succeeds"):
+        with self._on_failure(ROWS_DROPPED):
             new = [k for k in row if k not in self.columns]
             if new:
                 self._rewrite(self.columns + new)
@@ -108,7 +132,7 @@ class CsvLog:
         self._open()
 
     def flush(self) -> None:
-        with self._on_failure("rows are dropped until a write succeeds"):
+        with self._on_failure(ROWS_DROPPED):
             if self._file is None:
                 self._reopen()
             self._file.flush()
@@ -126,30 +150,10 @@ class CsvLog:
         self._open()
         self._reopened_at = self._file.tell()
 
-    @contextlib.contextmanager
-    def _on_failure(self, consequence: str):
-        try:
-            yield
-        except OSError as e:
-            if e.errno not in DISK_ERRORS:
-                raise
-            self.failures.failed(e, self.path, consequence)
-            _close_quietly(self._file)
-            self._file = None
-
     def close(self) -> None:
         with self._on_failure("its last rows are lost"):
             if self._file is not None:
                 self._file.close()
-
-
-def _close_quietly(file: IO | None) -> None:
-    """Close a file whose writes failed: what it still buffers is lost."""
-    try:
-        if file is not None:
-            file.close()
-    except OSError:
-        pass
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
@@ -179,7 +183,7 @@ class RunCounters:
                    int(float(last.get("episodes") or 0)))
 
 
-class ScalarEvents:
+class ScalarEvents(DroppingFile):
     """TensorBoard event files of scalars, as plain `simple_value`s: what every reader of event
     files understands (TensorBoard, its EventAccumulator, pandas readers).
 
@@ -189,6 +193,7 @@ class ScalarEvents:
 
     def __init__(self, directory: Path, failures: FailureLog):
         self.directory = directory
+        self.where = directory / "events.out.tfevents"
         self.failures = failures
         self._files = 0
         self._file: BinaryIO | None = None
@@ -204,7 +209,7 @@ class ScalarEvents:
             self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
             self._file.flush()
         except OSError:
-            _close_quietly(self._file)
+            close_quietly(self._file)
             path.unlink(missing_ok=True)  # no empty file per failed try
             raise
 
@@ -215,30 +220,18 @@ class ScalarEvents:
         if self._file is None:
             return  # dropped until a flush starts a new file
         summary = Summary(value=[Summary.Value(tag=tag, simple_value=value)])
-        with self._on_failure():
+        with self._on_failure(EVENTS_DROPPED):
             self._write(Event(wall_time=wall_time, step=int(step), summary=summary))
 
     def flush(self) -> None:
-        with self._on_failure():
+        with self._on_failure(EVENTS_DROPPED):
             if self._file is None:
                 self._start_file()
                 self.failures.succeeded()
             self._file.flush()
 
-    @contextlib.contextmanager
-    def _on_failure(self):
-        try:
-            yield
-        except OSError as e:
-            if e.errno not in DISK_ERRORS:
-                raise
-            self.failures.failed(e, self.directory / "events.out.tfevents", "TensorBoard events are dropped until "
-                                 "a write succeeds")
-            _close_quietly(self._file)
-            self._file = None
-
     def close(self) -> None:
-        with self._on_failure():
+        with self._on_failure(EVENTS_DROPPED):
             if self._file is not None:
                 self._file.close()
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
-from l2r.durable import fsync_directory
+from l2r.durable import close_quietly, fsync_directory
 
 log = logging.getLogger("l2r.replay.wal")
 
@@ -153,23 +153,15 @@ class WriteAheadLog:
             self.sync(self.flush())
         except OSError:
             if self._file not in self._abandoned:  # the new segment: acknowledged nothing, frees its space
-                _close_quietly(self._file)
+                close_quietly(self._file)
                 self.path(self.segment).unlink(missing_ok=True)
             self._file, self._pending = self._abandoned[-1], SyncPoint()
             raise
         for f in self._abandoned:
-            _close_quietly(f)  # what they still buffer is in the new segment too: replayed as duplicates
+            close_quietly(f)  # what they still buffer is in the new segment too: replayed as duplicates
         written, self._unsynced, self._abandoned, self.failed = len(self._unsynced), [], [], None
         return written
 
     def close(self) -> None:
         self.sync(self.flush())
         self._file.close()
-
-
-def _close_quietly(f: BinaryIO) -> None:
-    try:
-        f.close()
-    except OSError:
-        pass
-
