@@ -6,6 +6,7 @@ ask here, so a task either trains everywhere or is refused in the same words.
 
 from __future__ import annotations
 
+import functools
 import math
 
 from typing import Any
@@ -16,6 +17,7 @@ import numpy as np
 from l2r.protocol.observations import ObservationSpec
 
 
+@functools.cache  # l2r up asks several times at start (checks, daemon flags, disk estimate); each makes the env
 def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
     """The observation spec and action width of a gymnasium task (l2r's own ids included);
     ValueError, saying why, for one l2r cannot train on."""
