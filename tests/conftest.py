@@ -43,8 +43,9 @@ class SmallDisk:
         self.path = path
         self.ballast = path / "ballast"
 
-    def fill(self) -> None:
-        """Write ballast until the file system is full (tmpfs: every later write gets ENOSPC)."""
+    def fill(self, leave: int = 0) -> None:
+        """Write ballast until the file system is full (tmpfs: every later write gets ENOSPC), or
+        until only `leave` bytes are free (a whole number of 4 KB pages)."""
         block = b"\0" * (1 << 16)
         with open(self.ballast, "ab", buffering=0) as f:
             try:
@@ -53,6 +54,8 @@ class SmallDisk:
             except OSError as e:
                 if e.errno != errno.ENOSPC:
                     raise
+            if leave:
+                f.truncate(f.tell() - leave)
 
     def free(self) -> None:
         self.ballast.unlink()

@@ -43,16 +43,16 @@ and a finished save survives a power cut.
 
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, BinaryIO, Mapping
 
 import torch
 
-from l2r.durable import fsync_directory
+from l2r.durable import fsync_directory, write_durably
 from l2r.learner import ppo, sac, td3
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
@@ -144,20 +144,17 @@ def save_policy_checkpoint(path: str | Path, policy_params: Mapping[str, Any], p
 
 
 def _write(path: Path, payload: dict) -> Path:
-    """torch.save to a temporary file, fsync, mode 0644, rename over `path`, fsync the directory."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-            os.fchmod(f.fileno(), 0o644)  # mkstemp makes it 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    fsync_directory(path.parent)  # the rename itself survives a power cut
+    """torch.save into memory, then to a temporary file, fsynced and renamed over `path`
+    (l2r.durable.write_durably). In memory first because torch's zip writer, when the disk refuses a
+    write, raises a RuntimeError from its cleanup in place of the OSError that says why."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+
+    def write(f: BinaryIO) -> None:
+        f.write(buffer.getbuffer())
+        os.fchmod(f.fileno(), 0o644)  # readable by whoever evaluates it, whatever the learner's umask
+
+    write_durably(path, write)
     return path
 
 

@@ -2,6 +2,7 @@
 durable; a policy alone can be saved; broken files give clear errors; device choice."""
 
 import copy
+import errno
 import os
 import stat
 from unittest import mock
@@ -117,6 +118,27 @@ def test_a_policy_alone_is_a_checkpoint_eval_reads_but_no_learner_resumes(tmp_pa
     np.testing.assert_array_equal(act(saved.policy(), obs, True), act(state.actor.eval(), obs, True))
     with pytest.raises(CheckpointError, match="holds a policy alone"):
         saved.restore()
+
+
+def test_a_full_disk_is_an_oserror_that_says_so_and_the_previous_checkpoint_stays(small_disk):
+    # Writers catch OSError by errno (l2r.durable.DISK_ERRORS); torch's zip writer, saving to the
+    # file itself, turned ENOSPC into a RuntimeError from its cleanup.
+    disk = small_disk(1)
+    config = SACConfig(hidden=(16,), precision="float32")
+    state = init_state(config, OBS, ACT, seed=3)
+    path = save_policy_checkpoint(disk.path / "best.pt", policy_state(state.actor), dict(state.actor.spec),
+                                  version=1, updates=10, action_repeat=1, evaluation={})
+    disk.fill(leave=64 << 10)  # a write that fails part of the way, then room for torch's cleanup
+    config = SACConfig(hidden=(128, 128), precision="float32")
+    state = init_state(config, OBS, ACT, seed=3)
+    for save in (lambda: save_policy_checkpoint(path, policy_state(state.actor), dict(state.actor.spec),
+                                                version=2, updates=20, action_repeat=1, evaluation={}),
+                 lambda: save_checkpoint(disk.path / "checkpoint.pt", state, config, OBS, ACT)):
+        with pytest.raises(OSError) as refused:
+            save()
+        assert refused.value.errno == errno.ENOSPC
+    assert load_checkpoint(path).version == 1
+    assert sorted(p.name for p in disk.path.iterdir()) == ["ballast", "best.pt"]  # no temporary file left
 
 
 def test_unusable_checkpoints_raise_clear_errors(tmp_path):
