@@ -6,7 +6,7 @@ The estimate is the most each part can grow to, from the run's flags (docs/train
                   transitions, or --env-steps if fewer, or what a run of --seconds can make at
                   MAX_ENV_STEPS_PER_S per actor if fewer still: the snapshot, the next one written
                   beside it before the rename, and the write-ahead log between them
-    episodes      each actor's and evaluator's log budget (l2r-actor --log-budget-mb, 1024 MB
+    episodes      each actor's and evaluator's log budget (l2r-actor --log-budget-mb, 256 MB
                   unless an --actor-arg sets it), or what it can write in --seconds at
                   MAX_EPISODE_BYTES_PER_S if less: none with --no-episode-logs or on a task whose
                   episodes are not logged
@@ -19,12 +19,17 @@ The estimate is the most each part can grow to, from the run's flags (docs/train
 `l2r up` refuses a run whose estimate exceeds the free space (less what a resumed run directory
 already holds), unless --force. While it runs, its status line shows the free space once it is
 below `LOW_FACTOR` reserves, and it stops the job when the free space falls below
-`reserve_bytes`: room for the learner's last checkpoint, so that the newest one is whole.
+`reserve_bytes`: room for the learner's last checkpoint, so that the newest one is whole. In
+between, the run sheds what it needs least (`Shedding`): below `LOW_FACTOR` reserves the actors
+begin no logged episode (l2r-actor --log-min-free-mb), below `EVENTS_FACTOR` reserves no
+TensorBoard events are written (the CSV files go on); checkpoints and the replay's log are written
+to the end.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from l2r.actors.__main__ import parse_settings as actor_settings
@@ -34,6 +39,8 @@ from l2r.replay.storage import StorageConfig, storage_bytes
 from l2r.spaces import task_spaces
 from l2r.supervise import Child
 
+log = logging.getLogger(__name__)
+
 METRICS_BYTES_PER_HOUR = 16 * MB
 # Ceilings of a time-limited run (docs/training.md): the fastest actor measured made 5,073 env
 # steps/s (PPO on Hopper-v5, four envs; the runner's ~2,000), and the runner's job logged 454 MB
@@ -41,7 +48,8 @@ METRICS_BYTES_PER_HOUR = 16 * MB
 MAX_ENV_STEPS_PER_S = 5_000
 MAX_EPISODE_BYTES_PER_S = 1 * MB
 RESERVE_MARGIN = 1 * MB  # beyond the last checkpoint: summary.json, the last log lines
-LOW_FACTOR = 10  # the status line shows the free space once it is below this many reserves
+LOW_FACTOR = 10  # the status line shows the free space once it is below this many reserves, and episodes are shed
+EVENTS_FACTOR = 5  # below this many reserves TensorBoard events are shed too
 
 
 def _mlp_parameters(widths: list[int]) -> int:
@@ -71,8 +79,7 @@ def estimate(args: argparse.Namespace, recipe: dict, capacity: int, side_fractio
     if args.seconds:
         budgets = [min(budget, int(args.seconds * MAX_EPISODE_BYTES_PER_S)) for budget in budgets]
     episodes = sum(budgets)
-    obs_dim = observation.vector_width or 0
-    checkpoints = (args.keep_checkpoints + 2) * checkpoint_bytes(obs_dim, act_dim, recipe["hidden"])
+    checkpoints = (args.keep_checkpoints + 2) * task_checkpoint_bytes(args.env_id, recipe["hidden"])
     metrics = int(METRICS_BYTES_PER_HOUR * (args.seconds or 3600) / 3600)
     return {"replay": replay, "episode logs": episodes, "checkpoints": checkpoints, "metrics": metrics}
 
@@ -82,6 +89,12 @@ def already_written(run_dir: Path | None) -> int:
     if run_dir is None or not run_dir.is_dir():
         return 0
     return sum(p.stat().st_size for p in run_dir.rglob("*") if p.is_file())
+
+
+def task_checkpoint_bytes(env_id: str, hidden: str) -> int:
+    """`checkpoint_bytes` of a task's networks."""
+    observation, act_dim = task_spaces(env_id)
+    return checkpoint_bytes(observation.vector_width or 0, act_dim, hidden)
 
 
 def reserve_bytes(run_dir: Path, estimated_checkpoint: int) -> int:
@@ -96,3 +109,27 @@ def describe(parts: dict[str, int]) -> str:
     """`1.2 GB (replay 870 MB, episode logs 2147 MB, ...)`."""
     return f"{sum(parts.values()) / MB:,.0f} MB (" + ", ".join(
         f"{name} {size / MB:,.0f} MB" for name, size in parts.items()) + ")"
+
+
+class Shedding:
+    """What the run stops writing as its disk fills, what it needs least first; each change is
+    logged once."""
+
+    PARTS = (("episode logs", LOW_FACTOR), ("TensorBoard events", EVENTS_FACTOR))
+
+    def __init__(self, where: Path):
+        self.where = where
+        self.shed: set[str] = set()
+
+    def update(self, free: int, reserve: int) -> set[str]:
+        """The parts shed at `free` bytes free, the learner's last checkpoint taking `reserve`."""
+        for part, factor in self.PARTS:
+            floor = factor * reserve
+            if free < floor and part not in self.shed:
+                self.shed.add(part)
+                log.warning("disk low at %s: %.1f MB free, below %.1f MB: %s are not written until there is room "
+                            "(checkpoints and the replay's log go on)", self.where, free / MB, floor / MB, part)
+            elif free >= floor and part in self.shed:
+                self.shed.discard(part)
+                log.info("%.1f MB free at %s again: writing %s", free / MB, self.where, part)
+        return self.shed

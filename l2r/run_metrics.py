@@ -195,6 +195,7 @@ class ScalarEvents(DroppingFile):
         self.directory = directory
         self.where = directory / "events.out.tfevents"
         self.failures = failures
+        self.paused = False  # set while the disk is low: events are what a run needs least after episodes
         self._files = 0
         self._file: BinaryIO | None = None
         self._start_file()
@@ -217,8 +218,8 @@ class ScalarEvents(DroppingFile):
         self._records.write(event.SerializeToString())
 
     def add(self, tag: str, value: float, step: int, wall_time: float) -> None:
-        if self._file is None:
-            return  # dropped until a flush starts a new file
+        if self._file is None or self.paused:
+            return  # dropped until a flush starts a new file, or while paused
         summary = Summary(value=[Summary.Value(tag=tag, simple_value=value)])
         with self._on_failure(EVENTS_DROPPED):
             self._write(Event(wall_time=wall_time, step=int(step), summary=summary))
@@ -291,6 +292,10 @@ class RunMetrics:
         self._subs = [session.declare_subscriber(k, self._on_stats) for k in (keys.all_stats, keys.all_metrics)]
         self._subs.append(session.declare_subscriber(keys.all_episodes, self._on_episode))
         self._subs.append(session.declare_subscriber(keys.learner_version, self._on_version))
+
+    def pause_events(self, paused: bool) -> None:
+        """Write no TensorBoard events while `paused` (the disk is low); the CSV files go on."""
+        self._tensorboard.paused = paused
 
     # -- counters -----------------------------------------------------------------------------
 

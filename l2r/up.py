@@ -474,9 +474,11 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
               "--seed", str(args.seed),
               *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"])]  # a runner's speed limit
+    reserve = disk_budget.reserve_bytes(run_dir, disk_budget.task_checkpoint_bytes(args.env_id, recipe["hidden"]))
     # MCAP episode logs record the runner's body or a camera task's frames: none for another task
     logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS) else [
-        "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every)]
+        "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every),
+        "--log-min-free-mb", f"{disk_budget.LOW_FACTOR * reserve / MB:.1f}"]
     for i in range(args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
@@ -662,8 +664,8 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     conf = session_config(connect=[loopback(replay_port), loopback(learner_port)], listen=["tcp/127.0.0.1:0"])
     print(f"l2r up: run directory {run_dir}  (Zenoh run {run!r}; Ctrl-C stops cleanly)", file=sys.stderr)
     code, spent = 0, None
-    observation, act_dim = task_spaces(args.env_id)
-    checkpoint_estimate = disk_budget.checkpoint_bytes(observation.vector_width or 0, act_dim, recipe.values["hidden"])
+    checkpoint_estimate = disk_budget.task_checkpoint_bytes(args.env_id, recipe.values["hidden"])
+    shedding = disk_budget.Shedding(run_dir)
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
         simulators = simulator_of_each_actor(children)
@@ -698,6 +700,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
                     if time.monotonic() >= next_status:
                         figures, free = metrics.record_status(), free_bytes(run_dir)
                         reserve = disk_budget.reserve_bytes(run_dir, checkpoint_estimate)
+                        metrics.pause_events("TensorBoard events" in shedding.update(free, reserve))
                         if free < disk_budget.LOW_FACTOR * reserve:
                             figures["disk_free_mb"] = free / MB
                         display.update(figures, children)

@@ -11,6 +11,7 @@ from pydantic import Field
 
 from l2r.actors.actor import ActorConfig, main
 from l2r.config import CommandParser, FilePath, load, run_command, setting, settings_parser
+from l2r.durable import MB
 from l2r.protocol import DaemonSettings, configure_logging
 
 DEFAULTS = ActorConfig()
@@ -67,13 +68,18 @@ class ActorSettings(DaemonSettings):
                                                group=LOGS)
     log_every: int = setting(10, "log every Nth training episode (0: none); evaluation episodes are always logged",
                              group=LOGS, ge=0)
-    log_budget_mb: float = setting(1024.0, "disk budget of this actor's logs, oldest removed first", group=LOGS, gt=0)
+    log_budget_mb: float = setting(256.0, "disk budget of this actor's logs, oldest removed first (the runner's "
+                                   "actors log about 0.1 MB/s: 256 MB holds their last 45 minutes)", group=LOGS, gt=0)
+    log_min_free_mb: float = setting(0.0, "begin no logged episode while the disk has less than this free, leaving "
+                                     "the room to checkpoints and replay (l2r up sets it; 0: no floor)",
+                                     group=LOGS, ge=0)
 
     def actor(self) -> ActorConfig:
         episode_log = {}
         if self.episode_log_dir is not None:
             episode_log = {"directory": self.episode_log_dir, "every": self.log_every,
-                           "disk_budget_bytes": int(self.log_budget_mb * 2**20)}
+                           "disk_budget_bytes": int(self.log_budget_mb * 2**20),
+                           "min_free_bytes": int(self.log_min_free_mb * MB)}
         actor_id = None if self.actor_id == "auto" else self.actor_id  # None: asked of replay shard 0
         return ActorConfig(
             run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,

@@ -30,7 +30,9 @@ Files: one per episode, ``<run>-a<actor>-<UTC start>-e<n>-<train|eval|best>.mcap
 ``directory``, written as ``….mcap.part`` and renamed when complete, so a ``.mcap`` is
 always whole; a crash leaves a ``.part`` that ``python -m l2r.episodes.recover`` repairs.
 After each file the actor's own files beyond ``disk_budget_bytes`` are removed, oldest
-first (never the newest, nor the current best). The format is in ``l2r.episodes.schema``
+first (never the newest, nor the current best). Below ``min_free_bytes`` free on the disk, no
+episode is begun (``stats["episodes_shed"]``), so that a filling disk keeps its room for the
+run's checkpoints and replay log; logging starts again once there is room. The format is in ``l2r.episodes.schema``
 and docs/episodes.md.
 
 Cost: ``log_step`` copies the step into a preallocated block (a few microseconds); a
@@ -55,7 +57,7 @@ from typing import Any
 import numpy as np
 
 import l2r
-from l2r.durable import DISK_ERRORS, FailureLog
+from l2r.durable import DISK_ERRORS, MB, FailureLog, free_bytes
 from l2r.episodes import schema
 from l2r.episodes.body import BodyModel
 from l2r.episodes.encode import StepLayout, TransformEncoder
@@ -90,6 +92,7 @@ class EpisodeLogger:
         actor_id: int,
         policy: LogPolicy = LogPolicy(),
         disk_budget_bytes: int = 1 << 30,
+        min_free_bytes: int = 0,
         step_seconds: float = 0.01,
         queue_blocks: int = 64,
         block_steps: int = BLOCK_STEPS,
@@ -101,10 +104,11 @@ class EpisodeLogger:
         self.write_failures = FailureLog(log, "episode logs")
         self.directory.mkdir(parents=True, exist_ok=True)
         self.run, self.actor_id, self.policy = run, int(actor_id), policy
-        self.disk_budget_bytes = int(disk_budget_bytes)
+        self.disk_budget_bytes, self.min_free_bytes = int(disk_budget_bytes), int(min_free_bytes)
+        self._shedding = False
         self.step_seconds = float(step_seconds)
         self.block_steps, self.chunk_bytes = int(block_steps), int(chunk_bytes)
-        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0,
+        self.stats = {"episodes_written": 0, "episodes_skipped": 0, "episodes_shed": 0, "episodes_failed": 0, "files_removed": 0, "write_errors": 0,
                       "writer_cpu_s": 0.0}
         self._layouts: dict[tuple, StepLayout] = {}
         self.body = (body or BodyModel.from_model(load_model())) if with_body else None
@@ -136,11 +140,28 @@ class EpisodeLogger:
             self._training_episodes += 1
             if kind is None and self.policy.best:
                 kind = "best"
-        if kind is None:
+        if kind is None or self._below_floor():
             return NULL_RECORDER
         stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
         path = self.directory / f"{self.run}-a{self.actor_id}-{stamp}-e{n:06d}-{kind}.mcap"
         return Recorder(self, path, kind, dict(meta))
+
+    def _below_floor(self) -> bool:
+        """Whether the disk has less than `min_free_bytes` free, so that the episode is not
+        logged: the run's checkpoints and replay log need the room more. Said once a spell."""
+        if not self.min_free_bytes:
+            return False
+        free = free_bytes(self.directory)
+        shedding = free < self.min_free_bytes
+        if shedding != self._shedding:
+            self._shedding = shedding
+            if shedding:
+                log.warning("episode logs: %.1f MB free at %s, below the floor of %.1f MB: episodes are not logged "
+                            "until there is room", free / MB, self.directory, self.min_free_bytes / MB)
+            else:
+                log.info("episode logs: %.1f MB free at %s again: logging episodes", free / MB, self.directory)
+        self.stats["episodes_shed"] += shedding
+        return shedding
 
     def close(self, timeout: float = 30.0) -> None:
         """Write what is queued, abandon episodes still running (their .part files are

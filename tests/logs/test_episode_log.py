@@ -248,3 +248,22 @@ def test_a_full_disk_drops_episodes_with_one_line_and_logging_goes_on_once_there
     logger.close()
     assert logger.stats["episodes_written"] == 1 and kinds(disk.path) == ["train"]
     assert any("episode logs: writing again" in r.getMessage() for r in caplog.records)
+
+
+def test_below_its_floor_of_free_space_an_actor_begins_no_logged_episode_and_says_so_once(small_disk, caplog):
+    caplog.set_level(logging.INFO)
+    disk = small_disk(4)
+    env = RunEnv(difficulty=DIFFICULTY)
+    logger = small_logger(disk.path, policy=LogPolicy(every=1), min_free_bytes=2 << 20)
+    disk.fill(leave=1 << 20)  # room for an episode, but below the floor
+    for seed in range(3):
+        log_episode(logger, env, seed, steps=40)
+    assert logger.stats["episodes_shed"] == 3 and not list(disk.path.glob("*.mcap*"))
+    shed = [r.getMessage() for r in caplog.records if "below the floor of 2.1 MB" in r.getMessage()]
+    assert len(shed) == 1 and "episodes are not logged until there is room" in shed[0], shed
+
+    disk.free()
+    log_episode(logger, env, 10, steps=40)
+    logger.close()
+    assert logger.stats["episodes_written"] == 1 and kinds(disk.path) == ["train"]
+    assert any("again: logging episodes" in r.getMessage() for r in caplog.records)

@@ -14,6 +14,7 @@ import sys
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from l2r.disk_budget import Shedding
 from l2r.durable import FailureLog, FileLogHandler
 from l2r.run_metrics import CsvLog, ScalarEvents
 from tests.conftest import ROOT, wait_for
@@ -106,6 +107,27 @@ def test_metrics_on_a_full_disk_say_so_once_and_write_whole_rows_again_once_it_h
     accumulator = EventAccumulator(str(disk.path))
     accumulator.Reload()
     assert accumulator.Scalars("status/time")[-1].step == 2000
+
+
+def test_a_filling_disk_sheds_episode_logs_then_events_each_change_said_once(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="l2r.disk_budget")
+    shedding, reserve = Shedding(tmp_path), 1_000_000
+    steps = [(20, set()), (9, {"episode logs"}), (8, {"episode logs"}),
+             (4, {"episode logs", "TensorBoard events"}), (3, {"episode logs", "TensorBoard events"}), (12, set())]
+    for reserves, shed in steps:
+        assert shedding.update(reserves * reserve, reserve) == shed, reserves
+    lines = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert [level for level, _ in lines] == ["WARNING", "WARNING", "INFO", "INFO"], lines
+    assert "episode logs are not written" in lines[0][1] and "TensorBoard events are not written" in lines[1][1]
+
+    events = ScalarEvents(tmp_path, FailureLog(logging.getLogger("l2r.up"), "metrics"))
+    for step, paused in ((1, False), (2, True), (3, False)):
+        events.paused = paused
+        events.add("status/time", float(step), step, 0.0)
+    events.close()
+    accumulator = EventAccumulator(str(tmp_path))
+    accumulator.Reload()
+    assert [e.step for e in accumulator.Scalars("status/time")] == [1, 3]
 
 
 def test_up_log_on_a_full_disk_is_one_line_on_the_console_not_a_traceback_per_record(small_disk, capsys):

@@ -11,6 +11,7 @@ from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, SETTINGS, STANDARD
 from l2r.replay.__main__ import parse_settings as replay_settings
+from l2r import disk_budget
 from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
 
 REPLAY = "--run run --log-level INFO --listen tcp/127.0.0.1:7447"
@@ -87,7 +88,8 @@ def assert_same_settings(now: dict[str, list[str]], before: dict[str, str]) -> N
     assert learner_now.algorithm() == learner_before.algorithm()
     assert learner_now.learner() == learner_before.learner()
     for name in ("actor-0", "evaluator-0"):
-        assert actor_settings(now[name]) == actor_settings(before[name])
+        # The episode logs' floor of free space came later: it trains nothing differently.
+        assert actor_settings(now[name]).model_copy(update={"log_min_free_mb": 0.0}) == actor_settings(before[name])
 
 
 def reached(children: dict[str, list[str]], recipe: dict) -> dict:
@@ -188,3 +190,10 @@ def test_actors_log_episodes_of_the_runner_and_of_camera_tasks_alone():
         children = planned("--env-id", env_id, "--algo", "td3")
         for name in ("actor-0", "evaluator-0"):
             assert (actor_settings(children[name]).episode_log_dir is not None) == logged, (env_id, name)
+
+
+def test_actors_stop_logging_episodes_where_the_status_line_starts_showing_the_disk():
+    children = planned("--env-id", "l2r/Run-v0")
+    reserve = disk_budget.reserve_bytes(Path("runs/x"), disk_budget.task_checkpoint_bytes("l2r/Run-v0", "256,256"))
+    floor = actor_settings(children["actor-0"]).actor().episode_log["min_free_bytes"]
+    assert floor == pytest.approx(disk_budget.LOW_FACTOR * reserve, rel=0.01) and floor > reserve
