@@ -8,11 +8,17 @@ reset, so reading its spaces costs nothing:
     import gymnasium, l2r.photo
     env = gymnasium.make("l2r/PhotoTune-v0")              # the training photos
     env = gymnasium.make("l2r/PhotoTune-v0", split="test")  # the held-out ones
+
+and `l2r/PhotoTuneStats-v0`, the same task observed through statistics of both images alone (no
+images), which a small MLP learns from on a CPU.
 """
 
 import gymnasium
 
 TUNE_ID = "l2r/PhotoTune-v0"
+TUNE_STATS_ID = "l2r/PhotoTuneStats-v0"
+TUNE_IDS = (TUNE_ID, TUNE_STATS_ID)
 
 # The env ends its episodes itself (10 queries, or a collapsed image), so no max_episode_steps.
 gymnasium.register(id=TUNE_ID, entry_point="l2r.photo.env:PhotoTuneEnv")
+gymnasium.register(id=TUNE_STATS_ID, entry_point="l2r.photo.env:PhotoTuneEnv", kwargs={"view": "statistics"})

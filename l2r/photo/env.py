@@ -20,6 +20,13 @@ actions, and the fraction of the episode's steps taken (gymnasium orders a Dict'
 the spec reads `goal, pixels, state`). An episode starts from the input with
 neutral parameters.
 
+With `view="statistics"` (`l2r/PhotoTuneStats-v0`) the observation is `state` alone,
+float32[60]: `image_features` of the current image and of the goal (per channel the mean, the
+standard deviation and the 10th, 50th and 90th percentiles, an 8-bin luminance histogram, the
+saturation and the sharpness), the current parameters and the steps taken. No convolution then
+reads the images, so a tuner trains at the speed of a small MLP: what a 2-core machine can do,
+where the image encoder makes a fraction of an update a second.
+
 The reward is the change in PSNR to the goal (on the working images, capped at 100 dB) times
 0.01. An episode ends after 10 steps, or early when the image collapses, its mean brightness
 below 0.01 or above 0.9; both are terminations, the count of steps being in the observation and
@@ -45,6 +52,7 @@ DARKEST, BRIGHTEST = 0.01, 0.9
 MAX_PSNR_DB = 100.0
 """PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
 MAX_DRAWS = 100
+VIEWS = ("images", "statistics")
 STATE_FIELDS = (
     "luminance", "contrast", "saturation", "goal_luminance", "goal_contrast", "goal_saturation",
     *(f"{p.name}_action" for p in PARAMETERS), "steps_taken",
@@ -60,6 +68,30 @@ def psnr_db(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
 def collapsed(image: np.ndarray) -> bool:
     """Whether an image's mean brightness is below 0.01 or above 0.9."""
     return not DARKEST <= float(image.mean()) <= BRIGHTEST
+
+
+HISTOGRAM_BINS = 8
+FEATURES_PER_IMAGE = 3 * 5 + HISTOGRAM_BINS + 2
+
+
+def image_features(images: np.ndarray) -> np.ndarray:
+    """[N, 25] of float images [N, 3, H, W] in [0, 1]: per channel the mean, the standard
+    deviation and the 10th, 50th and 90th percentiles (exposure, white balance, contrast); the
+    luminance's histogram in 8 equal bins, as fractions (highlights and shadows); the saturation
+    of `image_statistics`; the mean absolute 4-neighbour Laplacian of the luminance (sharpness).
+    Each in [0, 1]."""
+    n = len(images)
+    pixels = images.reshape(n, 3, -1)
+    percentiles = np.percentile(pixels, (10, 50, 90), axis=2).transpose(1, 2, 0)  # [N, 3, 3]
+    channels = np.concatenate([pixels.mean(axis=2)[..., None], pixels.std(axis=2)[..., None], percentiles], axis=2)
+    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
+    bins = np.minimum((luminance.reshape(n, -1) * HISTOGRAM_BINS).astype(np.int64), HISTOGRAM_BINS - 1)
+    histogram = np.stack([np.bincount(row, minlength=HISTOGRAM_BINS) for row in bins]) / bins.shape[1]
+    laplacian = (4 * luminance[:, 1:-1, 1:-1] - luminance[:, :-2, 1:-1] - luminance[:, 2:, 1:-1]
+                 - luminance[:, 1:-1, :-2] - luminance[:, 1:-1, 2:])
+    sharpness = np.minimum(np.abs(laplacian).mean(axis=(1, 2)), 1.0)
+    return np.concatenate([channels.reshape(n, -1), histogram, image_statistics(images)[:, 2:3], sharpness[:, None]],
+                          axis=1)
 
 
 def image_statistics(images: np.ndarray) -> np.ndarray:
@@ -79,27 +111,34 @@ class PhotoTuneEnv(gym.Env):
     max_steps: steps (pipeline queries) per episode.
     sources: photos to crop from instead of the split's, by name ([3, H, W] uint8 or uint16: a
         FiveK folder's, say).
+    view: "images" (both images and their statistics) or "statistics" (`image_features` alone).
     """
 
     metadata = {"render_modes": []}
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
-                 sources: Mapping[str, np.ndarray] | None = None):
+                 sources: Mapping[str, np.ndarray] | None = None, view: str = "images"):
         photos.check_split(split)
+        if view not in VIEWS:
+            raise ValueError(f"PhotoTune: view must be one of {', '.join(VIEWS)}, got {view!r}")
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if sources is not None and not sources:
             raise ValueError("PhotoTune: sources holds no photo")
-        self.split, self.max_steps = split, max_steps
+        self.split, self.max_steps, self.view = split, max_steps, view
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
         side = photos.OBSERVATION_SIZE
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
-        self.observation_space = gym.spaces.Dict({
-            "pixels": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
-            "goal": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
-            "state": gym.spaces.Box(-1.0, 1.0, (len(STATE_FIELDS),), np.float32),
-        })
+        if view == "images":
+            self.observation_space = gym.spaces.Dict({
+                "pixels": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
+                "goal": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
+                "state": gym.spaces.Box(-1.0, 1.0, (len(STATE_FIELDS),), np.float32),
+            })
+        else:
+            width = 2 * FEATURES_PER_IMAGE + len(PARAMETERS) + 1
+            self.observation_space = gym.spaces.Dict({"state": gym.spaces.Box(-1.0, 1.0, (width,), np.float32)})
         self.episode_over = True
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
@@ -155,8 +194,11 @@ class PhotoTuneEnv(gym.Env):
 
     def observation(self) -> dict[str, np.ndarray]:
         current = photos.downsample(self.image)
-        statistics = image_statistics(np.stack([current, self.goal_small]))
+        both = np.stack([current, self.goal_small])
+        statistics = image_statistics(both) if self.view == "images" else image_features(both)
         state = np.concatenate([statistics.ravel(), actions_from_params(self.params), [self.steps / self.max_steps]])
+        if self.view == "statistics":
+            return {"state": state.astype(np.float32)}
         return {
             "pixels": photos.to_uint8(current),
             "goal": photos.to_uint8(self.goal_small),

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from l2r.photo import TUNE_ID, photos
+from l2r.photo import TUNE_IDS, photos
 from l2r.photo.env import PhotoTuneEnv, psnr_db
 from l2r.photo.pipeline import PARAMETERS, finish, params_from_actions
 
@@ -95,30 +95,32 @@ def cmaes(problem: Problem, queries: int, seed: int = 0) -> Trace:
 
 
 def policy_tune(policy, problem: Problem) -> Trace:
-    """The deterministic actions of a policy (l2r.policy) through `l2r/PhotoTune-v0` as an actor
+    """The deterministic actions of a policy (l2r.policy) through the photo task it was trained on
+    (`l2r/PhotoTune-v0` or `l2r/PhotoTuneStats-v0`, told by its observation spec) as an actor
     makes it (l2r.actors.actor.make_task), posed this problem: one query per step, up to 10.
-    ValueError when the policy takes other observations or actions than the task's."""
+    ValueError when the policy takes other observations or actions than either task's."""
     from l2r.actors.actor import fields_of, make_task
     from l2r.actors.frame_stack import FrameStack, frame_stack_of
     from l2r.policy import act
     from l2r.protocol import ObservationSpec
 
-    env = make_task(TUNE_ID)
-    spec = ObservationSpec.from_space(env.observation_space)
     trained = ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"]
-    if trained != (spec, len(PARAMETERS)):
-        raise ValueError(f"the policy takes observations {trained[0]} and gives {trained[1]} actions; "
-                         f"{TUNE_ID} gives {spec} and takes {len(PARAMETERS)}")
+    tasks = {env_id: ObservationSpec.from_space(make_task(env_id).observation_space) for env_id in TUNE_IDS}
+    env_id = next((env_id for env_id, spec in tasks.items() if trained == (spec, len(PARAMETERS))), None)
+    if env_id is None:
+        raise ValueError(f"the policy takes observations {trained[0]} and gives {trained[1]} actions; " + "; ".join(
+            f"{env_id} gives {spec}" for env_id, spec in tasks.items()) + f", and each takes {len(PARAMETERS)}")
+    env, spec = make_task(env_id), tasks[env_id]
     frames = FrameStack(spec, frame_stack_of(policy.spec), 1)
     obs, _ = env.reset(options={"source": problem.source, "goal": problem.goal})
-    frames.reset(0, fields_of(spec, obs, TUNE_ID))
+    frames.reset(0, fields_of(spec, obs, env_id))
     tried, values, over = [], [], False
     while not over:
         excitation = act(policy, frames.stacked(), deterministic=True)[0]
         obs, _, terminated, truncated, info = env.step(excitation)
         tried.append(2.0 * excitation - 1.0)  # what the task's rescaling hands the pipeline
         values.append(float(info["psnr_db"]))
-        frames.push(0, fields_of(spec, obs, TUNE_ID))
+        frames.push(0, fields_of(spec, obs, env_id))
         over = terminated or truncated
     env.close()
     return Trace(np.array(tried, np.float32), np.array(values))
