@@ -10,7 +10,7 @@ import pytest
 
 import l2r.photo.env  # registers the id (l2r.photo)
 from l2r.photo import photos
-from l2r.photo.env import collapsed, image_statistics, psnr_db
+from l2r.photo.env import collapsed, image_features, image_statistics, psnr_db
 from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
 from l2r.protocol.observations import ObservationSpec
 
@@ -59,6 +59,35 @@ def test_image_statistics_by_hand():
     assert image_statistics(image)[0].tolist() == pytest.approx([0.27, 0.0, 1 / 1.01], abs=1e-6)
     image[0, :, 0, 0] = 1.0  # one white pixel of four
     assert image_statistics(image)[0, :2].tolist() == pytest.approx([0.4525, 3 * 0.1825 ** 2 / 4 + 0.5475 ** 2 / 4])
+
+
+def test_image_features_by_hand():
+    image = np.full((1, 3, 4, 4), 0.5, np.float32)
+    image[0, 0] = 0.25  # a flat image: no spread, every percentile its value, one histogram bin, no edges
+    features = image_features(image)[0]
+    assert features.shape == (25,)
+    assert features[:15].tolist() == pytest.approx([0.25, 0, 0.25, 0.25, 0.25] + [0.5, 0, 0.5, 0.5, 0.5] * 2)
+    luminance = 0.27 * 0.25 + 0.67 * 0.5 + 0.06 * 0.5  # 0.4325: bin 3 of 8
+    assert features[15:23].tolist() == [0, 0, 0, 1, 0, 0, 0, 0]
+    assert features[23] == pytest.approx(image_statistics(image)[0, 2]) and features[24] == 0.0
+    image[0, :, 1, 1] = 1.0  # a white dot on one of the four inner pixels: 4 (1 - L) there, 1 - L at two neighbours
+    assert image_features(image)[0, 24] == pytest.approx(6 * (1 - luminance) / 4, abs=1e-6)
+
+
+def test_the_statistics_view_observes_both_images_features_and_the_parameters():
+    stats = gymnasium.make("l2r/PhotoTuneStats-v0").unwrapped
+    assert ObservationSpec.from_space(stats.observation_space) == ObservationSpec.parse("state: float32[60]")
+    obs, _ = stats.reset(seed=1)
+    small = photos.downsample(np.stack([stats.source, stats.goal]))
+    np.testing.assert_allclose(obs["state"][:50], image_features(small).ravel(), atol=1e-6)
+    assert obs["state"][50:].tolist() == [0.0] * 10
+    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
+    obs, *_ = stats.step(action)
+    np.testing.assert_allclose(obs["state"][50:59], action, atol=1e-5)
+    assert obs["state"][59] == pytest.approx(0.1)
+    check_env(stats, skip_render_check=True)
+    with pytest.raises(ValueError, match="view must be one of images, statistics"):
+        gymnasium.make("l2r/PhotoTune-v0", view="histograms")
 
 
 def test_the_reward_is_the_psnr_change_times_a_hundredth(env):

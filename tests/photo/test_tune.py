@@ -12,7 +12,7 @@ import torch
 
 from l2r.learner import td3
 from l2r.learner.checkpoint import save_policy_checkpoint
-from l2r.photo import TUNE_ID, photos, tune
+from l2r.photo import TUNE_ID, TUNE_IDS, photos, tune
 from l2r.photo.env import psnr_db
 from l2r.photo.pipeline import NAMES, finish, params_from_actions
 from l2r.policy import policy_state
@@ -52,18 +52,19 @@ def test_a_budget_cut_inside_a_generation_spends_exactly_its_queries_and_a_seed_
     np.testing.assert_array_equal(trace.psnr_db, tune.cmaes(problem, 40, seed=5).psnr_db[:23])
 
 
-def untrained_policy_checkpoint(path):
-    """An untrained TD3 policy of l2r/PhotoTune-v0, saved as `l2r up` saves best.pt."""
-    observation, act_dim = task_spaces(TUNE_ID)
+def untrained_policy_checkpoint(path, env_id=TUNE_ID):
+    """An untrained TD3 policy of a photo task, saved as `l2r up` saves best.pt."""
+    observation, act_dim = task_spaces(env_id)
     state = td3.init_state(td3.TD3Config(hidden=(16,), precision="float32"), observation, act_dim, seed=0)
     return save_policy_checkpoint(path, policy_state(state.actor), dict(state.actor.spec), version=1, updates=0,
                                   action_repeat=1, evaluation={})
 
 
-def test_a_policy_tunes_in_its_episode_s_queries_through_the_task(problem, tmp_path):
+@pytest.mark.parametrize("env_id", TUNE_IDS)
+def test_a_policy_tunes_in_its_episode_s_queries_through_the_task_it_was_trained_on(problem, tmp_path, env_id):
     from l2r.learner.checkpoint import load_checkpoint
 
-    policy = load_checkpoint(untrained_policy_checkpoint(tmp_path / "best.pt")).policy()
+    policy = load_checkpoint(untrained_policy_checkpoint(tmp_path / "best.pt", env_id)).policy()
     trace = tune.policy_tune(policy, problem)
     assert 1 <= len(trace.psnr_db) <= tune.POLICY_QUERIES
     # The task's own PSNR of each step is that of the pipeline run with the actions recorded.
