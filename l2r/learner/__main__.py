@@ -18,6 +18,7 @@ from pydantic import field_validator  # noqa: E402
 from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
+from l2r.learner.algorithms import ON_POLICY  # noqa: E402
 from l2r.learner.checkpoint import CheckpointError  # noqa: E402
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
@@ -210,14 +211,14 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
             raise UsageError("--layer-norm and --no-layer-norm contradict each other")
-        if self.compile not in ("auto", "off") and (self.algo == "ppo" or self.world_size > 1):
-            raise UsageError(f"--compile {self.compile} is for one SAC or TD3 learner: PPO loops over its own "
-                             "minibatches, and data-parallel ranks all-reduce their gradients eagerly")
+        if self.compile not in ("auto", "off") and (self.algo in ON_POLICY or self.world_size > 1):
+            raise UsageError(f"--compile {self.compile} is for one SAC or TD3 learner: {self.algo.upper()} loops "
+                             "over its own steps, and data-parallel ranks all-reduce their gradients eagerly")
         if self.compile.endswith("graphs") and self.device == "cpu":
             raise UsageError(f"--compile {self.compile} captures CUDA graphs: it needs --device cuda or auto")
-        if self.algo == "ppo" and (self.mirror or self.prioritized):
-            raise UsageError("--mirror and --prioritized are SAC's: PPO learns from the actors' own actions, in "
-                             "order (their log-probabilities are of the actions as taken)")
+        if self.algo in ON_POLICY and (self.mirror or self.prioritized):
+            raise UsageError(f"--mirror and --prioritized are SAC's and TD3's: {self.algo.upper()} learns from the "
+                             "actors' own actions, in order (their log-probabilities are of the actions as taken)")
 
     def _network(self, defaults: SACConfig | PPOConfig | TD3Config) -> dict:
         """The settings both algorithms have, each unset one at the algorithm's default."""

@@ -32,6 +32,7 @@ import zenoh
 
 from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import ppo, sac, td3
+from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
     save_checkpoint,
@@ -169,9 +170,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
-    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), PPO
-    # loops over its own minibatches, and image batches (maps of fields) are not captured yet.
-    eager = config.world_size > 1 or isinstance(algo, PPOConfig) or config.observation is not None
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), the
+    # on-policy algorithms loop over their own steps, and image batches (maps of fields) are not captured yet.
+    eager = config.world_size > 1 or algorithm_of(algo) in ON_POLICY or config.observation is not None
     config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     if config.observation is not None:
         reuse_large_buffers()  # before Zenoh's threads start: batches of frames are 20-30 MB each
@@ -211,7 +212,8 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             token = session.liveliness().declare_token(keys.alive("learner", config.rank))
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
-            table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
+            # The replay table's requests stay as before the queue.
+            table = "queue" if algorithm_of(algo) in ON_POLICY else None
             # The vector's requests stay version 1, as before the frames form.
             frame_stack = None if config.observation is None else algo.frame_stack
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
