@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
-                         "deterministic policy); ppo on-policy from the "
+                         "deterministic policy); ppo, a2c and reinforce on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
     le.add_argument("--capacity", type=int,
@@ -190,10 +190,11 @@ def build_parser() -> argparse.ArgumentParser:
                          f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start), "
                          f"{PHOTO_CAPACITY:,} for photo tasks")
     le.add_argument("--queue-capacity", type=int,
-                    help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
+                    help="transitions the queue table holds before it holds the actors back (on-policy algorithms; "
+                         "unset: two batches)")
     le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,
                     help="the queue drops transitions acted by a policy more than this many versions behind the "
-                         "learner's newest, and counts them (PPO)")
+                         "learner's newest, and counts them (on-policy algorithms)")
     le.add_argument("--keep-checkpoints", type=int, default=3,
                     help="learner checkpoints kept (learner/checkpoint-<updates>.pt; checkpoint.pt is the newest)")
     le.add_argument("--learner-arg", action="append", default=[], metavar="ARG",

@@ -1,14 +1,16 @@
 """The learner process: batches in from replay, updates, weights, metrics and checkpoints out.
 
-The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo`; this module
-only hosts them. Steady state:
+The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo` (A2C and
+REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.reinforce`); this
+module only hosts them. Steady state:
 
     replay client (sample queries in flight) -> batch, staged on the device -> the algorithm's step:
         SAC, TD3: update x update_repeat on a batch from the replay table (eager, compiled or one
                   CUDA graph: --compile), priorities back (prioritized only)
-        PPO: one update (epochs x minibatches) on a batch from the queue table
+        on-policy (PPO, A2C, REINFORCE; l2r.learner.algorithms.ON_POLICY): one update (epochs x
+                  minibatches) on a batch from the queue table
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
-           PPO after every batch (its data must come from the newest policy)
+           the on-policy algorithms after every batch (their data must come from the newest policy)
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
 
 SIGTERM and SIGINT stop the loop; the checkpoint is written last.
@@ -292,13 +294,14 @@ def _td3_step(state: td3.TrainState, tensors: sac.Batch, batch: SampleBatch, alg
     return metrics
 
 
-def _ppo_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> ppo.Batch:
+def _queue_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> ppo.Batch:
     return ppo.batch_from_sample(batch, device)
 
 
-def _ppo_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
-              replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
-    return ppo.update(state, tensors, algo)
+def _on_policy_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
+                    replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
+    """An on-policy algorithm's update (its module's `update`) on one batch from the queue table."""
+    return ALGORITHMS[algorithm_of(algo)][1].update(state, tensors, algo)
 
 
 # Per algorithm: its batch as tensors on the device (staged while the update before it runs), its
@@ -306,7 +309,7 @@ def _ppo_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, alg
 # whether weights go out after every batch (else every --publish-every updates).
 STEPS = {"sac": (_replay_batch, _replay_step, sac.update, False),
          "td3": (_replay_batch, _td3_step, td3.update, False),
-         "ppo": (_ppo_batch, _ppo_step, None, True)}
+         **{name: (_queue_batch, _on_policy_step, None, True) for name in ON_POLICY}}
 
 
 class Staging:
