@@ -123,8 +123,8 @@ class LearnerSettings(DaemonSettings):
         None, "hidden activation " + _defaults("activation", SAC_DEFAULTS.activation), group=BOTH)
     no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers (SAC's and TD3's default has it)", group=BOTH)
     layer_norm: bool = setting(False, "LayerNorm in hidden layers (PPO's default has none)", group=BOTH)
-    reward_scale: float | None = setting(None, "reward multiplier " + _defaults("reward_scale", SAC_DEFAULTS.reward_scale),
-                                         group=BOTH)
+    reward_scale: float | None = setting(None, "reward multiplier "
+                                         + _defaults("reward_scale", SAC_DEFAULTS.reward_scale), group=BOTH)
     relative_x: bool = setting(False, "networks see world x coordinates as distances from the pelvis", group=BOTH)
     normalize_obs: bool = setting(False, "networks see observations standardised by running statistics (shipped "
                                   "with the weights)", group=BOTH)
