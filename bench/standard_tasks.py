@@ -49,7 +49,7 @@ MILESTONES = (100_000, 300_000, 1_000_000)
 # benchmark pages: ppo_continuous_action on the v4 tasks, sac_continuous_action on the v2 tasks).
 PUBLISHED = {("Hopper", "ppo"): (2382.86, 271.74), ("Walker2d", "ppo"): (2287.95, 571.78),
              ("Hopper", "sac"): (2310.46, 342.82), ("Walker2d", "sac"): (3591.45, 911.33)}
-COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple"}
+COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple", "a2c": "tab:orange", "reinforce": "tab:brown"}
 
 
 def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path, up_args: list[str]) -> Path:
@@ -159,7 +159,7 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="Hopper-v5,Walker2d-v5", help="gymnasium ids, comma-separated")
-    p.add_argument("--algos", default="ppo,sac", help="comma-separated, of ppo, sac and td3")
+    p.add_argument("--algos", default="ppo,sac", help="comma-separated, of ppo, sac, td3, a2c and reinforce")
     p.add_argument("--env-steps", type=int, default=MILESTONES[-1], help="env steps of each job")
     p.add_argument("--seconds", type=float, default=0, help="wall-clock limit of each job (0: none)")
     p.add_argument("--runs-dir", type=Path, help="where the jobs' run directories go (default: a temporary one)")

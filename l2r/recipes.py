@@ -9,11 +9,13 @@ flag of its own name that replaces the recipe's value.
 
 The settings span the three daemons: the replay server's (`REPLAY_FLAGS`), the actors'
 (`ACTOR_SETTINGS`) and the learner's (every other one, an `l2r-learner` flag of the same name).
-Left out, and the same in every recipe: the temperature is learnt towards an entropy of
--act-dim, PPO standardises its advantages per minibatch; `--learner-arg` sets those.
+Left out, and the same in every recipe of an algorithm: the temperature is learnt towards an
+entropy of -act-dim, PPO and REINFORCE standardise their advantages per minibatch and A2C does
+not; `--learner-arg` sets those.
 
-The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`) stay the 2017 reference
-solution's and CleanRL's; `l2r up` passes every value of the recipe, so the learner's command line shows it.
+The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `ReinforceConfig`)
+stay the 2017 reference solution's, CleanRL's, Stable-Baselines3's and Spinning Up's; `l2r up`
+passes every value of the recipe, so the learner's command line shows it.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from dataclasses import dataclass
 from typing import Mapping
 
 from l2r.families import PHOTO, PIXELS, RUNNER, STANDARD, family_of
-from l2r.learner.ppo import LAG_CORRECTIONS
+from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS
 from l2r.policy import ACTIVATIONS
 
 Value = bool | int | float | str
@@ -53,7 +55,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     (RUNNER, "ppo"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, epochs=10, minibatches=32, lr=3e-4,
         gamma=0.99, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
-        lag_correction="ratio", reward_scale=1.0,
+        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
         relative_x=True, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=3,
     ),
@@ -61,8 +63,48 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     (STANDARD, "ppo"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, epochs=10, minibatches=32, lr=3e-4,
         gamma=0.99, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
-        lag_correction="ratio", reward_scale=1.0,
+        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
         relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=1,
+    ),
+    # A2C as Stable-Baselines3 and RL Baselines3 Zoo train it on MuJoCo tasks (A2CConfig: RMSprop at
+    # 7e-4, n-step returns, the value loss at twice PPO's weight, observations standardised), but
+    # for the batch: 32 transitions, not SB3's 5 (n_steps 5 of one env). The queue holds two batches
+    # and must take an actor's 64-transition chunk whole; 32 is the smallest batch it can. One env
+    # per actor: each env sends its own chunks, and four envs' chunks would wait through versions
+    # enough to go stale (--queue-max-lag) before the learner's small batches reached them. On the
+    # runner with its observation options and action repeat; not measured on the runner yet.
+    (RUNNER, "a2c"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=32, epochs=1, minibatches=1, lr=7e-4,
+        gamma=0.99, gae_lambda=1.0, clip=0.2, value_coef=1.0, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", optimizer="rmsprop", reward_scale=1.0,
+        relative_x=True, normalize_obs=True,
+        random_steps=0, envs_per_actor=1, action_repeat=3,
+    ),
+    # The same for other tasks: one step per action.
+    (STANDARD, "a2c"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=32, epochs=1, minibatches=1, lr=7e-4,
+        gamma=0.99, gae_lambda=1.0, clip=0.2, value_coef=1.0, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", optimizer="rmsprop", reward_scale=1.0,
+        relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=1, action_repeat=1,
+    ),
+    # REINFORCE with a value baseline at Spinning Up VPG's values (ReinforceConfig): 4,000 transitions
+    # and one Adam step at 3e-4 per update, Monte-Carlo returns (lambda 1). On the runner with its
+    # observation options and action repeat; not measured on the runner yet.
+    (RUNNER, "reinforce"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=4000, epochs=1, minibatches=1, lr=3e-4,
+        gamma=0.99, gae_lambda=1.0, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
+        relative_x=True, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
+    ),
+    # The same for other tasks: raw observations as Spinning Up's, one step per action.
+    (STANDARD, "reinforce"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=4000, epochs=1, minibatches=1, lr=3e-4,
+        gamma=0.99, gae_lambda=1.0, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
+        relative_x=False, normalize_obs=False,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
     # The runner's SAC recipe with TD3's own values (its paper's, as CleanRL and SB3 keep them): a
@@ -129,15 +171,15 @@ SETTINGS: dict[str, str] = {
     "hidden": "hidden layer widths of every network, comma-separated",
     "activation": "hidden activation",
     "layer_norm": "LayerNorm after each hidden layer",
-    "batch_size": "transitions per batch; for PPO, per update (its rollout)",
-    "lr": "Adam learning rate of every network (and of SAC's temperature)",
+    "batch_size": "transitions per batch; for the on-policy algorithms, per update (their rollout)",
+    "lr": "learning rate of every network (and of SAC's temperature)",
     "gamma": "discount per action",
     "tau": "Polyak rate of the target networks (SAC, TD3)",
     "reward_scale": "multiplier on rewards",
     "initial_alpha": "the entropy temperature at the start, learnt from there (SAC)",
     "update_repeat": "gradient steps per sampled batch (SAC, TD3)",
-    "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC, TD3; PPO "
-                     "publishes after every batch)",
+    "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC, TD3; the "
+                     "on-policy algorithms publish after every batch)",
     "n_step": "steps summed into each sampled reward before the bootstrap (TD3)",
     "policy_delay": "the actor steps and the targets follow on every Nth update (TD3)",
     "target_noise": "std of the noise on the target action (TD3's target policy smoothing)",
@@ -148,14 +190,15 @@ SETTINGS: dict[str, str] = {
     "exploration_std_end": "... and after --exploration-std-updates updates (TD3)",
     "exploration_std_updates": "learner updates over which the exploration std goes linearly from start to end "
                                "(TD3)",
-    "epochs": "passes over each batch (PPO)",
-    "minibatches": "minibatches per pass, one gradient step each (PPO)",
-    "gae_lambda": "lambda of GAE (PPO)",
-    "clip": "clip range of the probability ratio, 1 +- clip (PPO)",
-    "value_coef": "weight of the value loss (PPO)",
-    "entropy_coef": "weight of the entropy bonus (PPO)",
-    "max_grad_norm": "gradient norm clip (PPO)",
-    "lag_correction": "what PPO does about the actors' policy lag (docs/learner.md)",
+    "epochs": "passes over each batch (PPO, A2C, REINFORCE)",
+    "minibatches": "minibatches per pass, one gradient step each (PPO, A2C, REINFORCE)",
+    "gae_lambda": "lambda of GAE; 1: returns to the end of each trajectory piece (PPO, A2C, REINFORCE)",
+    "clip": "clip range of the probability ratio, 1 +- clip (PPO, A2C, REINFORCE)",
+    "value_coef": "weight of the value loss, half the squared error (PPO, A2C, REINFORCE)",
+    "entropy_coef": "weight of the entropy bonus (PPO, A2C, REINFORCE)",
+    "max_grad_norm": "gradient norm clip (PPO, A2C, REINFORCE)",
+    "lag_correction": "what the on-policy algorithms do about the actors' policy lag (docs/learner.md)",
+    "optimizer": "adam or rmsprop (PPO, A2C, REINFORCE)",
     "relative_x": "networks see world x coordinates as distances from the pelvis (the runner alone)",
     "normalize_obs": "networks see observations standardised by running statistics",
     "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, TD3, the "
@@ -172,7 +215,8 @@ SETTINGS: dict[str, str] = {
     "augment_pad": "image observations: pixels of DrQ's random shift (TD3; 0: none; unset: the learner's 4)",
 }
 # Settings whose values are one of a few names.
-CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS}
+CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS,
+                                       "optimizer": OPTIMIZERS}
 
 # The replay server's settings, under their l2r-replay flags.
 REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per-insert",

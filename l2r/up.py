@@ -51,6 +51,7 @@ from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.durable import DISK_ERRORS, MB, FileLogHandler, disk_failure, free_bytes
 from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
+from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
@@ -181,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
-                         "deterministic policy); ppo on-policy from the "
+                         "deterministic policy); ppo, a2c and reinforce on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
     le.add_argument("--capacity", type=int,
@@ -189,10 +190,11 @@ def build_parser() -> argparse.ArgumentParser:
                          f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start), "
                          f"{PHOTO_CAPACITY:,} for photo tasks")
     le.add_argument("--queue-capacity", type=int,
-                    help="transitions the queue table holds before it holds the actors back (PPO; unset: two batches)")
+                    help="transitions the queue table holds before it holds the actors back (on-policy algorithms; "
+                         "unset: two batches)")
     le.add_argument("--queue-max-lag", type=int, default=QueueConfig().max_lag,
                     help="the queue drops transitions acted by a policy more than this many versions behind the "
-                         "learner's newest, and counts them (PPO)")
+                         "learner's newest, and counts them (on-policy algorithms)")
     le.add_argument("--keep-checkpoints", type=int, default=3,
                     help="learner checkpoints kept (learner/checkpoint-<updates>.pt; checkpoint.pt is the newest)")
     le.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
@@ -450,7 +452,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
     recipe = recipe_of(args).values
-    if args.algo == "ppo":  # the queue table alone; a learner asking for one batch at a time, the freshest
+    if args.algo in ON_POLICY:  # the queue table alone; a learner asking for one batch at a time, the freshest
         tables = ["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * recipe["batch_size"]),
                   "--queue-max-lag", str(args.queue_max_lag)]
         in_flight = ["--in-flight", "1"]
@@ -616,7 +618,7 @@ def fits_on_disk(args: argparse.Namespace) -> bool:
     warning with --force, which then goes on)."""
     where = args.resume or args.runs_dir
     children = plan_children(args, "estimate", where, 0, 0)
-    capacity = 0 if args.algo == "ppo" else replay_capacity(args)  # PPO's queue table is not snapshotted
+    capacity = 0 if args.algo in ON_POLICY else replay_capacity(args)  # the queue table is not snapshotted
     side = IMAGE_SIDE_FRACTION if family_of(args.env_id) == PIXELS else StorageConfig.side_fraction
     parts = disk_budget.estimate(args, recipe_of(args).values, capacity, side, children)
     needed = sum(parts.values()) - disk_budget.already_written(args.resume)

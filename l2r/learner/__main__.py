@@ -1,4 +1,4 @@
-"""``l2r-learner``: command line of the learner, SAC, TD3 or PPO (see ``l2r.learner.daemon``)."""
+"""``l2r-learner``: command line of the learner, SAC, TD3, PPO, A2C or REINFORCE (see ``l2r.learner.daemon``)."""
 
 from __future__ import annotations
 
@@ -18,10 +18,13 @@ from pydantic import field_validator  # noqa: E402
 from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
+from l2r.learner.a2c import A2CConfig  # noqa: E402
+from l2r.learner.algorithms import ON_POLICY  # noqa: E402
 from l2r.learner.checkpoint import CheckpointError  # noqa: E402
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
-from l2r.learner.ppo import LAG_CORRECTIONS, PPOConfig  # noqa: E402
+from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS, PPOConfig  # noqa: E402
+from l2r.learner.reinforce import ReinforceConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.learner.steps import COMPILE_MODES  # noqa: E402
 from l2r.learner.td3 import TD3Config  # noqa: E402
@@ -33,16 +36,25 @@ IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
 """DrQ-v2's frame stack and random shift, the defaults for image observations."""
 
 SAC_DEFAULTS, PPO_DEFAULTS, TD3_DEFAULTS = SACConfig(), PPOConfig(), TD3Config()
+PPO_FAMILY = {"ppo": PPO_DEFAULTS, "a2c": A2CConfig(), "reinforce": ReinforceConfig()}
+"""The algorithms that are PPO's update at their own settings, each with its defaults."""
 PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
-BOTH, SAC, PPO = "algorithm (every --algo)", "SAC (with --algo sac)", "PPO (with --algo ppo)"
+BOTH, SAC = "algorithm (every --algo)", "SAC (with --algo sac)"
+PPO = "PPO, A2C and REINFORCE (with --algo ppo, a2c or reinforce)"
 OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
 
 
-def _either(sac_value, ppo_value) -> str:
-    """Help text for a setting whose default is the algorithm's (TD3's are SAC's)."""
+def _defaults(name: str, sac_value=None) -> str:
+    """Help text for a setting whose default is the algorithm's: SAC's (TD3's are the same), then
+    each of PPO_FAMILY's, algorithms with the same default named together."""
     def shown(value) -> str:
         return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
-    return f"(default: SAC and TD3 {shown(sac_value)}, PPO {shown(ppo_value)})"
+    by_value: dict[str, list[str]] = {}
+    for algo, config in PPO_FAMILY.items():
+        by_value.setdefault(shown(getattr(config, name)), []).append(algo.upper())
+    parts = [] if sac_value is None else [f"SAC and TD3 {shown(sac_value)}"]
+    parts += [f"{' and '.join(algos)} {value}" for value, algos in by_value.items()]
+    return f"(default: {', '.join(parts)})"
 
 
 class LearnerSettings(DaemonSettings):
@@ -70,13 +82,13 @@ class LearnerSettings(DaemonSettings):
                                  "gymnasium environment, e.g. l2r/dmc-cartpole-swingup-v0 (it is made once, and "
                                  "closed)", group=PROCESS)
     act_dim: int = setting(18, "action width", group=PROCESS, ge=1)
-    in_flight: int = setting(4, "sample requests kept in flight (PPO: a batch fetched ahead comes from an older "
-                             "policy; l2r up --algo ppo keeps 1)", group=PROCESS, ge=1)
+    in_flight: int = setting(4, "sample requests kept in flight (on-policy algorithms: a batch fetched ahead comes "
+                             "from an older policy; l2r up keeps 1 for them)", group=PROCESS, ge=1)
     prioritized: bool = setting(False, "prioritized sampling, |TD error| sent back as priority (SAC, TD3)",
                                 group=PROCESS)
     priority_beta: float = setting(0.4, "importance-weight exponent under prioritized sampling", group=PROCESS, ge=0)
-    publish_every: int = setting(50, "updates between weight publications (SAC, TD3; PPO publishes after every batch)",
-                                 group=PROCESS, ge=1)
+    publish_every: int = setting(50, "updates between weight publications (SAC, TD3; the on-policy algorithms "
+                                 "publish after every batch)", group=PROCESS, ge=1)
     checkpoint_interval: float = setting(60.0, "seconds between checkpoints", group=PROCESS, gt=0)
     keep_checkpoints: int = setting(3, "checkpoints kept: checkpoint.pt is the newest, checkpoint-<updates>.pt "
                                     "the newest N", group=PROCESS, ge=1)
@@ -95,22 +107,24 @@ class LearnerSettings(DaemonSettings):
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 
-    algo: Literal["sac", "td3", "ppo"] = setting(
+    algo: Literal["sac", "td3", "ppo", "a2c", "reinforce"] = setting(
         "sac", "sac: off-policy, from the replay table; td3: off-policy with a deterministic policy, from the replay "
-        "table; ppo: on-policy, from the replay server's queue table (l2r-replay --queue-capacity)", group=BOTH)
-    batch_size: int | None = setting(None, "transitions per batch; for PPO, per update (its rollout) "
-                                     + _either(SAC_DEFAULTS.batch_size, PPO_DEFAULTS.batch_size), group=BOTH, ge=1)
+        "table; on-policy, from the replay server's queue table (l2r-replay --queue-capacity): ppo; a2c, synchronous "
+        "advantage actor-critic (PPO's update, one step per batch, RMSprop); reinforce, Monte-Carlo returns and a "
+        "value baseline (PPO's update, one step per batch, lambda 1)", group=BOTH)
+    batch_size: int | None = setting(None, "transitions per batch; for the on-policy algorithms, per update (their "
+                                     "rollout) " + _defaults("batch_size", SAC_DEFAULTS.batch_size), group=BOTH, ge=1)
     gamma: float = setting(SAC_DEFAULTS.gamma, "discount", group=BOTH, ge=0, le=1)
-    lr: float = setting(SAC_DEFAULTS.actor_lr, "Adam learning rate of every network (and of SAC's alpha)",
-                        group=BOTH, gt=0)
+    lr: float | None = setting(None, "learning rate of every network (and of SAC's alpha) "
+                               + _defaults("lr", SAC_DEFAULTS.actor_lr), group=BOTH, gt=0)
     hidden: str | None = setting(None, "hidden layer widths of every network, comma-separated "
-                                 + _either(SAC_DEFAULTS.hidden, PPO_DEFAULTS.hidden), group=BOTH)
+                                 + _defaults("hidden", SAC_DEFAULTS.hidden), group=BOTH)
     activation: Literal["elu", "relu", "tanh"] | None = setting(
-        None, "hidden activation " + _either(SAC_DEFAULTS.activation, PPO_DEFAULTS.activation), group=BOTH)
+        None, "hidden activation " + _defaults("activation", SAC_DEFAULTS.activation), group=BOTH)
     no_layer_norm: bool = setting(False, "no LayerNorm in hidden layers (SAC's and TD3's default has it)", group=BOTH)
     layer_norm: bool = setting(False, "LayerNorm in hidden layers (PPO's default has none)", group=BOTH)
-    reward_scale: float | None = setting(None, "reward multiplier " + _either(SAC_DEFAULTS.reward_scale,
-                                                                                PPO_DEFAULTS.reward_scale), group=BOTH)
+    reward_scale: float | None = setting(None, "reward multiplier "
+                                         + _defaults("reward_scale", SAC_DEFAULTS.reward_scale), group=BOTH)
     relative_x: bool = setting(False, "networks see world x coordinates as distances from the pelvis", group=BOTH)
     normalize_obs: bool = setting(False, "networks see observations standardised by running statistics (shipped "
                                   "with the weights)", group=BOTH)
@@ -154,15 +168,20 @@ class LearnerSettings(DaemonSettings):
                                       f"size at a random offset; 0: none (default: {IMAGE_AUGMENT_PAD} for images, "
                                       "0 for the vector, which takes no other)", group=TD3, ge=0)
 
-    epochs: int = setting(PPO_DEFAULTS.epochs, "passes over each batch", group=PPO, ge=1)
-    minibatches: int = setting(PPO_DEFAULTS.minibatches, "minibatches per pass, one gradient step each", group=PPO,
-                               ge=1)
+    epochs: int | None = setting(None, "passes over each batch " + _defaults("epochs"), group=PPO, ge=1)
+    minibatches: int | None = setting(None, "minibatches per pass, one gradient step each " + _defaults("minibatches"),
+                                      group=PPO, ge=1)
     clip: float = setting(PPO_DEFAULTS.clip, "clip range of the probability ratio (1 +- clip)", group=PPO, gt=0)
-    gae_lambda: float = setting(PPO_DEFAULTS.gae_lambda, "lambda of GAE and of V-trace's traces", group=PPO, ge=0,
-                                le=1)
-    value_coef: float = setting(PPO_DEFAULTS.value_coef, "weight of the value loss", group=PPO, ge=0)
+    gae_lambda: float | None = setting(None, "lambda of GAE and of V-trace's traces " + _defaults("gae_lambda"),
+                                       group=PPO, ge=0, le=1)
+    value_coef: float | None = setting(None, "weight of the value loss, half the squared error "
+                                       + _defaults("value_coef"), group=PPO, ge=0)
     entropy_coef: float = setting(PPO_DEFAULTS.entropy_coef, "weight of the entropy bonus", group=PPO, ge=0)
     max_grad_norm: float = setting(PPO_DEFAULTS.max_grad_norm, "gradient norm clip", group=PPO, gt=0)
+    optimizer: Literal[OPTIMIZERS] | None = setting(
+        None, "adam, or rmsprop (alpha 0.99, as Stable-Baselines3's A2C) " + _defaults("optimizer"), group=PPO)
+    normalize_advantages: bool = setting(False, "advantages standardised per minibatch (PPO's and REINFORCE's "
+                                         "default; A2C's has none)", group=PPO)
     no_normalize_advantages: bool = setting(False, "advantages as computed, not standardised per minibatch",
                                             group=PPO)
     lag_correction: Literal[LAG_CORRECTIONS] = setting(
@@ -210,14 +229,16 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
             raise UsageError("--layer-norm and --no-layer-norm contradict each other")
-        if self.compile not in ("auto", "off") and (self.algo == "ppo" or self.world_size > 1):
-            raise UsageError(f"--compile {self.compile} is for one SAC or TD3 learner: PPO loops over its own "
-                             "minibatches, and data-parallel ranks all-reduce their gradients eagerly")
+        if self.normalize_advantages and self.no_normalize_advantages:
+            raise UsageError("--normalize-advantages and --no-normalize-advantages contradict each other")
+        if self.compile not in ("auto", "off") and (self.algo in ON_POLICY or self.world_size > 1):
+            raise UsageError(f"--compile {self.compile} is for one SAC or TD3 learner: {self.algo.upper()} loops "
+                             "over its own steps, and data-parallel ranks all-reduce their gradients eagerly")
         if self.compile.endswith("graphs") and self.device == "cpu":
             raise UsageError(f"--compile {self.compile} captures CUDA graphs: it needs --device cuda or auto")
-        if self.algo == "ppo" and (self.mirror or self.prioritized):
-            raise UsageError("--mirror and --prioritized are SAC's: PPO learns from the actors' own actions, in "
-                             "order (their log-probabilities are of the actions as taken)")
+        if self.algo in ON_POLICY and (self.mirror or self.prioritized):
+            raise UsageError(f"--mirror and --prioritized are SAC's and TD3's: {self.algo.upper()} learns from the "
+                             "actors' own actions, in order (their log-probabilities are of the actions as taken)")
 
     def _network(self, defaults: SACConfig | PPOConfig | TD3Config) -> dict:
         """The settings both algorithms have, each unset one at the algorithm's default."""
@@ -231,28 +252,42 @@ class LearnerSettings(DaemonSettings):
     def sac(self) -> SACConfig:
         try:
             return SACConfig(
-                **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self.lr, critic_lr=self.lr, alpha_lr=self.lr,
+                **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self._lr(SAC_DEFAULTS.actor_lr),
+                critic_lr=self._lr(SAC_DEFAULTS.actor_lr), alpha_lr=self._lr(SAC_DEFAULTS.actor_lr),
                 update_repeat=self.update_repeat, target_entropy=self.target_entropy,
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
                 precision=self.precision)
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None
 
-    def ppo(self) -> PPOConfig:
+    def _lr(self, default: float) -> float:
+        return default if self.lr is None else self.lr
+
+    def on_policy(self) -> PPOConfig:
+        """PPO's, A2C's or REINFORCE's settings (--algo's), each unset one at that algorithm's default."""
+        defaults = PPO_FAMILY[self.algo]
+
+        def given_or_default(name: str):
+            value = getattr(self, name)
+            return getattr(defaults, name) if value is None else value
+
         try:
-            return PPOConfig(
-                **self._network(PPO_DEFAULTS), lr=self.lr, epochs=self.epochs, minibatches=self.minibatches,
-                clip=self.clip, gae_lambda=self.gae_lambda, value_coef=self.value_coef,
+            return type(defaults)(
+                **self._network(defaults), lr=self._lr(defaults.lr), clip=self.clip,
+                **{name: given_or_default(name) for name in ("epochs", "minibatches", "gae_lambda", "value_coef",
+                                                             "optimizer")},
                 entropy_coef=self.entropy_coef, max_grad_norm=self.max_grad_norm,
-                normalize_advantages=not self.no_normalize_advantages, lag_correction=self.lag_correction,
-                is_clip=self.is_clip)
-        except ValueError as e:  # a combination PPOConfig refuses
+                normalize_advantages=self.normalize_advantages or (defaults.normalize_advantages
+                                                                   and not self.no_normalize_advantages),
+                lag_correction=self.lag_correction, is_clip=self.is_clip)
+        except ValueError as e:  # a combination the config refuses
             raise UsageError(str(e)) from None
 
     def td3(self) -> TD3Config:
         try:
             return TD3Config(
-                **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self.lr, critic_lr=self.lr,
+                **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self._lr(TD3_DEFAULTS.actor_lr),
+                critic_lr=self._lr(TD3_DEFAULTS.actor_lr),
                 update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
                 target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
@@ -263,7 +298,7 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(str(e)) from None
 
     def algorithm(self) -> SACConfig | PPOConfig | TD3Config:
-        return {"sac": self.sac, "td3": self.td3, "ppo": self.ppo}[self.algo]()
+        return {"sac": self.sac, "td3": self.td3, **dict.fromkeys(PPO_FAMILY, self.on_policy)}[self.algo]()
 
     def learner(self) -> LearnerConfig:
         observation, act_dim = self.spaces
@@ -284,12 +319,13 @@ def build_parser() -> CommandParser:
         "Learner of an l2r run. SAC (the default) samples batches from the replay server(s) with several requests "
         "in flight and trains twin critics, a tanh-Gaussian policy and the entropy temperature; TD3 (--algo td3) "
         "samples the same way and trains twin critics and a deterministic policy, which the actors explore with "
-        "scheduled Gaussian noise; PPO (--algo ppo) "
-        "takes batches from the replay servers' queue table, each transition once, and trains the same policy with "
-        "a value network. Both publish versioned policy weights for actors and checkpoint atomically.",
+        "scheduled Gaussian noise; PPO (--algo ppo), A2C (--algo a2c) and REINFORCE (--algo reinforce) "
+        "take batches from the replay servers' queue table, each transition once, and train the same policy with "
+        "a value network. All publish versioned policy weights for actors and checkpoint atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
         "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
-        "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192\n"
+        "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192 "
+        "(A2C and REINFORCE the same, with --algo a2c or reinforce)\n"
         "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500")
 
 

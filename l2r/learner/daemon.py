@@ -1,14 +1,16 @@
 """The learner process: batches in from replay, updates, weights, metrics and checkpoints out.
 
-The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo`; this module
-only hosts them. Steady state:
+The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo` (A2C and
+REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.reinforce`); this
+module only hosts them. Steady state:
 
     replay client (sample queries in flight) -> batch, staged on the device -> the algorithm's step:
         SAC, TD3: update x update_repeat on a batch from the replay table (eager, compiled or one
                   CUDA graph: --compile), priorities back (prioritized only)
-        PPO: one update (epochs x minibatches) on a batch from the queue table
+        on-policy (PPO, A2C, REINFORCE; l2r.learner.algorithms.ON_POLICY): one update (epochs x
+                  minibatches) on a batch from the queue table
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
-           PPO after every batch (its data must come from the newest policy)
+           the on-policy algorithms after every batch (their data must come from the newest policy)
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
 
 SIGTERM and SIGINT stop the loop; the checkpoint is written last.
@@ -32,6 +34,7 @@ import zenoh
 
 from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import ppo, sac, td3
+from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
     save_checkpoint,
@@ -169,9 +172,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
-    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), PPO
-    # loops over its own minibatches, and image batches (maps of fields) are not captured yet.
-    eager = config.world_size > 1 or isinstance(algo, PPOConfig) or config.observation is not None
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), the
+    # on-policy algorithms loop over their own steps, and image batches (maps of fields) are not captured yet.
+    eager = config.world_size > 1 or algorithm_of(algo) in ON_POLICY or config.observation is not None
     config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     if config.observation is not None:
         reuse_large_buffers()  # before Zenoh's threads start: batches of frames are 20-30 MB each
@@ -211,7 +214,8 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
             token = session.liveliness().declare_token(keys.alive("learner", config.rank))
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
             outlet = WeightsOutlet(session, keys) if leader else None
-            table = "queue" if isinstance(algo, PPOConfig) else None  # SAC's requests stay as before the queue
+            # The replay table's requests stay as before the queue.
+            table = "queue" if algorithm_of(algo) in ON_POLICY else None
             # The vector's requests stay version 1, as before the frames form.
             frame_stack = None if config.observation is None else algo.frame_stack
             with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
@@ -256,6 +260,9 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
             or saved.config.layer_norm != algo.layer_norm or saved.config.activation != algo.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
                               f"{state.actor.spec}: use the same architecture flags, or a new run directory")
+    if getattr(saved.config, "optimizer", None) != getattr(algo, "optimizer", None):
+        raise CheckpointError(f"{saved.path} holds the state of {saved.config.optimizer}, the settings ask for "
+                              f"{algo.optimizer}: use the same --optimizer, or a new run directory")
     state.load_state_dict(saved.train_state)
     state.set_learning_rates(algo)  # the command line's, not the saved ones
     log.info("resumed from %s: version %d, %d updates", saved.path, state.version, state.updates)
@@ -290,13 +297,14 @@ def _td3_step(state: td3.TrainState, tensors: sac.Batch, batch: SampleBatch, alg
     return metrics
 
 
-def _ppo_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> ppo.Batch:
+def _queue_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> ppo.Batch:
     return ppo.batch_from_sample(batch, device)
 
 
-def _ppo_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
-              replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
-    return ppo.update(state, tensors, algo)
+def _on_policy_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
+                    replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
+    """An on-policy algorithm's update (its module's `update`) on one batch from the queue table."""
+    return ALGORITHMS[algorithm_of(algo)][1].update(state, tensors, algo)
 
 
 # Per algorithm: its batch as tensors on the device (staged while the update before it runs), its
@@ -304,7 +312,7 @@ def _ppo_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, alg
 # whether weights go out after every batch (else every --publish-every updates).
 STEPS = {"sac": (_replay_batch, _replay_step, sac.update, False),
          "td3": (_replay_batch, _td3_step, td3.update, False),
-         "ppo": (_ppo_batch, _ppo_step, None, True)}
+         **{name: (_queue_batch, _on_policy_step, None, True) for name in ON_POLICY}}
 
 
 class Staging:

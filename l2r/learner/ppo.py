@@ -40,6 +40,7 @@ from l2r.policy import ACTIVATIONS, LOG_STD_MAX, LOG_STD_MIN, Policy, mlp_trunk,
 from l2r.protocol import SampleBatch
 
 LAG_CORRECTIONS = ("none", "ratio", "vtrace")
+OPTIMIZERS = ("adam", "rmsprop")
 LOG_RATIO_BOUND = 20.0
 
 
@@ -54,7 +55,7 @@ class PPOConfig:
     minibatches: int = 32
     """Minibatches per pass: one gradient step each."""
     lr: float = 3e-4
-    """Adam learning rate of policy and value network."""
+    """Learning rate of policy and value network."""
     gamma: float = 0.99
     """Discount per environment step of the policy (one action-repeated step)."""
     gae_lambda: float = 0.95
@@ -88,9 +89,14 @@ class PPOConfig:
     """The networks see world x coordinates as distances from the pelvis (see ObservationFilter)."""
     normalize_obs: bool = False
     """The networks see observations standardised by running statistics of the batches."""
+    optimizer: str = "adam"
+    """'adam' (eps 1e-5, as CleanRL and Stable-Baselines3 set it for PPO) or 'rmsprop' (alpha 0.99,
+    eps 1e-5, as Stable-Baselines3 sets it for A2C)."""
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
         if self.lag_correction not in LAG_CORRECTIONS:
@@ -149,7 +155,7 @@ class TrainState:
     def load_state_dict(self, saved: Mapping) -> None:
         self.actor.load_state_dict(saved["actor"])
         self.value.load_state_dict(saved["value"])
-        load_adam_state(self.optimizer, saved["optimizer"])
+        load_adam_state(self.optimizer, saved["optimizer"])  # RMSprop's too: it has the same `capturable`
         self.updates, self.version = int(saved["updates"]), int(saved["version"])
         self.extra = dict(saved.get("extra", {}))
 
@@ -169,8 +175,12 @@ def init_state(config: PPOConfig, obs_dim: int, act_dim: int, device: str | torc
         actor.head.bias[act_dim:] = math.atanh(-LOG_STD_MIN / (0.5 * (LOG_STD_MAX - LOG_STD_MIN)) - 1.0)
     actor.to(device)
     value = ValueNetwork(obs_dim, config.hidden, config.activation, config.layer_norm).to(device)
-    # Adam's eps as CleanRL and Stable-Baselines3 set it for PPO.
-    return TrainState(actor, value, adam([*actor.parameters(), *value.parameters()], config.lr, device, eps=1e-5))
+    params = [*actor.parameters(), *value.parameters()]
+    if config.optimizer == "rmsprop":
+        optimizer = torch.optim.RMSprop(params, lr=config.lr, alpha=0.99, eps=1e-5)
+    else:
+        optimizer = adam(params, config.lr, device, eps=1e-5)
+    return TrainState(actor, value, optimizer)
 
 
 @dataclass
@@ -267,7 +277,7 @@ def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torc
     advantages = torch.as_tensor(advantages, dtype=torch.float32, device=values.device)
     targets = torch.as_tensor(targets, dtype=torch.float32, device=values.device)
 
-    # 3. Epochs of minibatch steps: clipped surrogate, value loss, entropy bonus; one Adam step each.
+    # 3. Epochs of minibatch steps: clipped surrogate, value loss, entropy bonus; one optimizer step each.
     size = n // config.minibatches
     params = state.parameters()
     sums = {name: torch.zeros((), device=values.device)
