@@ -114,7 +114,7 @@ def test_the_learner_s_algo_picks_each_algorithm_s_published_defaults_and_flags_
     assert unstandardised == ReinforceConfig(normalize_advantages=False)
 
 
-def test_an_a2c_checkpoint_restores_its_rmsprop_state_and_a_ppo_learner_refuses_it(tmp_path, capsys):
+def test_an_a2c_checkpoint_restores_its_rmsprop_state_and_a_ppo_or_adam_learner_refuses_it(tmp_path, capsys):
     config = A2CConfig(batch_size=64, hidden=(16,))
     state = init_state(config, 5, 3, seed=0)
     STEPS["a2c"][1](state, batch_from_sample(sample_batch(64)), None, config, None, None)
@@ -129,3 +129,7 @@ def test_an_a2c_checkpoint_restores_its_rmsprop_state_and_a_ppo_learner_refuses_
     assert cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu", "--algo", "ppo",
                 "--obs-dim", "5", "--act-dim", "3", "--connect", "tcp/127.0.0.1:9"]) == EXIT_CANNOT_START
     assert "holds A2C, not a PPO training state: use --algo a2c" in capsys.readouterr().err
+    assert cli(["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu", "--algo", "a2c",
+                "--optimizer", "adam", "--obs-dim", "5", "--act-dim", "3", "--hidden", "16",
+                "--connect", "tcp/127.0.0.1:9"]) == EXIT_CANNOT_START
+    assert "holds the state of rmsprop, the settings ask for adam: use the same --optimizer" in capsys.readouterr().err
