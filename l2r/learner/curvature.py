@@ -119,15 +119,15 @@ class KFAC:
         self.decay, self.damping = decay, damping
         self.factors: list[tuple[torch.Tensor, torch.Tensor]] = []
         """(A, G) per layer, once a batch has been taken in."""
-        self._recorded: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self._recorded: dict[nn.Module, tuple[torch.Tensor, torch.Tensor]] = {}
 
     @contextmanager
     def recording(self) -> Iterator[None]:
         """Within it, each forward pass through a layer is kept (its input and output) for `update_factors`."""
-        self._recorded = []
+        self._recorded = {}
 
         def keep(layer: nn.Module, inputs: tuple[torch.Tensor], output: torch.Tensor) -> None:
-            self._recorded.append((inputs[0], output))
+            self._recorded[layer] = inputs[0], output
 
         hooks = [layer.register_forward_hook(keep) for layer in self.layers]
         try:
@@ -140,18 +140,18 @@ class KFAC:
         """Take the covariances of the recorded layers' inputs and of `fisher_loss`'s gradients
         at their outputs into the running averages. `fisher_loss` is a mean over the batch of
         log-likelihoods of targets sampled from the model, so n times its gradient at a row is
-        that row's own. Each layer must have run once while recording, in the order of `layers`."""
+        that row's own. Each layer must have run while recording (the last pass counts)."""
         if len(self._recorded) != len(self.layers):
-            raise RuntimeError(f"{len(self._recorded)} layer passes recorded, K-FAC needs one of each of "
-                               f"{len(self.layers)} layers")
-        outputs = [output for _, output in self._recorded]
-        grads = torch.autograd.grad(fisher_loss, outputs, retain_graph=True)
+            raise RuntimeError(f"{len(self._recorded)} of {len(self.layers)} layers ran while recording: K-FAC "
+                               "needs the statistics of every one")
+        recorded = [self._recorded[layer] for layer in self.layers]
+        grads = torch.autograd.grad(fisher_loss, [output for _, output in recorded], retain_graph=True)
         batch = []
-        for (inputs, _), grad in zip(self._recorded, grads):
+        for (inputs, _), grad in zip(recorded, grads):
             a = torch.cat([inputs.detach(), inputs.new_ones(len(inputs), 1)], dim=1)
             g = grad * len(grad)
             batch.append((a.T @ a / len(a), g.T @ g / len(g)))
-        self._recorded = []
+        self._recorded = {}
         if not self.factors:
             self.factors = batch
             return

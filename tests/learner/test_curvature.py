@@ -162,5 +162,5 @@ def test_kfac_refuses_statistics_of_a_pass_that_missed_a_layer():
     network, kfac = tiny_network_and_kfac()
     with kfac.recording():
         out = network[0](torch.randn(4, 3, dtype=torch.float64))
-    with pytest.raises(RuntimeError, match="1 layer passes recorded"):
+    with pytest.raises(RuntimeError, match="1 of 2 layers ran while recording"):
         kfac.update_factors(out.sum())

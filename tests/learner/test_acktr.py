@@ -1,0 +1,80 @@
+"""ACKTR's update against its step computed densely by hand: the actor-critic gradient, the damped
+Kronecker-factored inverse, the trust region's step size."""
+
+import copy
+import math
+
+import pytest
+import torch
+
+from l2r.learner.acktr import ACKTRConfig, init_state, update
+from l2r.learner.ppo import batch_from_sample, estimate
+from l2r.policy import tanh_gaussian_log_prob
+from tests.learner.test_ppo import sample_batch
+
+OBS, ACT = 3, 2
+
+
+def gradients_at_start(state, batch, config) -> list[torch.Tensor]:
+    """The actor-critic loss's gradient, computed on a copy of the state as it was."""
+    state = copy.deepcopy(state)
+    estimates = estimate(state, batch, config)
+    advantages = (estimates.advantages - estimates.advantages.mean()) / (estimates.advantages.std() + 1e-8)
+    mean, log_std = state.actor(batch.obs)
+    ratio = (tanh_gaussian_log_prob(mean, log_std, batch.action) - estimates.old_log_prob).exp()
+    entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1).mean()
+    values = state.value(state.actor.observation_filter(batch.obs))
+    loss = (-(ratio * advantages).mean() - config.entropy_coef * entropy
+            + config.value_coef * (values - estimates.targets).pow(2).mean())
+    return torch.autograd.grad(loss, state.curvature.parameters())
+
+
+def dense_natural_gradient(gradients, factors, damping) -> list[torch.Tensor]:
+    """(A (x) G + damping I)^-1 vec(V) per layer, V its weight and bias gradients side by side."""
+    natural = []
+    for (weight, bias), (a, g) in zip(zip(gradients[0::2], gradients[1::2]), factors):
+        v = torch.cat([weight, bias[:, None]], 1).double()
+        dense = torch.kron(a, g).double() + damping * torch.eye(len(a) * len(g), dtype=torch.float64)
+        solved = torch.linalg.solve(dense, v.T.reshape(-1)).reshape(v.shape[1], -1).T.float()
+        natural += [solved[:, :-1], solved[:, -1]]
+    return natural
+
+
+@pytest.mark.parametrize("lr, trust_region_binds", [(1e-4, False), (100.0, True)])
+def test_the_first_step_is_the_damped_kfac_natural_gradient_at_the_trust_region_step_size(lr, trust_region_binds):
+    config = ACKTRConfig(batch_size=32, hidden=(4,), lr=lr, entropy_coef=0.01, lag_correction="none")
+    state = init_state(config, OBS, ACT, seed=0)
+    batch = batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT))
+    before = [p.detach().clone() for p in state.curvature.parameters()]
+    gradients = gradients_at_start(state, batch, config)
+    metrics = update(state, batch, config)
+
+    # the first batch's statistics are the factors (checked against per-sample gradients in test_curvature)
+    natural = dense_natural_gradient(gradients, state.curvature.factors, config.damping)
+    quadratic = sum(float((d * g).sum()) for d, g in zip(natural, gradients))
+    step_size = min(lr, math.sqrt(2 * config.max_kl / quadratic))
+    assert (step_size < lr) == trust_region_binds
+    assert float(metrics["step_size"]) == pytest.approx(step_size, rel=1e-4)
+    if trust_region_binds:  # the step's quadratic KL is on the trust region's edge
+        assert 0.5 * step_size ** 2 * quadratic == pytest.approx(config.max_kl)
+    for old, new, d in zip(before, state.curvature.parameters(), natural):
+        torch.testing.assert_close(new.detach() - old, -step_size * d, rtol=1e-3, atol=1e-7)
+    assert state.updates == 1
+
+
+def test_momentum_carries_the_last_step_into_the_next():
+    config = ACKTRConfig(batch_size=32, hidden=(4,), lr=1e-3)
+    state = init_state(config, OBS, ACT, seed=1)
+    batch = batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT))
+    update(state, batch, config)
+    first = [state.optimizer.state[p]["momentum_buffer"].clone() for p in state.curvature.parameters()]
+    update(state, batch, config)
+    second = [p.grad for p in state.curvature.parameters()]  # this step's scaled natural gradient
+    for buffer, last, grad in zip((state.optimizer.state[p]["momentum_buffer"] for p in state.curvature.parameters()),
+                                  first, second):
+        torch.testing.assert_close(buffer, 0.9 * last + grad)
+
+
+def test_acktr_refuses_layer_norm():
+    with pytest.raises(ValueError, match="Linear layers alone"):
+        ACKTRConfig(layer_norm=True)
