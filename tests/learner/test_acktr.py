@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from torch.distributions import Normal
 
 from l2r.learner.acktr import ACKTRConfig, init_state, update
 from l2r.learner.ppo import batch_from_sample, estimate
@@ -15,18 +16,39 @@ from tests.learner.test_ppo import sample_batch
 OBS, ACT = 3, 2
 
 
-def gradients_at_start(state, batch, config) -> list[torch.Tensor]:
-    """The actor-critic loss's gradient, computed on a copy of the state as it was."""
+def gradients_and_factors_at_start(state, batch, config, seed):
+    """The actor-critic loss's gradient and the K-FAC factors of the first batch, computed on a
+    copy of the state as it was, with the update's draws (seeded alike): A of each Linear layer's
+    inputs, G of the gradients of each row's log-likelihood of a sampled action (of the pre-tanh
+    Gaussian) and of its value plus unit noise."""
     state = copy.deepcopy(state)
     estimates = estimate(state, batch, config)
     advantages = (estimates.advantages - estimates.advantages.mean()) / (estimates.advantages.std() + 1e-8)
+    passes = {}
+    hooks = [layer.register_forward_hook(lambda layer, inputs, out: passes.__setitem__(layer, (inputs[0], out)))
+             for layer in state.curvature.layers]
     mean, log_std = state.actor(batch.obs)
+    values = state.value(state.actor.observation_filter(batch.obs))
+    for hook in hooks:
+        hook.remove()
     ratio = (tanh_gaussian_log_prob(mean, log_std, batch.action) - estimates.old_log_prob).exp()
     entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1).mean()
-    values = state.value(state.actor.observation_filter(batch.obs))
     loss = (-(ratio * advantages).mean() - config.entropy_coef * entropy
             + config.value_coef * (values - estimates.targets).pow(2).mean())
-    return torch.autograd.grad(loss, state.curvature.parameters())
+    gradients = torch.autograd.grad(loss, state.curvature.parameters(), retain_graph=True)
+
+    torch.manual_seed(seed)
+    actions = (mean + log_std.exp() * torch.randn_like(mean)).detach()
+    noisy_values = (values + torch.randn_like(values)).detach()
+    # rows are independent: row i of the gradient of the sum is row i's own gradient
+    log_likelihoods = (Normal(mean, log_std.exp()).log_prob(actions).sum()
+                       + Normal(values, 1.0).log_prob(noisy_values).sum())
+    outputs = [passes[layer][1] for layer in state.curvature.layers]
+    factors = []
+    for layer, g in zip(state.curvature.layers, torch.autograd.grad(log_likelihoods, outputs)):
+        a = torch.cat([passes[layer][0], torch.ones(len(g), 1)], 1).detach()
+        factors.append((a.T @ a / len(a), g.T @ g / len(g)))
+    return gradients, factors
 
 
 def dense_natural_gradient(gradients, factors, damping) -> list[torch.Tensor]:
@@ -46,11 +68,11 @@ def test_the_first_step_is_the_damped_kfac_natural_gradient_at_the_trust_region_
     state = init_state(config, OBS, ACT, seed=0)
     batch = batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT))
     before = [p.detach().clone() for p in state.curvature.parameters()]
-    gradients = gradients_at_start(state, batch, config)
+    gradients, factors = gradients_and_factors_at_start(state, batch, config, seed=5)
+    torch.manual_seed(5)
     metrics = update(state, batch, config)
 
-    # the first batch's statistics are the factors (checked against per-sample gradients in test_curvature)
-    natural = dense_natural_gradient(gradients, state.curvature.factors, config.damping)
+    natural = dense_natural_gradient(gradients, factors, config.damping)
     quadratic = sum(float((d * g).sum()) for d, g in zip(natural, gradients))
     step_size = min(lr, math.sqrt(2 * config.max_kl / quadratic))
     assert (step_size < lr) == trust_region_binds
