@@ -70,7 +70,7 @@ def test_the_policy_moves_by_the_natural_gradient_step_backtracked_within_the_kl
     fraction = float(metrics["step_fraction"])
     assert any(fraction == pytest.approx(0.8 ** k) for k in range(1, 10))
     moved = parameters_to_vector(state.actor.parameters()).detach() - before
-    torch.testing.assert_close(moved, fraction * step, rtol=1e-3, atol=1e-5)
+    torch.testing.assert_close(moved, fraction * step, rtol=1e-3, atol=1e-4 * float(step.abs().max()))
     with torch.no_grad():
         kl = gaussian_kl(old_mean, old_log_std, *state.actor(batch.obs)).mean()
     assert float(kl) == pytest.approx(float(metrics["kl"]), rel=1e-4) and float(kl) <= config.max_kl
