@@ -34,7 +34,7 @@ def gradients_and_factors_at_start(state, batch, config, seed):
     ratio = (tanh_gaussian_log_prob(mean, log_std, batch.action) - estimates.old_log_prob).exp()
     entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1).mean()
     loss = (-(ratio * advantages).mean() - config.entropy_coef * entropy
-            + config.value_coef * (values - estimates.targets).pow(2).mean())
+            + config.value_coef * 0.5 * (values - estimates.targets).pow(2).mean())
     gradients = torch.autograd.grad(loss, state.curvature.parameters(), retain_graph=True)
 
     torch.manual_seed(seed)
@@ -72,7 +72,7 @@ def test_the_first_step_is_the_damped_kfac_natural_gradient_at_the_trust_region_
     torch.manual_seed(5)
     metrics = update(state, batch, config)
 
-    natural = dense_natural_gradient(gradients, factors, config.damping)
+    natural = dense_natural_gradient(gradients, factors, config.kfac_damping)
     quadratic = sum(float((d * g).sum()) for d, g in zip(natural, gradients))
     step_size = min(lr, math.sqrt(2 * config.max_kl / quadratic))
     assert (step_size < lr) == trust_region_binds

@@ -1,4 +1,5 @@
-"""TRPO's update against the natural-gradient step computed densely by hand on a tiny network."""
+"""TRPO's update against the natural-gradient step computed densely by hand on a tiny network; TRPO's
+and ACKTR's checkpoints."""
 
 import copy
 
@@ -8,6 +9,8 @@ import torch
 from torch.func import functional_call
 from torch.nn.utils import parameters_to_vector
 
+from l2r.learner import acktr, trpo
+from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.curvature import gaussian_kl
 from l2r.learner.ppo import LOG_RATIO_BOUND, batch_from_sample, estimate
 from l2r.learner.trpo import TRPOConfig, init_state, update
@@ -102,3 +105,23 @@ def test_a_batch_with_nothing_to_improve_leaves_the_policy_as_it_was():
     metrics = update(state, batch_from_sample(sample), config)
     assert float(metrics["step_fraction"]) == 0.0
     assert all(torch.equal(a, b) for a, b in zip(before, state.actor.parameters()))
+
+
+@pytest.mark.parametrize("algo", ["trpo", "acktr"])
+def test_a_checkpoint_restores_the_state_and_the_next_update_is_identical(algo, tmp_path):
+    module = {"trpo": trpo, "acktr": acktr}[algo]
+    config = tiny() if algo == "trpo" else acktr.ACKTRConfig(batch_size=32, hidden=(4,))
+    state = module.init_state(config, OBS, ACT, seed=3)
+    batch = batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT))
+    module.update(state, batch, config)
+    save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
+    saved = load_checkpoint(tmp_path)
+    restored = saved.restore()
+    assert (saved.algo, saved.config, restored.updates) == (algo, config, 1)
+    for each in (state, restored):
+        torch.manual_seed(4)
+        module.update(each, batch, config)
+    assert all(torch.equal(a, b) for a, b in zip(state.parameters(), restored.parameters()))
+    if algo == "acktr":  # the K-FAC factors came back too: the second step used the same running averages
+        assert all(torch.equal(a, b) for pair_a, pair_b in zip(state.curvature.factors, restored.curvature.factors)
+                   for a, b in zip(pair_a, pair_b))
