@@ -46,12 +46,13 @@ class ACKTRConfig:
     """delta, the trust region: the quadratic KL a step may reach. The paper: 0.001."""
     momentum: float = 0.9
     """SGD momentum on the scaled natural gradient. The paper's code: 0.9."""
-    damping: float = 0.01
+    kfac_damping: float = 0.01
     """Added to the Kronecker-factored Fisher before inverting it (Tikhonov). The paper's code: 0.01."""
-    stats_decay: float = 0.99
-    """Running-average decay of the K-FAC factors. The paper's code: 0.99."""
-    value_coef: float = 0.5
-    """Weight of the value loss (mean squared error) in the actor-critic loss. The paper's code: 0.5."""
+    kfac_decay: float = 0.99
+    """Running-average decay of the K-FAC factors (the paper's statistics decay). The paper's code: 0.99."""
+    value_coef: float = 1.0
+    """Weight of the value loss, half the squared error. The paper's code: vf_coef 0.5 on the squared
+    error, which is this 1.0."""
     value_fisher_coef: float = 1.0
     """Weight of the value network's sampled log-likelihood in the Fisher statistics. The paper's code: 1.0."""
     entropy_coef: float = 0.0
@@ -84,10 +85,11 @@ class ACKTRConfig:
         check_on_policy(self)
         if self.layer_norm:
             raise ValueError("ACKTR's K-FAC covers Linear layers alone: no layer_norm")
-        if self.lr <= 0 or self.max_kl <= 0 or self.damping <= 0:
-            raise ValueError(f"lr, max_kl and damping must be > 0, got {self.lr}, {self.max_kl}, {self.damping}")
-        if not 0.0 <= self.momentum < 1.0 or not 0.0 <= self.stats_decay < 1.0:
-            raise ValueError(f"need 0 <= momentum, stats_decay < 1, got {self.momentum}, {self.stats_decay}")
+        if self.lr <= 0 or self.max_kl <= 0 or self.kfac_damping <= 0:
+            raise ValueError(f"lr, max_kl and kfac_damping must be > 0, got {self.lr}, {self.max_kl}, "
+                             f"{self.kfac_damping}")
+        if not 0.0 <= self.momentum < 1.0 or not 0.0 <= self.kfac_decay < 1.0:
+            raise ValueError(f"need 0 <= momentum, kfac_decay < 1, got {self.momentum}, {self.kfac_decay}")
         if self.batch_size < 2:
             raise ValueError(f"batch_size must be >= 2 (advantages are standardised over it), got {self.batch_size}")
 
@@ -114,7 +116,7 @@ def init_state(config: ACKTRConfig, obs_dim: int, act_dim: int, device: str | to
     """PPO's networks, SGD with momentum over both, and K-FAC over their Linear layers."""
     actor, value = ppo.init_networks(config, obs_dim, act_dim, device, seed)
     optimizer = torch.optim.SGD([*actor.parameters(), *value.parameters()], lr=config.lr, momentum=config.momentum)
-    return TrainState(actor, value, optimizer, curvature=KFAC([actor, value], config.stats_decay, config.damping))
+    return TrainState(actor, value, optimizer, curvature=KFAC([actor, value], config.kfac_decay, config.kfac_damping))
 
 
 def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, torch.Tensor]:
@@ -142,7 +144,7 @@ def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, to
     log_ratio = tanh_gaussian_log_prob(mean, log_std, batch.action) - estimates.old_log_prob
     policy_loss = -(log_ratio.clamp(-LOG_RATIO_BOUND, LOG_RATIO_BOUND).exp() * advantages).mean()
     entropy = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum(-1).mean()
-    value_loss = (values - estimates.targets).pow(2).mean()
+    value_loss = 0.5 * (values - estimates.targets).pow(2).mean()
     state.optimizer.zero_grad(set_to_none=True)
     (policy_loss - config.entropy_coef * entropy + config.value_coef * value_loss).backward()
 
