@@ -199,8 +199,8 @@ class LearnerSettings(DaemonSettings):
         "policy's log-probabilities in PPO's clipped ratio) or vtrace (V-trace advantages and targets)", group=PPO)
     is_clip: float = setting(PPO_DEFAULTS.is_clip, "V-trace's truncation of importance ratios", group=PPO, gt=0)
 
-    max_kl: float | None = setting(None, "the trust region: the mean KL from the policy before the step that a step "
-                                   "may reach (ACKTR: its quadratic approximation) " + _defaults("max_kl"),
+    max_kl: float | None = setting(None, "the trust region: how far, in mean KL from the policy before it, one step "
+                                   "may move the policy (ACKTR: its quadratic approximation) " + _defaults("max_kl"),
                                    group=NATURAL, gt=0)
     cg_steps: int = setting(TRPO_DEFAULTS.cg_steps, "TRPO: conjugate-gradient steps for the natural gradient",
                             group=NATURAL, ge=1)
@@ -386,7 +386,8 @@ def build_parser() -> CommandParser:
         "samples the same way and trains twin critics and a deterministic policy, which the actors explore with "
         "scheduled Gaussian noise; PPO (--algo ppo), A2C (--algo a2c), REINFORCE (--algo reinforce), TRPO (--algo "
         "trpo) and ACKTR (--algo acktr) take batches from the replay servers' queue table, each transition once, and "
-        "train the same policy with a value network. All publish versioned policy weights for actors and checkpoint atomically.",
+        "train the same policy with a value network. All publish versioned policy weights for actors and checkpoint "
+        "atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
         "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
         "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192 "
