@@ -5,7 +5,8 @@ table, top to bottom: the batch's values and the proximal policy's log-probabili
 and value targets (GAE(lambda), or V-trace), then `epochs` passes over the batch in minibatches,
 each one gradient step on the clipped surrogate, the value loss and the entropy bonus, with
 advantages normalised per minibatch and the gradient norm clipped. The learner daemon and the
-tests call this same function.
+tests call this same function. Its first steps, `estimate` (values, log-probabilities, advantages
+and targets), and the networks of `init_networks` are TRPO's and ACKTR's too.
 
 A queue batch is pieces of trajectories laid end to end (`ends` marks where each stops: an episode
 ended, or the piece did), with the true next observation of every step. So a time-limit
