@@ -9,7 +9,7 @@ for K-FAC; the Fisher statistics from log-likelihoods of targets sampled from th
 themselves (actions from the policy; values with unit Gaussian noise: the critic's Gauss-Newton
 matrix) taken into the running factors; the actor-critic loss's gradient preconditioned by the
 damped Kronecker-factored inverse; the step size min(lr, sqrt(2 max_kl / (d' F d))) for the
-natural gradient d (the trust region); one SGD step with momentum. Every Linear layer of both
+natural gradient d of each network (each in its own trust region); one SGD step with momentum. Every Linear layer of both
 networks gets natural gradients; the statistics and their inverses are renewed every update.
 The K-FAC pieces are `l2r.learner.curvature.KFAC`.
 
@@ -148,16 +148,22 @@ def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, to
     state.optimizer.zero_grad(set_to_none=True)
     (policy_loss - config.entropy_coef * entropy + config.value_coef * value_loss).backward()
 
-    # 6. The natural gradient d, scaled so that lr times it keeps d' F d within the trust region:
+    # 6. The natural gradient d of each network, scaled so that lr times it keeps d' F d within its
+    #    own trust region (the paper's MuJoCo code steps policy and value network apart, each with
+    #    its own bound; one joint bound let the value network's large gradient starve the policy):
     #    the step is min(lr, sqrt(2 max_kl / d' F d)) d, with d' F d = d' g.
-    natural = state.curvature.natural_gradient()
-    params = state.curvature.parameters()
-    quadratic = sum((d * p.grad).sum() for d, p in zip(natural, params))
-    scale = trust_region_scale(config.lr ** 2 * quadratic, config.max_kl).clamp(max=1.0)
-    for d, p in zip(natural, params):
-        p.grad = scale * d
+    natural = dict(zip(state.curvature.parameters(), state.curvature.natural_gradient()))
+    step_sizes, quadratic_kls = [], []
+    for network in (state.actor, state.value):
+        pairs = [(p, natural[p]) for p in network.parameters()]
+        quadratic = sum((d * p.grad).sum() for p, d in pairs).clamp(min=0.0)  # >= 0 but for rounding
+        scale = trust_region_scale(config.lr ** 2 * quadratic, config.max_kl).clamp(max=1.0)
+        for p, d in pairs:
+            p.grad = scale * d
+        step_sizes.append(config.lr * scale.detach())
+        quadratic_kls.append(0.5 * step_sizes[-1] ** 2 * quadratic.detach())
     state.optimizer.step()
     state.updates += 1
     return {"policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(), "entropy": entropy.detach(),
-            "step_size": config.lr * scale.detach(), "quadratic_kl": 0.5 * (config.lr * scale) ** 2 * quadratic.detach()
-            } | batch_metrics(estimates, batch)
+            "step_size": step_sizes[0], "value_step_size": step_sizes[1], "quadratic_kl": quadratic_kls[0],
+            "value_quadratic_kl": quadratic_kls[1]} | batch_metrics(estimates, batch)

@@ -73,14 +73,20 @@ def test_the_first_step_is_the_damped_kfac_natural_gradient_at_the_trust_region_
     metrics = update(state, batch, config)
 
     natural = dense_natural_gradient(gradients, factors, config.kfac_damping)
-    quadratic = sum(float((d * g).sum()) for d, g in zip(natural, gradients))
-    step_size = min(lr, math.sqrt(2 * config.max_kl / quadratic))
-    assert (step_size < lr) == trust_region_binds
-    assert float(metrics["step_size"]) == pytest.approx(step_size, rel=1e-4)
-    if trust_region_binds:  # the step's quadratic KL is on the trust region's edge
-        assert 0.5 * step_size ** 2 * quadratic == pytest.approx(config.max_kl)
-    for old, new, d in zip(before, state.curvature.parameters(), natural):
-        torch.testing.assert_close(new.detach() - old, -step_size * d, rtol=1e-3, atol=1e-7)
+    # each network in its own trust region: the policy's parameters come first
+    actor_params = len(list(state.actor.parameters()))
+    steps, step_sizes = [], []
+    for network in (slice(0, actor_params), slice(actor_params, None)):
+        quadratic = sum(float((d * g).sum()) for d, g in zip(natural[network], gradients[network]))
+        step_size = min(lr, math.sqrt(2 * config.max_kl / quadratic))
+        assert (step_size < lr) == trust_region_binds
+        if trust_region_binds:  # the step's quadratic KL is on the trust region's edge
+            assert 0.5 * step_size ** 2 * quadratic == pytest.approx(config.max_kl)
+        steps += [step_size * d for d in natural[network]]
+        step_sizes.append(step_size)
+    assert [float(metrics["step_size"]), float(metrics["value_step_size"])] == pytest.approx(step_sizes, rel=1e-4)
+    for old, new, step in zip(before, state.curvature.parameters(), steps):
+        torch.testing.assert_close(new.detach() - old, -step, rtol=1e-3, atol=1e-7)
     assert state.updates == 1
 
 
