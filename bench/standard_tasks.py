@@ -96,7 +96,8 @@ def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     model.learn(total_timesteps=milestones[-1], callback=AtMilestones())
     seconds = time.time() - started
     return {"library": f"{package.__name__.replace('_', '-')} {package.__version__}", "seed": seed,
-            "seconds": round(seconds, 1), "env_steps": milestones[-1], "env_steps_per_s": round(milestones[-1] / seconds, 1), "returns": returns}
+            "seconds": round(seconds, 1), "env_steps": milestones[-1],
+            "env_steps_per_s": round(milestones[-1] / seconds, 1), "returns": returns}
 
 
 def returns_at(rows: list[dict], steps: int, window: float) -> float | None:
