@@ -166,7 +166,8 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="Hopper-v5,Walker2d-v5", help="gymnasium ids, comma-separated")
-    p.add_argument("--algos", default="ppo,sac", help="comma-separated, of ppo, sac, td3, a2c, reinforce, trpo and acktr")
+    p.add_argument("--algos", default="ppo,sac",
+                   help="comma-separated, of ppo, sac, td3, a2c, reinforce, trpo and acktr")
     p.add_argument("--env-steps", type=int, default=MILESTONES[-1], help="env steps of each job")
     p.add_argument("--seconds", type=float, default=0, help="wall-clock limit of each job (0: none)")
     p.add_argument("--runs-dir", type=Path, help="where the jobs' run directories go (default: a temporary one)")

@@ -9,8 +9,9 @@ for K-FAC; the Fisher statistics from log-likelihoods of targets sampled from th
 themselves (actions from the policy; values with unit Gaussian noise: the critic's Gauss-Newton
 matrix) taken into the running factors; the actor-critic loss's gradient preconditioned by the
 damped Kronecker-factored inverse; the step size min(lr, sqrt(2 max_kl / (d' F d))) for the
-natural gradient d of each network (each in its own trust region); one SGD step with momentum. Every Linear layer of both
-networks gets natural gradients; the statistics and their inverses are renewed every update.
+natural gradient d of each network (each in its own trust region); one SGD step with momentum.
+Every Linear layer of both networks gets natural gradients; the statistics and their inverses
+are renewed every update.
 The K-FAC pieces are `l2r.learner.curvature.KFAC`.
 
 The networks, the batch and the lag correction are PPO's (`l2r.learner.ppo`); the training state
