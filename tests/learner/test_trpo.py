@@ -10,6 +10,7 @@ from torch.func import functional_call
 from torch.nn.utils import parameters_to_vector
 
 from l2r.learner import acktr, trpo
+from l2r.learner.__main__ import parse_settings
 from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.curvature import gaussian_kl
 from l2r.learner.ppo import LOG_RATIO_BOUND, batch_from_sample, estimate
@@ -125,3 +126,12 @@ def test_a_checkpoint_restores_the_state_and_the_next_update_is_identical(algo, 
     if algo == "acktr":  # the K-FAC factors came back too: the second step used the same running averages
         assert all(torch.equal(a, b) for pair_a, pair_b in zip(state.curvature.factors, restored.curvature.factors)
                    for a, b in zip(pair_a, pair_b))
+
+
+def test_the_learner_command_line_takes_each_algorithm_s_published_defaults_and_its_flags():
+    assert parse_settings(["--algo", "trpo"]).algorithm() == TRPOConfig()
+    assert parse_settings(["--algo", "acktr"]).algorithm() == acktr.ACKTRConfig()
+    assert parse_settings(["--algo", "acktr", "--max-kl", "0.002", "--lr", "0.1"]).algorithm() == acktr.ACKTRConfig(
+        max_kl=0.002, lr=0.1)
+    assert parse_settings(["--algo", "trpo", "--cg-steps", "10", "--gae-lambda", "0.9"]).algorithm() == TRPOConfig(
+        cg_steps=10, gae_lambda=0.9)
