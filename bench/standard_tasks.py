@@ -18,7 +18,8 @@ Stable-Baselines3 and CleanRL ones docs/training.md names; this script does not 
 
 `--up-arg` hands a flag to every `l2r up` (`--up-arg=--recipe=runner`: the runner's recipe
 instead of the standard one; `--up-arg=--reward-scale=5`: one value of the recipe replaced).
-`--sb3` also trains Stable-Baselines3 (the dev extra) with its defaults for the same env steps in
+`--sb3` also trains Stable-Baselines3 (the dev extra; TRPO from sb3-contrib, REINFORCE and ACKTR
+have none there) with its defaults for the same env steps in
 this process (TD3 given Gaussian exploration noise of 0.1, without which SB3's TD3 does not explore), one thread per core, evaluating 5 deterministic episodes at each milestone: the
 baseline in the same run, on the same machine.
 
@@ -33,6 +34,7 @@ what the replay server's queue dropped (PPO), and the returns at each milestone.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import subprocess
@@ -49,7 +51,11 @@ MILESTONES = (100_000, 300_000, 1_000_000)
 # benchmark pages: ppo_continuous_action on the v4 tasks, sac_continuous_action on the v2 tasks).
 PUBLISHED = {("Hopper", "ppo"): (2382.86, 271.74), ("Walker2d", "ppo"): (2287.95, 571.78),
              ("Hopper", "sac"): (2310.46, 342.82), ("Walker2d", "sac"): (3591.45, 911.33)}
-COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple", "a2c": "tab:orange", "reinforce": "tab:brown"}
+COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple", "a2c": "tab:orange", "reinforce": "tab:brown",
+           "trpo": "tab:red", "acktr": "tab:olive"}
+# The package whose class of the algorithm's name (upper case) is its --sb3 baseline.
+BASELINE_PACKAGES = {"ppo": "stable_baselines3", "sac": "stable_baselines3", "td3": "stable_baselines3",
+                     "a2c": "stable_baselines3", "trpo": "sb3_contrib"}
 
 
 def run_job(task: str, algo: str, env_steps: int, seconds: float, runs_dir: Path, up_args: list[str]) -> Path:
@@ -65,7 +71,6 @@ def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     """Stable-Baselines3's own algorithm, its defaults, for the same env steps, evaluated at each milestone."""
     import gymnasium as gym
     import numpy as np
-    import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.evaluation import evaluate_policy
@@ -76,7 +81,8 @@ def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     # SB3's TD3 explores with no noise unless given some; N(0, 0.1) is the TD3 paper's and RL Zoo's choice.
     noise = {"action_noise": NormalActionNoise(np.zeros(env.action_space.shape), np.full(env.action_space.shape, 0.1))
              } if algo == "td3" else {}
-    model = getattr(stable_baselines3, algo.upper())("MlpPolicy", env, seed=seed, device="cpu", **noise)
+    package = importlib.import_module(BASELINE_PACKAGES[algo])
+    model = getattr(package, algo.upper())("MlpPolicy", env, seed=seed, device="cpu", **noise)
     eval_env, returns = gym.make(task), {}
 
     class AtMilestones(BaseCallback):
@@ -89,8 +95,9 @@ def sb3_job(task: str, algo: str, milestones: list[int], seed: int = 0) -> dict:
     started = time.time()
     model.learn(total_timesteps=milestones[-1], callback=AtMilestones())
     seconds = time.time() - started
-    return {"library": f"stable-baselines3 {stable_baselines3.__version__}", "seed": seed, "seconds": round(seconds, 1),
-            "env_steps": milestones[-1], "env_steps_per_s": round(milestones[-1] / seconds, 1), "returns": returns}
+    return {"library": f"{package.__name__.replace('_', '-')} {package.__version__}", "seed": seed,
+            "seconds": round(seconds, 1), "env_steps": milestones[-1],
+            "env_steps_per_s": round(milestones[-1] / seconds, 1), "returns": returns}
 
 
 def returns_at(rows: list[dict], steps: int, window: float) -> float | None:
@@ -159,7 +166,8 @@ def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="Hopper-v5,Walker2d-v5", help="gymnasium ids, comma-separated")
-    p.add_argument("--algos", default="ppo,sac", help="comma-separated, of ppo, sac, td3, a2c and reinforce")
+    p.add_argument("--algos", default="ppo,sac",
+                   help="comma-separated, of ppo, sac, td3, a2c, reinforce, trpo and acktr")
     p.add_argument("--env-steps", type=int, default=MILESTONES[-1], help="env steps of each job")
     p.add_argument("--seconds", type=float, default=0, help="wall-clock limit of each job (0: none)")
     p.add_argument("--runs-dir", type=Path, help="where the jobs' run directories go (default: a temporary one)")
@@ -186,7 +194,7 @@ def main() -> None:
         for algo in args.algos.split(","):
             results[f"{task} {algo}"] = summary(run_job(task, algo, args.env_steps, seconds, runs_dir, args.up_arg),
                                                 milestones)
-            if args.sb3:
+            if args.sb3 and algo in BASELINE_PACKAGES:
                 results[f"{task} {algo} sb3"] = sb3_job(task, algo, milestones)
     print(json.dumps({"bench": "standard_tasks", "host_cpus": os.cpu_count(), "up_args": args.up_arg,
                       "seconds": round(time.time() - started, 1), "jobs": results}))

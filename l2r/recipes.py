@@ -107,6 +107,40 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=False,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
+    # sb3-contrib's TRPO at RL Baselines3 Zoo's MuJoCo values (TRPOConfig: 2048 transitions an update,
+    # KL bound 0.01, 25 conjugate-gradient steps damped 0.1, the value network 20 passes of Adam at
+    # 1e-3 in minibatches of 128), PPO's networks, observation options and actors, but for the lag.
+    (RUNNER, "trpo"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, lr=1e-3, gamma=0.99, gae_lambda=0.95,
+        max_kl=0.01, cg_steps=25, cg_damping=0.1, line_search_shrink=0.8, line_search_steps=10, value_epochs=20,
+        value_minibatch_size=128, lag_correction="ratio", reward_scale=1.0,
+        relative_x=True, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
+    ),
+    (STANDARD, "trpo"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2048, lr=1e-3, gamma=0.99, gae_lambda=0.95,
+        max_kl=0.01, cg_steps=25, cg_damping=0.1, line_search_shrink=0.8, line_search_steps=10, value_epochs=20,
+        value_minibatch_size=128, lag_correction="ratio", reward_scale=1.0,
+        relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=1,
+    ),
+    # The ACKTR paper's optimiser (ACKTRConfig: step size up to 0.25 within a trust region of 0.001,
+    # momentum 0.9, K-FAC damping 0.01 and statistics decay 0.99) and its MuJoCo script's rollout of
+    # 2500 transitions with lambda 0.97; PPO's networks, observation options and actors, but for the lag.
+    (RUNNER, "acktr"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
+        max_kl=0.001, momentum=0.9, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
+        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        relative_x=True, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=3,
+    ),
+    (STANDARD, "acktr"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
+        max_kl=0.001, momentum=0.9, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
+        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=1,
+    ),
     # The runner's SAC recipe with TD3's own values (its paper's, as CleanRL and SB3 keep them): a
     # constant exploration std of 0.1, target smoothing 0.2 clipped at 0.5, the actor every 2nd step.
     # Not measured on the runner yet.
@@ -192,13 +226,25 @@ SETTINGS: dict[str, str] = {
                                "(TD3)",
     "epochs": "passes over each batch (PPO, A2C, REINFORCE)",
     "minibatches": "minibatches per pass, one gradient step each (PPO, A2C, REINFORCE)",
-    "gae_lambda": "lambda of GAE; 1: returns to the end of each trajectory piece (PPO, A2C, REINFORCE)",
+    "gae_lambda": "lambda of GAE; 1: returns to the end of each trajectory piece (the on-policy algorithms)",
     "clip": "clip range of the probability ratio, 1 +- clip (PPO, A2C, REINFORCE)",
-    "value_coef": "weight of the value loss, half the squared error (PPO, A2C, REINFORCE)",
-    "entropy_coef": "weight of the entropy bonus (PPO, A2C, REINFORCE)",
+    "value_coef": "weight of the value loss, half the squared error (PPO, A2C, REINFORCE, ACKTR)",
+    "entropy_coef": "weight of the entropy bonus (PPO, A2C, REINFORCE, ACKTR)",
     "max_grad_norm": "gradient norm clip (PPO, A2C, REINFORCE)",
     "lag_correction": "what the on-policy algorithms do about the actors' policy lag (docs/learner.md)",
     "optimizer": "adam or rmsprop (PPO, A2C, REINFORCE)",
+    "max_kl": "the trust region: how far, in mean KL from the policy before it, one step may move the policy "
+              "(TRPO; ACKTR: its quadratic approximation)",
+    "cg_steps": "conjugate-gradient steps for the natural gradient (TRPO)",
+    "cg_damping": "multiple of the identity added to the Fisher (TRPO)",
+    "line_search_shrink": "each backtracking try takes this fraction of the step before (TRPO)",
+    "line_search_steps": "backtracking tries before the policy step is given up (TRPO)",
+    "value_epochs": "passes of the value network's Adam over each batch (TRPO)",
+    "value_minibatch_size": "transitions per value-network step (TRPO)",
+    "momentum": "SGD momentum on the scaled natural gradient (ACKTR)",
+    "kfac_damping": "added to the Kronecker-factored Fisher before it is inverted (ACKTR)",
+    "kfac_decay": "running-average decay of the K-FAC factors (ACKTR)",
+    "value_fisher_coef": "weight of the value network's sampled log-likelihood in the Fisher statistics (ACKTR)",
     "relative_x": "networks see world x coordinates as distances from the pelvis (the runner alone)",
     "normalize_obs": "networks see observations standardised by running statistics",
     "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, TD3, the "

@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
-                         "deterministic policy); ppo, a2c and reinforce on-policy from the "
+                         "deterministic policy); ppo, a2c, reinforce, trpo and acktr on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions")
     le.add_argument("--capacity", type=int,

@@ -1,4 +1,5 @@
-"""``l2r-learner``: command line of the learner, SAC, TD3, PPO, A2C or REINFORCE (see ``l2r.learner.daemon``)."""
+"""``l2r-learner``: command line of the learner, SAC, TD3, PPO, A2C, REINFORCE, TRPO or ACKTR (see
+``l2r.learner.daemon``)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
 from l2r.learner.a2c import A2CConfig  # noqa: E402
+from l2r.learner.acktr import ACKTRConfig  # noqa: E402
 from l2r.learner.algorithms import ON_POLICY  # noqa: E402
 from l2r.learner.checkpoint import CheckpointError  # noqa: E402
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
@@ -28,6 +30,7 @@ from l2r.learner.reinforce import ReinforceConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.learner.steps import COMPILE_MODES  # noqa: E402
 from l2r.learner.td3 import TD3Config  # noqa: E402
+from l2r.learner.trpo import TRPOConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, ObservationSpec, ProtocolError, configure_logging  # noqa: E402
 from l2r.protocol.limits import MAX_FRAME_STACK  # noqa: E402
 from l2r.spaces import task_spaces  # noqa: E402
@@ -38,20 +41,25 @@ IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
 SAC_DEFAULTS, PPO_DEFAULTS, TD3_DEFAULTS = SACConfig(), PPOConfig(), TD3Config()
 PPO_FAMILY = {"ppo": PPO_DEFAULTS, "a2c": A2CConfig(), "reinforce": ReinforceConfig()}
 """The algorithms that are PPO's update at their own settings, each with its defaults."""
+TRPO_DEFAULTS, ACKTR_DEFAULTS = TRPOConfig(), ACKTRConfig()
+ON_POLICY_DEFAULTS = {**PPO_FAMILY, "trpo": TRPO_DEFAULTS, "acktr": ACKTR_DEFAULTS}
 PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
 BOTH, SAC = "algorithm (every --algo)", "SAC (with --algo sac)"
-PPO = "PPO, A2C and REINFORCE (with --algo ppo, a2c or reinforce)"
+PPO = ("on-policy (with --algo ppo, a2c or reinforce; with --algo trpo or acktr where the algorithm has the "
+       "setting)")
+NATURAL = "TRPO and ACKTR (natural-gradient steps; with --algo trpo or acktr)"
 OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
 
 
 def _defaults(name: str, sac_value=None) -> str:
     """Help text for a setting whose default is the algorithm's: SAC's (TD3's are the same), then
-    each of PPO_FAMILY's, algorithms with the same default named together."""
+    each on-policy algorithm's that has the setting, algorithms with the same default named together."""
     def shown(value) -> str:
         return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
     by_value: dict[str, list[str]] = {}
-    for algo, config in PPO_FAMILY.items():
-        by_value.setdefault(shown(getattr(config, name)), []).append(algo.upper())
+    for algo, config in ON_POLICY_DEFAULTS.items():
+        if hasattr(config, name):
+            by_value.setdefault(shown(getattr(config, name)), []).append(algo.upper())
     parts = [] if sac_value is None else [f"SAC and TD3 {shown(sac_value)}"]
     parts += [f"{' and '.join(algos)} {value}" for value, algos in by_value.items()]
     return f"(default: {', '.join(parts)})"
@@ -107,11 +115,13 @@ class LearnerSettings(DaemonSettings):
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 
-    algo: Literal["sac", "td3", "ppo", "a2c", "reinforce"] = setting(
+    algo: Literal["sac", "td3", "ppo", "a2c", "reinforce", "trpo", "acktr"] = setting(
         "sac", "sac: off-policy, from the replay table; td3: off-policy with a deterministic policy, from the replay "
         "table; on-policy, from the replay server's queue table (l2r-replay --queue-capacity): ppo; a2c, synchronous "
         "advantage actor-critic (PPO's update, one step per batch, RMSprop); reinforce, Monte-Carlo returns and a "
-        "value baseline (PPO's update, one step per batch, lambda 1)", group=BOTH)
+        "value baseline (PPO's update, one step per batch, lambda 1); trpo, trust-region policy optimisation "
+        "(conjugate gradients on the KL's Fisher, a line search under --max-kl); acktr, K-FAC natural gradients for "
+        "policy and value network in a trust region", group=BOTH)
     batch_size: int | None = setting(None, "transitions per batch; for the on-policy algorithms, per update (their "
                                      "rollout) " + _defaults("batch_size", SAC_DEFAULTS.batch_size), group=BOTH, ge=1)
     gamma: float = setting(SAC_DEFAULTS.gamma, "discount", group=BOTH, ge=0, le=1)
@@ -189,6 +199,30 @@ class LearnerSettings(DaemonSettings):
         "policy's log-probabilities in PPO's clipped ratio) or vtrace (V-trace advantages and targets)", group=PPO)
     is_clip: float = setting(PPO_DEFAULTS.is_clip, "V-trace's truncation of importance ratios", group=PPO, gt=0)
 
+    max_kl: float | None = setting(None, "the trust region: how far, in mean KL from the policy before it, one step "
+                                   "may move the policy (ACKTR: its quadratic approximation) " + _defaults("max_kl"),
+                                   group=NATURAL, gt=0)
+    cg_steps: int = setting(TRPO_DEFAULTS.cg_steps, "TRPO: conjugate-gradient steps for the natural gradient",
+                            group=NATURAL, ge=1)
+    cg_damping: float = setting(TRPO_DEFAULTS.cg_damping, "TRPO: multiple of the identity added to the Fisher",
+                                group=NATURAL, ge=0)
+    line_search_shrink: float = setting(TRPO_DEFAULTS.line_search_shrink, "TRPO: each backtracking try takes this "
+                                        "fraction of the step before", group=NATURAL, gt=0, lt=1)
+    line_search_steps: int = setting(TRPO_DEFAULTS.line_search_steps, "TRPO: backtracking tries before the policy "
+                                     "step is given up (the policy then stays as it was)", group=NATURAL, ge=1)
+    value_epochs: int = setting(TRPO_DEFAULTS.value_epochs, "TRPO: passes of the value network's Adam over each "
+                                "batch", group=NATURAL, ge=1)
+    value_minibatch_size: int = setting(TRPO_DEFAULTS.value_minibatch_size, "TRPO: transitions per value-network "
+                                        "step", group=NATURAL, ge=1)
+    momentum: float = setting(ACKTR_DEFAULTS.momentum, "ACKTR: SGD momentum on the scaled natural gradient",
+                              group=NATURAL, ge=0, lt=1)
+    kfac_damping: float = setting(ACKTR_DEFAULTS.kfac_damping, "ACKTR: added to the Kronecker-factored Fisher "
+                                  "before it is inverted", group=NATURAL, gt=0)
+    kfac_decay: float = setting(ACKTR_DEFAULTS.kfac_decay, "ACKTR: running-average decay of the K-FAC factors",
+                                group=NATURAL, ge=0, lt=1)
+    value_fisher_coef: float = setting(ACKTR_DEFAULTS.value_fisher_coef, "ACKTR: weight of the value network's "
+                                       "sampled log-likelihood in the Fisher statistics", group=NATURAL, ge=0)
+
     @field_validator("hidden")
     @classmethod
     def _widths(cls, hidden: str | None) -> str | None:
@@ -236,6 +270,9 @@ class LearnerSettings(DaemonSettings):
                              "over its own steps, and data-parallel ranks all-reduce their gradients eagerly")
         if self.compile.endswith("graphs") and self.device == "cpu":
             raise UsageError(f"--compile {self.compile} captures CUDA graphs: it needs --device cuda or auto")
+        if self.algo in ("trpo", "acktr") and self.world_size > 1:
+            raise UsageError(f"--algo {self.algo} runs on one learner: its curvature is not averaged over ranks "
+                             "(--world-size 1)")
         if self.algo in ON_POLICY and (self.mirror or self.prioritized):
             raise UsageError(f"--mirror and --prioritized are SAC's and TD3's: {self.algo.upper()} learns from the "
                              "actors' own actions, in order (their log-probabilities are of the actions as taken)")
@@ -283,6 +320,33 @@ class LearnerSettings(DaemonSettings):
         except ValueError as e:  # a combination the config refuses
             raise UsageError(str(e)) from None
 
+    def _on_policy_common(self, defaults: TRPOConfig | ACKTRConfig) -> dict:
+        """The settings TRPO and ACKTR share with PPO, each unset one at the algorithm's default."""
+        return {**self._network(defaults), "lr": self._lr(defaults.lr),
+                "max_kl": defaults.max_kl if self.max_kl is None else self.max_kl,
+                "gae_lambda": defaults.gae_lambda if self.gae_lambda is None else self.gae_lambda,
+                "normalize_advantages": not self.no_normalize_advantages, "lag_correction": self.lag_correction,
+                "is_clip": self.is_clip}
+
+    def trpo(self) -> TRPOConfig:
+        try:
+            return TRPOConfig(
+                **self._on_policy_common(TRPO_DEFAULTS), cg_steps=self.cg_steps, cg_damping=self.cg_damping,
+                line_search_shrink=self.line_search_shrink, line_search_steps=self.line_search_steps,
+                value_epochs=self.value_epochs, value_minibatch_size=self.value_minibatch_size)
+        except ValueError as e:  # a combination TRPOConfig refuses
+            raise UsageError(str(e)) from None
+
+    def acktr(self) -> ACKTRConfig:
+        try:
+            return ACKTRConfig(
+                **self._on_policy_common(ACKTR_DEFAULTS), momentum=self.momentum, kfac_damping=self.kfac_damping,
+                kfac_decay=self.kfac_decay, value_fisher_coef=self.value_fisher_coef,
+                value_coef=ACKTR_DEFAULTS.value_coef if self.value_coef is None else self.value_coef,
+                entropy_coef=self.entropy_coef)
+        except ValueError as e:  # a combination ACKTRConfig refuses
+            raise UsageError(str(e)) from None
+
     def td3(self) -> TD3Config:
         try:
             return TD3Config(
@@ -297,8 +361,9 @@ class LearnerSettings(DaemonSettings):
         except ValueError as e:  # a combination TD3Config refuses
             raise UsageError(str(e)) from None
 
-    def algorithm(self) -> SACConfig | PPOConfig | TD3Config:
-        return {"sac": self.sac, "td3": self.td3, **dict.fromkeys(PPO_FAMILY, self.on_policy)}[self.algo]()
+    def algorithm(self) -> SACConfig | PPOConfig | TD3Config | TRPOConfig | ACKTRConfig:
+        return {"sac": self.sac, "td3": self.td3, **dict.fromkeys(PPO_FAMILY, self.on_policy), "trpo": self.trpo,
+                "acktr": self.acktr}[self.algo]()
 
     def learner(self) -> LearnerConfig:
         observation, act_dim = self.spaces
@@ -319,13 +384,14 @@ def build_parser() -> CommandParser:
         "Learner of an l2r run. SAC (the default) samples batches from the replay server(s) with several requests "
         "in flight and trains twin critics, a tanh-Gaussian policy and the entropy temperature; TD3 (--algo td3) "
         "samples the same way and trains twin critics and a deterministic policy, which the actors explore with "
-        "scheduled Gaussian noise; PPO (--algo ppo), A2C (--algo a2c) and REINFORCE (--algo reinforce) "
-        "take batches from the replay servers' queue table, each transition once, and train the same policy with "
-        "a value network. All publish versioned policy weights for actors and checkpoint atomically.",
+        "scheduled Gaussian noise; PPO (--algo ppo), A2C (--algo a2c), REINFORCE (--algo reinforce), TRPO (--algo "
+        "trpo) and ACKTR (--algo acktr) take batches from the replay servers' queue table, each transition once, and "
+        "train the same policy with a value network. All publish versioned policy weights for actors and checkpoint "
+        "atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
         "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
         "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192 "
-        "(A2C and REINFORCE the same, with --algo a2c or reinforce)\n"
+        "(A2C, REINFORCE, TRPO and ACKTR the same, with --algo a2c, reinforce, trpo or acktr)\n"
         "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500")
 
 

@@ -7,5 +7,5 @@ place that depends on the difference (the learner's tables and checks, `l2r up`'
 this set.
 """
 
-ON_POLICY = frozenset({"ppo", "a2c", "reinforce"})
+ON_POLICY = frozenset({"ppo", "a2c", "reinforce", "trpo", "acktr"})
 """The --algo names of the on-policy algorithms."""

@@ -4,13 +4,14 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
 
     format          "l2r-learner-checkpoint"
     format_version  1
-    algo            "sac", "ppo", "td3", "a2c" or "reinforce", the algorithm that trained it
+    algo            "sac", "ppo", "td3", "a2c", "reinforce", "trpo" or "acktr", the algorithm that trained it
                     (absent: "sac", a file from before PPO)
     sac_config      SACConfig as a dict (algorithm settings the state was trained with);
                     None in a policy checkpoint and in a PPO or TD3 checkpoint, so that readers
                     from before PPO take those for a policy checkpoint
     ppo_config      PPOConfig as a dict, in a PPO checkpoint
     a2c_config, reinforce_config  A2CConfig, ReinforceConfig as a dict, in their checkpoints
+    trpo_config, acktr_config  TRPOConfig, ACKTRConfig as a dict, in their checkpoints
     td3_config      TD3Config as a dict, in a TD3 checkpoint
     obs_dim, act_dim  obs_dim 0 for observations other than the float32 vector (the policy spec's
                     "observation" says which)
@@ -18,7 +19,9 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
                     for TD3's)
     train_state     the algorithm's TrainState.state_dict(): for SAC actor, critic, target_critic
                     and their Adam states, log_alpha, updates, version, extra counters; for PPO,
-                    A2C and REINFORCE actor, value, optimizer, updates, version, extra; for TD3 actor,
+                    A2C, REINFORCE and TRPO actor, value, optimizer (TRPO's the value network's
+                    alone), updates, version, extra, and for ACKTR also curvature (its K-FAC
+                    factors, l2r.learner.curvature.KFAC.state_dict); for TD3 actor,
                     target_actor, critic, target_critic, actor_opt, critic_opt, updates, version,
                     extra; a policy checkpoint holds only actor, updates and version
     action_repeat   0.01 s steps per action the actors trained with (None: not known, as in
@@ -54,12 +57,14 @@ from typing import Any, BinaryIO, Mapping
 import torch
 
 from l2r.durable import fsync_directory, write_durably
-from l2r.learner import ppo, sac, td3
+from l2r.learner import acktr, ppo, sac, td3, trpo
 from l2r.learner.a2c import A2CConfig
+from l2r.learner.acktr import ACKTRConfig
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.reinforce import ReinforceConfig
 from l2r.learner.sac import SACConfig
 from l2r.learner.td3 import TD3Config
+from l2r.learner.trpo import TRPOConfig
 from l2r.policy import PolicyNetwork, build_policy
 from l2r.protocol.observations import ObservationSpec
 
@@ -73,9 +78,10 @@ UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of thei
 # What a checkpoint's "algo" names: the algorithm's config class and its module (init_state,
 # TrainState, update, ...). A2C and REINFORCE are PPO's update and state at their own settings.
 ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo), "td3": (TD3Config, td3),
-              "a2c": (A2CConfig, ppo), "reinforce": (ReinforceConfig, ppo)}
-AlgorithmConfig = SACConfig | PPOConfig | TD3Config
-TrainState = sac.TrainState | ppo.TrainState | td3.TrainState
+              "a2c": (A2CConfig, ppo), "reinforce": (ReinforceConfig, ppo), "trpo": (TRPOConfig, trpo),
+              "acktr": (ACKTRConfig, acktr)}
+AlgorithmConfig = SACConfig | PPOConfig | TD3Config | TRPOConfig | ACKTRConfig
+TrainState = sac.TrainState | ppo.TrainState | td3.TrainState | acktr.TrainState
 
 
 def algorithm_of(config: AlgorithmConfig) -> str:

@@ -43,13 +43,15 @@ def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.op
                             capturable=device.type == "cuda")
 
 
-def load_adam_state(opt: torch.optim.Adam, saved: dict) -> None:
+def load_adam_state(opt: torch.optim.Optimizer, saved: dict) -> None:
     """Load a saved Adam state, keeping this optimizer's `capturable` (a saved one carries its own):
-    a checkpoint from a CPU then resumes on a GPU with an Adam a CUDA graph can hold."""
-    capturable = [group["capturable"] for group in opt.param_groups]
+    a checkpoint from a CPU then resumes on a GPU with an Adam a CUDA graph can hold. An optimizer
+    without the flag (ACKTR's SGD) loads as saved."""
+    capturable = [group.get("capturable") for group in opt.param_groups]
     opt.load_state_dict(saved)
     for group, flag in zip(opt.param_groups, capturable):
-        group["capturable"] = flag
+        if flag is not None:
+            group["capturable"] = flag
 
 
 def bfloat16_pays(device: torch.device) -> bool:

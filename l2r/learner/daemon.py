@@ -1,14 +1,15 @@
 """The learner process: batches in from replay, updates, weights, metrics and checkpoints out.
 
-The algorithms live in `l2r.learner.sac`, `l2r.learner.td3` and `l2r.learner.ppo` (A2C and
-REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.reinforce`); this
-module only hosts them. Steady state:
+The algorithms live in `l2r.learner.sac`, `l2r.learner.td3`, `l2r.learner.ppo` (A2C and
+REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.reinforce`),
+`l2r.learner.trpo` and `l2r.learner.acktr`; this module only hosts them. Steady state:
 
     replay client (sample queries in flight) -> batch, staged on the device -> the algorithm's step:
         SAC, TD3: update x update_repeat on a batch from the replay table (eager, compiled or one
                   CUDA graph: --compile), priorities back (prioritized only)
-        on-policy (PPO, A2C, REINFORCE; l2r.learner.algorithms.ON_POLICY): one update (epochs x
-                  minibatches) on a batch from the queue table
+        on-policy (PPO, A2C, REINFORCE, TRPO, ACKTR; l2r.learner.algorithms.ON_POLICY): one
+                  update (PPO's epochs x minibatches, a natural-gradient step) on a batch from the
+                  queue table
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
            the on-policy algorithms after every batch (their data must come from the newest policy)
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
@@ -380,7 +381,7 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
                 log.info("waiting for replay (shards alive: %s, not-ready replies: %d)", replay.shards, replay.waits)
                 waiting_since = now
             if now - meter.since >= config.metrics_interval:  # rates of zero are news too
-                _report(config, state, meter.report(now), metrics_out)
+                _report(config, algo, state, meter.report(now), metrics_out)
             continue
         waiting_since = None
         done = config.max_updates and state.updates >= config.max_updates
@@ -406,7 +407,7 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
         # After a publication, so that PPO's next batch is asked for once the actors have its weights.
         staging.ahead()
         if now - meter.since >= config.metrics_interval:
-            _report(config, state, meter.report(now), metrics_out)
+            _report(config, algo, state, meter.report(now), metrics_out)
         if outlet and now - last_checkpoint >= config.checkpoint_interval:
             _checkpoint(config, algo, state)
             last_checkpoint = now
@@ -453,19 +454,24 @@ def _check_observations(batch: SampleBatch, config: LearnerConfig, frame_stack: 
 
 
 # What the log line shows of each algorithm's metrics: (label, metric).
+PPO_LOGGED = (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"), ("kl", "approx_kl"),
+              ("clipped", "clip_fraction"))
 LOGGED = {
-    sac.TrainState: (("critic", "critic_loss"), ("actor", "actor_loss"), ("alpha", "alpha"), ("q", "q_mean"),
-                     ("entropy", "entropy")),
-    ppo.TrainState: (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
-                     ("kl", "approx_kl"), ("clipped", "clip_fraction")),
-    td3.TrainState: (("critic", "critic_loss"), ("actor", "actor_loss"), ("q", "q_mean"),
-                     ("std", "exploration_std")),
+    "sac": (("critic", "critic_loss"), ("actor", "actor_loss"), ("alpha", "alpha"), ("q", "q_mean"),
+            ("entropy", "entropy")),
+    "td3": (("critic", "critic_loss"), ("actor", "actor_loss"), ("q", "q_mean"), ("std", "exploration_std")),
+    "ppo": PPO_LOGGED, "a2c": PPO_LOGGED, "reinforce": PPO_LOGGED,
+    "trpo": (("surrogate", "surrogate"), ("value", "value_loss"), ("entropy", "entropy"), ("kl", "kl"),
+             ("step", "step_fraction")),
+    "acktr": (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
+              ("step size", "step_size"), ("kl", "quadratic_kl")),
 }
 
 
-def _report(config: LearnerConfig, state: TrainState, values: dict[str, float], out: zenoh.Publisher) -> None:
+def _report(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, values: dict[str, float],
+            out: zenoh.Publisher) -> None:
     values |= {"updates": state.updates, "version": state.version, "samples": state.extra.get("samples", 0)}
-    losses = ", ".join(f"{label} {values.get(name, math.nan):.4g}" for label, name in LOGGED[type(state)])
+    losses = ", ".join(f"{label} {values.get(name, math.nan):.4g}" for label, name in LOGGED[algorithm_of(algo)])
     log.info("updates %d (%.1f/s), samples %.0f/s, waiting %.0f%%, version %d, lag %.1f, %s", state.updates,
              values["updates_per_s"], values["samples_per_s"], 100 * values["wait_fraction"], state.version,
              values["policy_lag"], losses)

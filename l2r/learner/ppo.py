@@ -5,7 +5,8 @@ table, top to bottom: the batch's values and the proximal policy's log-probabili
 and value targets (GAE(lambda), or V-trace), then `epochs` passes over the batch in minibatches,
 each one gradient step on the clipped surrogate, the value loss and the entropy bonus, with
 advantages normalised per minibatch and the gradient norm clipped. The learner daemon and the
-tests call this same function.
+tests call this same function. Its first steps, `estimate` (values, log-probabilities, advantages
+and targets), and the networks of `init_networks` are TRPO's and ACKTR's too.
 
 A queue batch is pieces of trajectories laid end to end (`ends` marks where each stops: an episode
 ended, or the piece did), with the true next observation of every step. So a time-limit
@@ -94,23 +95,31 @@ class PPOConfig:
     eps 1e-5, as Stable-Baselines3 sets it for A2C)."""
 
     def __post_init__(self) -> None:
-        self.hidden = tuple(int(h) for h in self.hidden)
+        check_on_policy(self)
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
-        if self.lag_correction not in LAG_CORRECTIONS:
-            raise ValueError(f"lag_correction must be one of {LAG_CORRECTIONS}, got {self.lag_correction!r}")
-        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
-            raise ValueError(f"need 0 <= gamma, gae_lambda <= 1, got {self.gamma}, {self.gae_lambda}")
         if self.minibatches < 1 or self.epochs < 1 or self.batch_size < self.minibatches:
             raise ValueError(f"need epochs >= 1 and 1 <= minibatches <= batch_size, got {self.epochs}, "
                              f"{self.minibatches}, {self.batch_size}")
-        if self.clip <= 0 or self.is_clip <= 0 or self.max_grad_norm <= 0:
-            raise ValueError("clip, is_clip and max_grad_norm must be > 0")
+        if self.clip <= 0 or self.max_grad_norm <= 0:
+            raise ValueError("clip and max_grad_norm must be > 0")
 
     def to_dict(self) -> dict:
         return {**asdict(self), "hidden": list(self.hidden)}
+
+
+def check_on_policy(config) -> None:
+    """The checks the on-policy configs (PPOConfig, TRPOConfig, ACKTRConfig) share, the hidden
+    widths made a tuple of ints first; ValueError saying what is wrong."""
+    config.hidden = tuple(int(h) for h in config.hidden)
+    if config.activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {config.activation!r}")
+    if config.lag_correction not in LAG_CORRECTIONS:
+        raise ValueError(f"lag_correction must be one of {LAG_CORRECTIONS}, got {config.lag_correction!r}")
+    if not 0.0 <= config.gamma <= 1.0 or not 0.0 <= config.gae_lambda <= 1.0:
+        raise ValueError(f"need 0 <= gamma, gae_lambda <= 1, got {config.gamma}, {config.gae_lambda}")
+    if config.is_clip <= 0:
+        raise ValueError(f"is_clip must be > 0, got {config.is_clip}")
 
 
 class ValueNetwork(nn.Module):
@@ -160,9 +169,10 @@ class TrainState:
         self.extra = dict(saved.get("extra", {}))
 
 
-def init_state(config: PPOConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
-               seed: int | None = None) -> TrainState:
-    """Freshly initialised networks and optimizer on `device`."""
+def init_networks(config, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
+                  seed: int | None = None) -> tuple[Policy, ValueNetwork]:
+    """Freshly initialised policy and value network on `device`, of the architecture a config of
+    the on-policy family (PPOConfig, TRPOConfig, ACKTRConfig) names."""
     device = torch.device(device)
     if seed is not None:
         torch.manual_seed(seed)
@@ -173,13 +183,19 @@ def init_state(config: PPOConfig, obs_dim: int, act_dim: int, device: str | torc
         actor.head.weight.mul_(0.01)
         actor.head.bias.zero_()
         actor.head.bias[act_dim:] = math.atanh(-LOG_STD_MIN / (0.5 * (LOG_STD_MAX - LOG_STD_MIN)) - 1.0)
-    actor.to(device)
-    value = ValueNetwork(obs_dim, config.hidden, config.activation, config.layer_norm).to(device)
+    value = ValueNetwork(obs_dim, config.hidden, config.activation, config.layer_norm)
+    return actor.to(device), value.to(device)
+
+
+def init_state(config: PPOConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
+               seed: int | None = None) -> TrainState:
+    """Freshly initialised networks and optimizer on `device`."""
+    actor, value = init_networks(config, obs_dim, act_dim, device, seed)
     params = [*actor.parameters(), *value.parameters()]
     if config.optimizer == "rmsprop":
         optimizer = torch.optim.RMSprop(params, lr=config.lr, alpha=0.99, eps=1e-5)
     else:
-        optimizer = adam(params, config.lr, device, eps=1e-5)
+        optimizer = adam(params, config.lr, torch.device(device), eps=1e-5)
     return TrainState(actor, value, optimizer)
 
 
@@ -251,20 +267,34 @@ def clipped_surrogate(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advant
     return loss, ratio
 
 
-def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torch.Tensor]:
-    """One PPO update on one queue batch: `epochs` x `minibatches` gradient steps. Returns metrics."""
-    # The observation statistics take this batch in first (normalize_obs), as SAC's prepare does.
-    state.actor.observation_filter.update(batch.obs, sum_over_ranks)
-    n, reward = len(batch.obs), config.reward_scale * batch.reward
+@dataclass
+class Estimates:
+    """What an on-policy update knows of its batch before any step."""
 
-    # 1. Before any step: values, and the proximal policy's log-probabilities ('ratio': the acting policy's).
+    values: torch.Tensor
+    """V(s) of every step."""
+    proximal_log_prob: torch.Tensor
+    """log pi_old(a|s): the learner's policy as the update starts."""
+    old_log_prob: torch.Tensor
+    """The log-probabilities a policy's ratio divides by: the acting policy's under lag_correction
+    'ratio', else the proximal policy's."""
+    advantages: torch.Tensor
+    targets: torch.Tensor
+    """The value targets."""
+
+
+def estimate(state: TrainState, batch: Batch, config) -> Estimates:
+    """The observation statistics take the batch in (normalize_obs, as SAC's prepare does); then
+    values, the proximal policy's log-probabilities, and advantages and value targets by GAE(lambda)
+    or V-trace, as `config.lag_correction` says (any config of the on-policy family)."""
+    state.actor.observation_filter.update(batch.obs, sum_over_ranks)
+    reward = config.reward_scale * batch.reward
     with torch.no_grad():
         values = state.value(state.actor.observation_filter(batch.obs))
         next_values = state.value(state.actor.observation_filter(batch.next_obs))
         proximal_log_prob = state.actor.evaluate(batch.obs, batch.action)[0]
     old_log_prob = batch.behaviour_log_prob if config.lag_correction == "ratio" else proximal_log_prob
 
-    # 2. Advantages and value targets: GAE(lambda), or V-trace against the acting policy.
     r, v, v_next, term, ends = (t.double().cpu().numpy()
                                 for t in (reward, values, next_values, batch.terminated, batch.ends))
     if config.lag_correction == "vtrace":
@@ -274,8 +304,26 @@ def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torc
     else:
         advantages = gae(r, v, v_next, term, ends, config.gamma, config.gae_lambda)
         targets = advantages + v
-    advantages = torch.as_tensor(advantages, dtype=torch.float32, device=values.device)
-    targets = torch.as_tensor(targets, dtype=torch.float32, device=values.device)
+    return Estimates(values, proximal_log_prob, old_log_prob,
+                     torch.as_tensor(advantages, dtype=torch.float32, device=values.device),
+                     torch.as_tensor(targets, dtype=torch.float32, device=values.device))
+
+
+def batch_metrics(estimates: Estimates, batch: Batch) -> dict[str, torch.Tensor]:
+    """What every on-policy update reports of its batch's estimates."""
+    values, targets = estimates.values, estimates.targets
+    return {"value_mean": values.mean(), "advantage_mean": estimates.advantages.mean(),
+            "explained_variance": 1.0 - (targets - values).var() / targets.var().clamp(min=1e-8),
+            # KL(acting || proximal) estimated on the batch: how far the lag moved the policy
+            "lag_kl": (batch.behaviour_log_prob - estimates.proximal_log_prob).mean()}
+
+
+def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torch.Tensor]:
+    """One PPO update on one queue batch: `epochs` x `minibatches` gradient steps. Returns metrics."""
+    # 1-2. Before any step: values, the proximal policy's log-probabilities, advantages and targets.
+    estimates = estimate(state, batch, config)
+    n, advantages, targets = len(batch.obs), estimates.advantages, estimates.targets
+    old_log_prob, values = estimates.old_log_prob, estimates.values
 
     # 3. Epochs of minibatch steps: clipped surrogate, value loss, entropy bonus; one optimizer step each.
     size = n // config.minibatches
@@ -307,12 +355,7 @@ def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torc
                     sums[name] += value.detach()
 
     steps = config.epochs * config.minibatches
-    return {name: total / steps for name, total in sums.items()} | {
-        "value_mean": values.mean(), "advantage_mean": advantages.mean(),
-        "explained_variance": 1.0 - (targets - values).var() / targets.var().clamp(min=1e-8),
-        # KL(acting || proximal) estimated on the batch: how far the lag moved the policy
-        "lag_kl": (batch.behaviour_log_prob - proximal_log_prob).mean(),
-    }
+    return {name: total / steps for name, total in sums.items()} | batch_metrics(estimates, batch)
 
 
 def broadcast_state(state: TrainState) -> None:

@@ -25,6 +25,9 @@ def test_help_explains_and_exits_zero(capsys):
     (["--compile", "graphs", "--device", "cpu"], "--compile graphs captures CUDA graphs: it needs --device cuda"),
     (["--compile", "inductor", "--algo", "ppo"], "--compile inductor is for one SAC or TD3 learner"),
     (["--compile", "graphs", "--world-size", "2"], "--compile graphs is for one SAC or TD3 learner"),
+    (["--algo", "trpo", "--world-size", "2"], "--algo trpo runs on one learner"),
+    (["--algo", "acktr", "--layer-norm"], "ACKTR's K-FAC covers Linear layers alone"),
+    (["--algo", "trpo", "--line-search-shrink", "1"], "--line-search-shrink 1: should be less than 1"),
 ])
 def test_bad_arguments_are_usage_errors(argv, message, capsys):
     assert cli(argv) == 2

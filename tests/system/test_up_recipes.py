@@ -129,8 +129,9 @@ def test_a_td3_job_samples_the_replay_table_as_sac_does_with_a_td3_learner():
     assert learner_settings(planned("--algo", "td3", "--scheduled-target-noise")["learner"]).td3().target_noise is None
 
 
-@pytest.mark.parametrize("algo, batch_size, queue", [("a2c", 32, 64), ("reinforce", 4000, 8000)])
-def test_an_l2r_up_job_trains_a2c_and_reinforce_from_the_queue_table(algo, batch_size, queue):
+@pytest.mark.parametrize("algo, batch_size, queue", [("a2c", 32, 64), ("reinforce", 4000, 8000), ("trpo", 2048, 4096),
+                                                     ("acktr", 2500, 5000)])
+def test_an_l2r_up_job_trains_each_on_policy_algorithm_from_the_queue_table(algo, batch_size, queue):
     children = planned("--env-id", "Hopper-v5", "--algo", algo)
     replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
     # The queue alone, two batches long: an actor's chunk of 64 transitions must fit.
@@ -169,6 +170,7 @@ def test_each_flag_s_help_names_the_recipes_values():
     help_ = {action.dest: action.help for action in build_parser()._actions}
     assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
                                           "runner/a2c 1, standard/a2c 1, runner/reinforce 1, standard/reinforce 1, "
+                                          "runner/trpo 1, standard/trpo 1, runner/acktr 1, standard/acktr 1, "
                                           "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1")
     assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off, "
                                     "photo/td3 off")
