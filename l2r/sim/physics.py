@@ -50,8 +50,8 @@ class Physics:
     The kernels take the arrays in seven groups, tuples built once here: MuJoCo's arrays, the
     muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`), the
     ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public
-    arrays are updated in place; `params` is this episode's muscle table, which the env may scale
-    before `reset`.
+    arrays are updated in place; `params` is this episode's muscle table and `contact` its ground
+    contact law (`ContactLaw.table`), which the env may scale before `reset`.
     """
 
     def __init__(self, m: mujoco.MjModel, d: mujoco.MjData, osim: Osim, muscles: list[Muscle]):
@@ -73,6 +73,7 @@ class Physics:
         spheres = np.array([m.geom(g).id for g in feet])
         sphere_body = m.geom_bodyid[spheres].copy()
         self.ground_force = np.zeros((len(feet), 2))  # N along x and y on each sphere, of the current state
+        self.contact = contact_law(osim).table()
 
         limits = default_limits()
         joints = np.array([m.joint(c).id for c in limits.coordinates])
@@ -95,7 +96,7 @@ class Physics:
             moving.dof, moving.actuator, moving.torque_actuators, moving.rate,
         )
         self._feet = (
-            contact_law(osim).table(), m.geom_size[spheres, 0].copy(), spheres, sphere_body,
+            self.contact, m.geom_size[spheres, 0].copy(), spheres, sphere_body,
             m.body_rootid[sphere_body].copy(),
             np.array([m.site(f"{g}_contact").id for g in feet]),
             np.array([m.actuator(f"{g}_x").id for g in feet]),
