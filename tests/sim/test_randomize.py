@@ -1,5 +1,5 @@
-"""Per-episode randomisation of RunEnv's body: what each draw changes, its bounds, its seed, and
-that everything off is the env of 2017."""
+"""Per-episode randomisation of RunEnv's body, and the noise wrappers: what each draw changes, its
+bounds, its seed, and that everything off is the env of 2017."""
 
 import dataclasses
 
@@ -11,6 +11,7 @@ from l2r.sim.env import RunEnv
 from l2r.sim.model import OSIM_PATH
 from l2r.sim.opensim import read_osim
 from l2r.sim.randomize import Randomization
+from l2r.sim.wrappers import ActionNoise, ObservationNoise
 
 FRACTIONS = dict(strength=0.1, tendon_slack=0.03, fiber_length=0.04, mass=0.2, contact_stiffness=0.3,
                  contact_damping=0.25, friction=0.15)
@@ -174,3 +175,39 @@ def test_the_command_line_form():
         with pytest.raises(ValueError):
             Randomization.parse(text)
 
+
+# -- noise -----------------------------------------------------------------------------------------
+
+def test_observation_noise_has_its_std_and_repeats_with_the_seed(plain):
+    noisy = ObservationNoise(plain, std=0.02)
+    noise = []
+    for seed in range(12):
+        clean, _ = plain.reset(seed=seed)
+        seen, _ = noisy.reset(seed=seed)
+        noise.append(seen.astype(np.float64) - clean)
+    noise = np.concatenate(noise)  # 492 draws
+    assert abs(noise.mean()) < 4 * 0.02 / np.sqrt(noise.size)
+    assert 0.9 < noise.std() / 0.02 < 1.1
+    again, _ = noisy.reset(seed=0)
+    assert np.array_equal(again - plain.reset(seed=0)[0], noise[:41].astype(np.float32))
+
+
+def test_action_noise_has_its_std_and_repeats_with_the_seed(plain):
+    noisy = ActionNoise(plain, std=0.05)
+    held = []
+    for _ in range(2):
+        noisy.reset(seed=3)
+        held.append([])
+        for _ in range(20):
+            noisy.step(np.full(18, 0.5))
+            held[-1].append(plain.excitation - 0.5)
+    noise = np.array(held[0]).ravel()  # 360 draws, none near the clip at 0 or 1
+    assert np.array_equal(held[0], held[1])
+    assert abs(noise.mean()) < 4 * 0.05 / np.sqrt(noise.size)
+    assert 0.9 < noise.std() / 0.05 < 1.1
+
+
+def test_noise_std_must_be_a_number_not_below_zero(plain):
+    for wrapper in (ObservationNoise, ActionNoise):
+        with pytest.raises(ValueError, match="std"):
+            wrapper(plain, std=-0.1)
