@@ -233,10 +233,8 @@ class RunEnv(gym.Env):
         physics, d = self._physics, self._d
         t_before = d.time
         if self._delayed:  # the last step's excitations act for one more physics step
-            excitation = checked_excitations(action)
-            physics.step(1)
-            physics.excitation[:] = excitation
-            physics.step(self.substeps - 1)
+            checked_excitations(action, out=physics.next_excitation)
+            physics.step(self.substeps, delay=1)
         else:
             checked_excitations(action, out=physics.excitation)
             physics.step(self.substeps)

@@ -64,6 +64,7 @@ class Physics:
         paths, moving = PathSwitches(m, muscles), MovingPoints(m, osim, muscles)
         self.params = thelen.muscle_parameters(muscles)
         self.excitation = np.zeros(n)
+        self.next_excitation = np.zeros(n)  # what a delayed step turns to after its first physics steps
         self.activation = np.zeros(n)
         self.fiber = np.zeros(n)
         self.muscle_length = np.zeros(n)  # of the current state, through the selected tendons
@@ -121,9 +122,10 @@ class Physics:
         _start(self._model, self._data, self._mujoco, self._muscles, self._switches, self._moving, self._feet,
                self._ligaments, self._knees)
 
-    def step(self, substeps: int) -> None:
-        """Hold `excitation` (in [0, 1]) over `substeps` physics steps."""
-        _advance(self._model, self._data, substeps, self.dt,
+    def step(self, substeps: int, delay: int = 0) -> None:
+        """Hold `excitation` (in [0, 1]) over `substeps` physics steps; with a `delay`, over the
+        first `delay` of them, then `next_excitation`, which `excitation` becomes, over the rest."""
+        _advance(self._model, self._data, substeps, delay, self.next_excitation, self.dt,
                  self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments, self._knees)
 
     def drive(self) -> None:
@@ -133,9 +135,12 @@ class Physics:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _advance(model, data, substeps, dt, mj, muscles, switches, moving, feet, ligaments, knees):
-    """`substeps` physics steps, then the state the env reports."""
-    for _ in range(substeps):
+def _advance(model, data, substeps, delay, next_excitation, dt, mj, muscles, switches, moving, feet, ligaments, knees):
+    """`substeps` physics steps, the excitations turning to `next_excitation` after `delay` of
+    them (none when 0), then the state the env reports."""
+    for k in range(substeps):
+        if delay > 0 and k == delay:
+            muscles[1][:] = next_excitation
         _drive(dt, mj, muscles, switches, moving, feet)
         mj_transmission(model, data)  # the contact sites moved: their actuators' moment arms
         mj_step2(model, data)
