@@ -64,8 +64,10 @@ class Randomization:
     def of(cls, value: Randomization | Mapping[str, Any] | None) -> Randomization:
         """A Randomization from itself, a mapping of field names to fractions, or None (off);
         ValueError naming an unknown field."""
-        if value is None or isinstance(value, Randomization):
-            return value or cls()
+        if value is None:
+            return cls()
+        if isinstance(value, Randomization):
+            return value
         if not isinstance(value, Mapping):
             raise ValueError(f"randomize takes a mapping of {', '.join(cls.names())} to fractions, got {value!r}")
         unknown = set(value) - set(cls.names())
