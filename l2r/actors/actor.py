@@ -128,7 +128,8 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
     if randomize and env_id != PORT_ID:
         raise ValueError(f"randomisation is {PORT_ID}'s, not {env_id}'s")
     if family_of(env_id) == RUNNER:
-        return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **({"randomize": randomize} if randomize else {}))
+        options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
+        return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
     env = gymnasium.make(env_id)
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
         env = RescaleAction(env, 0.0, 1.0)

@@ -72,7 +72,8 @@ class Randomization:
             raise ValueError(f"randomize takes a mapping of {', '.join(cls.names())} to fractions, got {value!r}")
         unknown = set(value) - set(cls.names())
         if unknown:
-            raise ValueError(f"randomize has no {', '.join(sorted(map(str, unknown)))}; it takes {', '.join(cls.names())}")
+            raise ValueError(f"randomize has no {', '.join(sorted(map(str, unknown)))}; "
+                             f"it takes {', '.join(cls.names())}")
         return cls(**value)
 
     @classmethod
