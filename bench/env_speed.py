@@ -12,6 +12,9 @@ speedup_vs_opensim: env_steps_per_s_d0 over that (the issue's 100x is against th
 speedup_vs_opensim_low / _high: env_steps_per_s_d0 over OpenSim's fastest / slowest rate for the
     same 0.01 s step, as recorded with the reference figures (about 110 and 40 steps/s).
 same_work: the two reference rollouts OpenSim timed, run here, with their own speedups.
+With --randomize: randomized_env_steps_per_s_d0 / _d2, the port with that per-episode
+    randomisation, and randomization_cost_d0 / _d2, 1 - randomized / plain: medians of rounds
+    that alternate the two envs, so that both see the same machine.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import numpy as np
 
 import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim.env import RunEnv
+from l2r.sim.randomize import Randomization
 
 REFERENCE = Path(__file__).resolve().parents[1] / "l2r" / "sim" / "assets" / "opensim_reference.json"
 
@@ -43,10 +47,12 @@ class Clock:
         return time.thread_time() - self.cpu, time.perf_counter() - self.wall
 
 
-def env_rate(difficulty: int, seconds: float, seed: int = 0, env_id: str = "l2r/Run-v0", chunk: int = 1024) -> tuple[float, float]:
+def env_rate(difficulty: int, seconds: float, seed: int = 0, env_id: str = "l2r/Run-v0", chunk: int = 1024,
+             randomize: Randomization | None = None) -> tuple[float, float]:
     """(CPU, wall) env steps per second with random excitations, resets included; the clock is
     read every `chunk` steps."""
-    env = gymnasium.make(env_id, difficulty=difficulty, seed=seed).unwrapped
+    options = {"randomize": randomize} if randomize else {}
+    env = gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options).unwrapped
     actions = np.random.default_rng(seed).uniform(0.0, 1.0, (4096, env.action_space.shape[0]))
     env.reset()
     for a in actions[:50]:  # warm-up
@@ -106,6 +112,21 @@ def same_work(repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
+def randomization_cost(randomize: Randomization, seconds: float, rounds: int = 3) -> dict[str, float]:
+    """The port's CPU rate with `randomize` against the plain one's, in alternating rounds."""
+    out = {}
+    for difficulty in (0, 2):
+        plain, randomized = [], []
+        for _ in range(rounds):
+            plain.append(env_rate(difficulty, seconds)[0])
+            randomized.append(env_rate(difficulty, seconds, randomize=randomize)[0])
+        plain_rate, randomized_rate = float(np.median(plain)), float(np.median(randomized))
+        out[f"randomized_env_steps_per_s_d{difficulty}"] = round(randomized_rate, 1)
+        out[f"plain_env_steps_per_s_d{difficulty}"] = round(plain_rate, 1)
+        out[f"randomization_cost_d{difficulty}"] = round(1.0 - randomized_rate / plain_rate, 4)
+    return out
+
+
 def cpu_flags() -> str:
     """The vector extensions this CPU has, of those that decide numeric speed."""
     try:
@@ -134,7 +155,14 @@ def main() -> None:
     )
     parser.add_argument("--seconds", type=float, default=5.0, help="timing window per figure (default 5)")
     parser.add_argument("--quick", action="store_true", help="1 s per figure")
+    parser.add_argument("--randomize", metavar="NAME=FRACTION,...",
+                        help="also time the port with this per-episode randomisation (RunEnv(randomize=...), "
+                             "e.g. strength=0.1,mass=0.1,delay=1) against the plain port, in three alternating rounds")
     args = parser.parse_args()
+    try:
+        randomize = Randomization.parse(args.randomize or "")
+    except ValueError as e:
+        parser.error(str(e))
     seconds = 1.0 if args.quick else args.seconds
     if hasattr(os, "sched_setaffinity"):  # one core, as the goal is stated
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
@@ -144,6 +172,7 @@ def main() -> None:
     d2, wall_d2 = env_rate(2, seconds)
     same = same_work(repeats=10 if args.quick else 50)
     opensim, wall_opensim = env_rate(0, max(seconds, 5.0), env_id="l2r/RunOpenSim-v0", chunk=10)
+    randomized = randomization_cost(randomize, seconds) if randomize else {}
     slow = min(r["opensim"] for r in same.values())
     fast = max(r["opensim"] for r in same.values())
     print(
@@ -161,6 +190,7 @@ def main() -> None:
                 "speedup_vs_opensim_low": round(d0 / fast, 1),
                 "speedup_vs_opensim_high": round(d0 / slow, 1),
                 "same_work": same,
+                **randomized,
                 "wall_env_steps_per_s_d0": round(wall_d0, 1),
                 "wall_env_steps_per_s_d2": round(wall_d2, 1),
                 "wall_mj_steps_per_s": round(wall_mj, 1),

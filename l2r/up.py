@@ -46,6 +46,7 @@ import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id 
 import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
 from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.actors.curriculum import DifficultySchedule
 from l2r.best_policy import BestPolicy
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.durable import DISK_ERRORS, MB, FileLogHandler, disk_failure, free_bytes
@@ -61,6 +62,7 @@ from l2r.replay.queue import QueueConfig
 from l2r.replay.storage import StorageConfig
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
+from l2r.sim.randomize import Randomization
 from l2r.spaces import task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
 
@@ -175,6 +177,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
                         "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
     a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
+    rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
+                              "evaluators run the plain env); each off by default and unmeasured so far "
+                              "(docs/training.md, \"Levers for robustness\")")
+    rb.add_argument("--difficulty-schedule", metavar="STEP:DIFFICULTY,...",
+                    help="train on a course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training episode "
+                         "starts at the difficulty of the last pair whose step the actor's own env steps have reached, "
+                         "in place of --difficulty (the evaluators keep --difficulty). Unset: --difficulty throughout")
+    rb.add_argument("--randomize", metavar="NAME=FRACTION,...",
+                    help="draw a new body each episode on the l2r/Run-v0 actors (not the --opensim-actors): each "
+                         "named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
+                         "(per muscle), mass (per segment), contact_stiffness, contact_damping, friction (the ground); "
+                         "delay=P: the probability that an episode's excitations act one physics step late. E.g. "
+                         "strength=0.1,mass=0.1,friction=0.2,delay=0.5 (l2r-actor --help says more). Unset: off")
+    rb.add_argument("--observation-noise", type=float, default=0.0, metavar="STD",
+                    help="std of Gaussian noise the actors add to every observed value, in its own units (m, rad, "
+                         "m/s, rad/s on the runner); replay stores the noisy observations (0: off)")
+    rb.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
+                    help="std of Gaussian noise the actors add to every action value before the env takes it (the "
+                         "runner's excitations, then clipped to [0, 1]); replay stores the policy's action (0: off)")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"), help="learner device")
     le.add_argument("--learner-threads", type=int, default=0,
@@ -360,7 +381,25 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--hidden takes widths such as 256,256 (got {recipe['hidden']!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
+    _check_robustness(parser, args)
     return args
+
+
+def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The robustness levers' values, and that the task takes them."""
+    try:
+        if args.randomize is not None and Randomization.parse(args.randomize) and args.env_id != PORT_ID:
+            parser.error(f"--randomize is {PORT_ID}'s, not {args.env_id}'s")
+        if args.difficulty_schedule is not None:
+            DifficultySchedule.parse(args.difficulty_schedule)
+            if family_of(args.env_id) != RUNNER:
+                parser.error(f"--difficulty-schedule is the runner's, not {args.env_id}'s")
+    except ValueError as e:
+        parser.error(str(e))
+    if not (args.observation_noise >= 0 and args.action_noise >= 0):
+        parser.error("--observation-noise and --action-noise are standard deviations, at least 0")
+    if args.observation_noise and family_of(args.env_id) != RUNNER and task_spaces(args.env_id)[0].vector_width is None:
+        parser.error(f"--observation-noise is for vector observations, not {args.env_id}'s")
 
 
 def make_run_dir(args: argparse.Namespace) -> Path:
@@ -486,7 +525,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
-                                         "--random-steps", str(recipe["random_steps"]), *logs, *args.actor_arg,
+                                         "--random-steps", str(recipe["random_steps"]),
+                                         *robustness_flags(args, opensim=bool(opensim)), *logs, *args.actor_arg,
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):
         eval_env = [] if env_id is None else ["--env-id", env_id]
@@ -501,6 +541,21 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
                                          *eval_env]))
     return children
+
+
+def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
+    """A training actor's flags for the robustness levers that are on (randomisation is the MuJoCo
+    port's: not for an OpenSim actor)."""
+    flags = []
+    if args.difficulty_schedule is not None:
+        flags += ["--difficulty-schedule", args.difficulty_schedule]
+    if args.randomize and not opensim:
+        flags += ["--randomize", args.randomize]
+    if args.observation_noise:
+        flags += ["--observation-noise", str(args.observation_noise)]
+    if args.action_noise:
+        flags += ["--action-noise", str(args.action_noise)]
+    return flags
 
 
 def simulator_of_each_actor(children: list[Child]) -> dict[int, str]:

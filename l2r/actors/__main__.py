@@ -7,15 +7,20 @@ import sys
 import threading
 from typing import Annotated, Literal, Sequence
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from l2r.actors.actor import ActorConfig, main
-from l2r.config import CommandParser, FilePath, load, run_command, setting, settings_parser
+from l2r.actors.curriculum import DifficultySchedule
+from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
+from l2r.families import RUNNER, family_of
 from l2r.protocol import DaemonSettings, configure_logging
+from l2r.sim import PORT_ID
+from l2r.sim.randomize import Randomization
 
 DEFAULTS = ActorConfig()
 ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role", "episode logs (MCAP)"
+ROBUSTNESS = "robustness (each off by default; unmeasured so far, docs/training.md)"
 
 
 class ActorSettings(DaemonSettings):
@@ -33,6 +38,26 @@ class ActorSettings(DaemonSettings):
                           "(l2r-replay --observation 'pixels: uint8[3, 84, 84]')", group=ACTING)
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
+    difficulty_schedule: str | None = setting(
+        None, "train on a course of rising difficulty: STEP:DIFFICULTY pairs from step 0 on, e.g. "
+        "0:0,300000:1,600000:2; each training episode starts at the difficulty of the last pair whose step this "
+        "actor's env steps (its env_steps stat) have reached, in place of --difficulty (the runner; not with "
+        "--evaluate)", group=ROBUSTNESS, metavar="STEP:DIFFICULTY,...")
+    randomize: str | None = setting(
+        None, "draw a new body each episode (l2r/Run-v0 only): NAME=FRACTION items, each factor uniform in "
+        "1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack and fiber_length "
+        "(tendon slack and optimal fibre length, per muscle), mass (per segment, inertia with it), "
+        "contact_stiffness, contact_damping, friction (the feet's ground contact, per episode); and delay=P, the "
+        "probability that an episode's excitations act one physics step (2.5 ms) late. E.g. "
+        "strength=0.1,tendon_slack=0.03,fiber_length=0.03,mass=0.1,contact_stiffness=0.2,friction=0.2,delay=0.5",
+        group=ROBUSTNESS, metavar="NAME=FRACTION,...")
+    observation_noise: float = setting(DEFAULTS.observation_noise, "std of Gaussian noise added to every observed "
+                                       "value, in its own units (m, rad, m/s, rad/s on the runner); the experience "
+                                       "sent holds the noisy observations", group=ROBUSTNESS, ge=0)
+    action_noise: float = setting(DEFAULTS.action_noise, "std of Gaussian noise added to every action value (the "
+                                  "runner's excitations, then clipped to [0, 1]) before the env takes it, drawn anew "
+                                  "for each repeat; the experience sent holds the policy's action",
+                                  group=ROBUSTNESS, ge=0)
     action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps per policy action (0.01 s each on the "
                                  "runner; a camera task already holds each action for 2 suite steps itself, so 1 "
                                  "there trains as DrQ-v2 does)", group=ACTING, ge=1)
@@ -74,6 +99,29 @@ class ActorSettings(DaemonSettings):
                                      "the room to checkpoints and replay (l2r up sets it; 0: no floor)",
                                      group=LOGS, ge=0)
 
+    @field_validator("randomize")
+    @classmethod
+    def _randomization(cls, text: str | None) -> str | None:
+        if text is not None:
+            Randomization.parse(text)
+        return text
+
+    @field_validator("difficulty_schedule")
+    @classmethod
+    def _schedule(cls, text: str | None) -> str | None:
+        if text is not None:
+            DifficultySchedule.parse(text)
+        return text
+
+    def check(self) -> None:
+        if self.randomize and Randomization.parse(self.randomize) and self.env_id != PORT_ID:
+            raise UsageError(f"--randomize is {PORT_ID}'s, not {self.env_id}'s")
+        if self.difficulty_schedule is not None:
+            if family_of(self.env_id) != RUNNER:
+                raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")
+            if self.evaluate:
+                raise UsageError("--difficulty-schedule is for training actors: an evaluator keeps --difficulty")
+
     def actor(self) -> ActorConfig:
         episode_log = {}
         if self.episode_log_dir is not None:
@@ -84,6 +132,10 @@ class ActorSettings(DaemonSettings):
         return ActorConfig(
             run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
+            difficulty_schedule=None if self.difficulty_schedule is None else
+            DifficultySchedule.parse(self.difficulty_schedule),
+            randomize=Randomization.parse(self.randomize or ""), observation_noise=self.observation_noise,
+            action_noise=self.action_noise,
             chunk_size=self.chunk_size, chunk_delay=self.chunk_delay, seed=self.seed, num_shards=self.num_shards,
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
             torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,

@@ -27,8 +27,8 @@ import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks, l2r/dmc-<domain>-<task>-v0)
 import l2r.photo  # noqa: F401  (registers the photo tasks, l2r/PhotoTune-v0)
-import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
 from l2r.actors.actor_id import ask_actor_id
+from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
 from l2r.actors.weights import WeightFollower
@@ -40,7 +40,9 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, Keys, ObservationSpec,
     ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.sim.wrappers import ActionRepeat
+from l2r.sim import PORT_ID  # (importing l2r.sim registers l2r/Run-v0)
+from l2r.sim.randomize import Randomization
+from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 
 log = logging.getLogger("l2r.actor")
 
@@ -72,6 +74,15 @@ class ActorConfig:
     """Gymnasium id of the environment: any env with Box actions and a Box, or Dict of Box,
     observation space (`ObservationSpec.from_space`)."""
     difficulty: int = 0
+    difficulty_schedule: DifficultySchedule | None = None
+    """Training episodes start at the schedule's difficulty for the actor's env steps (the runner;
+    None: `difficulty` throughout)."""
+    randomize: Randomization = field(default_factory=Randomization)
+    """Per-episode randomisation of the MuJoCo runner's body (off by default)."""
+    observation_noise: float = 0.0
+    """Std of the Gaussian noise added to every observed value (0: none)."""
+    action_noise: float = 0.0
+    """Std of the Gaussian noise added to every action value before the env takes it (0: none)."""
     action_repeat: int = 3
     random_steps: int = 5_000
     """Uniform random excitations for this many of the actor's first steps (skipped when it
@@ -109,11 +120,16 @@ class ActorConfig:
         return "evaluator" if self.evaluate else "actor"
 
 
-def make_task(env_id: str, difficulty: int = 0, seed: int | None = None) -> gymnasium.Env:
-    """The runner (l2r/...) with its difficulty and seed, or any other gymnasium env with Box actions,
-    rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
+def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
+              randomize: Randomization | None = None) -> gymnasium.Env:
+    """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo port's alone),
+    or any other gymnasium env with Box actions, rescaled so that it takes the policy's [0, 1]
+    excitations (Hopper-v5's [-1, 1], say)."""
+    if randomize and env_id != PORT_ID:
+        raise ValueError(f"randomisation is {PORT_ID}'s, not {env_id}'s")
     if family_of(env_id) == RUNNER:
-        return gymnasium.make(env_id, difficulty=difficulty, seed=seed)
+        options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
+        return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
     env = gymnasium.make(env_id)
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
         env = RescaleAction(env, 0.0, 1.0)
@@ -121,8 +137,13 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None) -> gymn
 
 
 def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
-    """The actor's task (`make_task`), each action repeated as configured."""
-    env = make_task(config.env_id, config.difficulty, seed)
+    """The actor's task (`make_task`) with the noise configured, each action repeated as configured
+    (the action noise drawn anew for each repeat)."""
+    env = make_task(config.env_id, config.difficulty, seed, config.randomize)
+    if config.action_noise:
+        env = ActionNoise(env, config.action_noise)
+    if config.observation_noise:
+        env = ObservationNoise(env, config.observation_noise)
     return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
 
 
@@ -155,6 +176,15 @@ def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
     return int(np.random.SeedSequence([config.seed, config.actor_id, env_index, episode]).generate_state(1)[0])
 
 
+def episode_difficulty(config: ActorConfig, steps: int) -> tuple[int, dict | None]:
+    """The difficulty of a training episode starting after `steps` env steps, and the reset
+    options that set it (None: the env's own, `config.difficulty`)."""
+    if config.difficulty_schedule is None:
+        return config.difficulty, None
+    difficulty = config.difficulty_schedule.at(steps)
+    return difficulty, {"difficulty": difficulty}
+
+
 class ReplayWatch:
     """Whether the replay shard an actor feeds holds its liveliness token: another shard alive
     does not store this actor's chunks."""
@@ -175,6 +205,7 @@ class EnvSlot:
     env: gymnasium.Env
     obs: dict[str, np.ndarray]  # the fields of the observation to act on
     seed: int
+    difficulty: int
     episode: int = 0
     ret: float = 0.0
     length: int = 0
@@ -212,9 +243,10 @@ class Actor:
         self.camera = images and family_of(config.env_id) != PHOTO
         self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
         for env, seed in zip(envs, seeds):
-            obs, info = env.reset(seed=seed)
+            difficulty, options = episode_difficulty(self.config, self.steps)
+            obs, info = env.reset(seed=seed, options=options)
             x = float(info.get("distance", 0.0))
-            self.slots.append(EnvSlot(env, self.observe(obs), seed, start_x=x, x=x))
+            self.slots.append(EnvSlot(env, self.observe(obs), seed, difficulty, start_x=x, x=x))
         self.weights = WeightFollower(session, self.keys, self.observation)
         self.stacks = FrameStack(self.observation, self.weights.frame_stack, config.num_envs)
         self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size, self.observation)
@@ -313,7 +345,7 @@ class Actor:
     def begin_record(self, slot: EnvSlot) -> None:
         if self.episode_logger is not None:
             slot.recorder = self.episode_logger.begin_episode({
-                "env_id": self.config.env_id, "seed": slot.seed, "difficulty": self.config.difficulty, "evaluation": False,
+                "env_id": self.config.env_id, "seed": slot.seed, "difficulty": slot.difficulty, "evaluation": False,
                 "policy_version": -1 if self.acting_randomly else self.weights.version,
                 "obstacles": getattr(slot.env.unwrapped, "obstacles", [])})
 
@@ -328,7 +360,7 @@ class Actor:
             actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
             distance=float(info.get("distance", 0.0)) - slot.start_x, length=slot.length,
             policy_version=-1 if self.acting_randomly else self.weights.version,
-            difficulty=self.config.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
+            difficulty=slot.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
             time=time.time(), psnr_db=final_psnr(info))
         self.summaries.put(encode(summary))
         if slot.recorder is not None:
@@ -338,7 +370,8 @@ class Actor:
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
-        obs, info = slot.env.reset(seed=slot.seed)
+        slot.difficulty, options = episode_difficulty(self.config, self.steps)
+        obs, info = slot.env.reset(seed=slot.seed, options=options)
         slot.obs = self.observe(obs)
         slot.start_x = slot.x = float(info.get("distance", 0.0))
         self.begin_record(slot)

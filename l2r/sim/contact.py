@@ -35,6 +35,13 @@ class ContactLaw:
     viscous_friction: float  # s/m
     transition_velocity: float  # m/s
 
+    def scaled(self, stiffness: float, dissipation: float, friction: float) -> ContactLaw:
+        """This law with its stiffness, dissipation and friction coefficients (static, dynamic and
+        viscous together) scaled by these factors."""
+        return ContactLaw(self.stiffness * stiffness, self.dissipation * dissipation, self.static_friction * friction,
+                          self.dynamic_friction * friction, self.viscous_friction * friction,
+                          self.transition_velocity)
+
     def table(self) -> np.ndarray:
         """The kernel's parameters: [k, c, μs, μd, μv, v_transition], k the Hertz constant."""
         k = self.stiffness ** (2.0 / 3.0) / 2.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -19,10 +20,12 @@ import numpy as np
 
 from l2r.sim import model as body
 from l2r.sim import thelen
+from l2r.sim.contact import contact_law
 from l2r.sim.layout import JOINTS, OBS_SIZE, PELVIS, TRACKED_BODIES
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.opensim import read_osim
 from l2r.sim.physics import Physics
+from l2r.sim.randomize import CONTACT_FIELDS, MUSCLE_FIELDS, Randomization
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +65,9 @@ class RunEnv(gym.Env):
     left_psoas: the muscle the left psoas strength scales at difficulty 2: "glut_max_l" (what
         the 2017 code did, the default, so results compare with 2017) or "iliopsoas_l".
     max_steps: the episode is truncated after this many steps (1000 in 2017).
+    randomize: per-episode randomisation of the body (`Randomization`, or a mapping of its field
+        names to fractions, such as {"strength": 0.05, "delay": 0.5}); None or all zero: off,
+        the env of 2017.
     """
 
     metadata = {"render_modes": []}
@@ -72,8 +78,10 @@ class RunEnv(gym.Env):
         seed: int | None = None,
         left_psoas: str = "glut_max_l",
         max_steps: int = MAX_STEPS,
+        randomize: Randomization | Mapping[str, float] | None = None,
     ):
         check_arguments(difficulty, left_psoas, max_steps)
+        self.randomize = Randomization.of(randomize)
         self.difficulty = difficulty
         self.left_psoas = left_psoas
         self.max_steps = max_steps
@@ -103,6 +111,10 @@ class RunEnv(gym.Env):
         by_name = {mu.name: mu for mu in osim.muscles}
         self._physics = Physics(m, d, osim, [by_name[n] for n in self.muscle_names])
         self._muscle_table = self._physics.params.copy()  # before this episode's psoas strengths
+        # The body as the model has it, which randomisation scales per episode. MuJoCo's
+        # invweight0 constants, which scale the constraints' softness, keep the default masses'.
+        self._contact_law = contact_law(osim)
+        self._segment_mass, self._segment_inertia = m.body_mass[1:].copy(), m.body_inertia[1:].copy()
 
         # Observation values 0..35, and the obstacles' forces on the feet, are gathers from the
         # sensors `with_sensors` added.
@@ -130,6 +142,8 @@ class RunEnv(gym.Env):
 
         self.obstacles: list[Obstacle] = []  # this episode's, sorted by x
         self.psoas = (1.0, 1.0)  # this episode's strengths (left, right), as observed
+        self.randomized: dict[str, Any] = {}  # this episode's randomisation draws (`Randomization.draw`)
+        self._delayed = False  # whether this episode's excitations act one physics step late
         self._step_time = STEP_SECONDS - 0.5 * m.opt.timestep  # less time than this: MuJoCo reset
         self._steps = 0
         self._x = 0.0  # pelvis x
@@ -157,7 +171,8 @@ class RunEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode from the default pose with a new obstacle course and psoas strengths.
+        """Start an episode from the default pose with a new obstacle course and psoas strengths
+        (and, when `randomize` is on, a new body: its draws are info["randomization"]).
 
         options: {"difficulty": 0|1|2} changes the difficulty from this episode on.
         """
@@ -182,6 +197,9 @@ class RunEnv(gym.Env):
         params = self._physics.params
         params[:] = self._muscle_table
         params[list(self._psoas), thelen.MAX_FORCE] *= self.psoas
+        if self.randomize:
+            self.randomized = self.randomize.draw(self.np_random, NUM_MUSCLES, m.nbody - 1)
+            self._randomize_body(self.randomized)
 
         # The .osim default pose, at rest, muscles as OpenSim starts them.
         mujoco.mj_resetDataKeyframe(m, d, self._default_pose)
@@ -189,7 +207,23 @@ class RunEnv(gym.Env):
         self._x = float(self._qpos[self._x_adr])
         self._steps = 0
         self._running = True
-        return self._observe(), self._info()
+        info = self._info()
+        if self.randomize:
+            info["randomization"] = self.randomized
+        return self._observe(), info
+
+    def _randomize_body(self, drawn: dict[str, Any]) -> None:
+        """This episode's body: the default one scaled by the drawn factors."""
+        m = self._m
+        thelen.scale_muscles(self._physics.params, **{name: drawn[name] for name in MUSCLE_FIELDS if name in drawn})
+        if "mass" in drawn:
+            m.body_mass[1:] = self._segment_mass * drawn["mass"]
+            m.body_inertia[1:] = self._segment_inertia * drawn["mass"][:, None]
+            m.body_subtreemass[:] = subtree_masses(m)  # MuJoCo's centre of mass divides by them
+        if any(name in drawn for name in CONTACT_FIELDS):
+            law = self._contact_law.scaled(*(drawn.get(name, 1.0) for name in CONTACT_FIELDS))
+            self._physics.contact[:] = law.table()
+        self._delayed = drawn.get("delay", False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Advance 0.01 s. Excitations outside [0, 1] are clipped to it; NaN, inf or a shape
@@ -197,9 +231,13 @@ class RunEnv(gym.Env):
         if not self._running:
             raise RuntimeError("RunEnv.step() needs reset() first, and again after an episode ends")
         physics, d = self._physics, self._d
-        checked_excitations(action, out=physics.excitation)
         t_before = d.time
-        physics.step(self.substeps)
+        if self._delayed:  # the last step's excitations act for one more physics step
+            checked_excitations(action, out=physics.next_excitation)
+            physics.step(self.substeps, delay=1)
+        else:
+            checked_excitations(action, out=physics.excitation)
+            physics.step(self.substeps)
         self._steps += 1
 
         qpos = self._qpos
@@ -269,6 +307,14 @@ def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
         # intprm: data fields, reduction (3 = net force of all the geom's contacts, world frame), count
         add(f"l2r_contact_{g}", sensor.mjSENS_CONTACT, obj.mjOBJ_GEOM, g).intprm[:3] = [force, NET_FORCE, 1]
     return spec.compile()
+
+
+def subtree_masses(m: mujoco.MjModel) -> np.ndarray:
+    """Each body's mass with its descendants' (MuJoCo's body_subtreemass) for the model's masses."""
+    mass = m.body_mass.copy()
+    for b in range(m.nbody - 1, 0, -1):  # children come after their parents
+        mass[m.body_parentid[b]] += mass[b]
+    return mass
 
 
 def check_arguments(difficulty: Any, left_psoas: Any, max_steps: Any) -> None:

@@ -50,8 +50,8 @@ class Physics:
     The kernels take the arrays in seven groups, tuples built once here: MuJoCo's arrays, the
     muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`), the
     ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public
-    arrays are updated in place; `params` is this episode's muscle table, which the env may scale
-    before `reset`.
+    arrays are updated in place; `params` is this episode's muscle table and `contact` its ground
+    contact law (`ContactLaw.table`), which the env may scale before `reset`.
     """
 
     def __init__(self, m: mujoco.MjModel, d: mujoco.MjData, osim: Osim, muscles: list[Muscle]):
@@ -64,6 +64,7 @@ class Physics:
         paths, moving = PathSwitches(m, muscles), MovingPoints(m, osim, muscles)
         self.params = thelen.muscle_parameters(muscles)
         self.excitation = np.zeros(n)
+        self.next_excitation = np.zeros(n)  # what a delayed step turns to after its first physics steps
         self.activation = np.zeros(n)
         self.fiber = np.zeros(n)
         self.muscle_length = np.zeros(n)  # of the current state, through the selected tendons
@@ -73,6 +74,7 @@ class Physics:
         spheres = np.array([m.geom(g).id for g in feet])
         sphere_body = m.geom_bodyid[spheres].copy()
         self.ground_force = np.zeros((len(feet), 2))  # N along x and y on each sphere, of the current state
+        self.contact = contact_law(osim).table()
 
         limits = default_limits()
         joints = np.array([m.joint(c).id for c in limits.coordinates])
@@ -95,7 +97,7 @@ class Physics:
             moving.dof, moving.actuator, moving.torque_actuators, moving.rate,
         )
         self._feet = (
-            contact_law(osim).table(), m.geom_size[spheres, 0].copy(), spheres, sphere_body,
+            self.contact, m.geom_size[spheres, 0].copy(), spheres, sphere_body,
             m.body_rootid[sphere_body].copy(),
             np.array([m.site(f"{g}_contact").id for g in feet]),
             np.array([m.actuator(f"{g}_x").id for g in feet]),
@@ -120,9 +122,10 @@ class Physics:
         _start(self._model, self._data, self._mujoco, self._muscles, self._switches, self._moving, self._feet,
                self._ligaments, self._knees)
 
-    def step(self, substeps: int) -> None:
-        """Hold `excitation` (in [0, 1]) over `substeps` physics steps."""
-        _advance(self._model, self._data, substeps, self.dt,
+    def step(self, substeps: int, delay: int = 0) -> None:
+        """Hold `excitation` (in [0, 1]) over `substeps` physics steps; with a `delay`, over the
+        first `delay` of them, then `next_excitation`, which `excitation` becomes, over the rest."""
+        _advance(self._model, self._data, substeps, delay, self.next_excitation, self.dt,
                  self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments, self._knees)
 
     def drive(self) -> None:
@@ -132,9 +135,12 @@ class Physics:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _advance(model, data, substeps, dt, mj, muscles, switches, moving, feet, ligaments, knees):
-    """`substeps` physics steps, then the state the env reports."""
-    for _ in range(substeps):
+def _advance(model, data, substeps, delay, next_excitation, dt, mj, muscles, switches, moving, feet, ligaments, knees):
+    """`substeps` physics steps, the excitations turning to `next_excitation` after `delay` of
+    them (none when 0), then the state the env reports."""
+    for k in range(substeps):
+        if delay > 0 and k == delay:
+            muscles[1][:] = next_excitation
         _drive(dt, mj, muscles, switches, moving, feet)
         mj_transmission(model, data)  # the contact sites moved: their actuators' moment arms
         mj_step2(model, data)

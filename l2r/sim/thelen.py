@@ -68,6 +68,21 @@ def muscle_parameters(muscles: list[Muscle]) -> np.ndarray:
     return table
 
 
+# The table's lengths proportional to the optimal fibre length (the pennation angle at optimal
+# length, the max speed in optimal lengths per second and the 1 % floor are the muscle's own).
+OPTIMAL_LENGTH_COLUMNS = [OPTIMAL_LENGTH, WIDTH, MAX_SPEED, MIN_FIBER_LENGTH]
+
+
+def scale_muscles(table: np.ndarray, strength: np.ndarray | float = 1.0, fiber_length: np.ndarray | float = 1.0,
+                  tendon_slack: np.ndarray | float = 1.0) -> None:
+    """Scale, in place, each muscle's max isometric force, optimal fibre length and tendon slack
+    length by these factors (one per muscle, or one for all): the table `muscle_parameters`
+    gives for muscles of those values."""
+    table[:, MAX_FORCE] *= strength
+    table[:, OPTIMAL_LENGTH_COLUMNS] *= np.reshape(fiber_length, (-1, 1))
+    table[:, SLACK_LENGTH] *= tendon_slack
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _tendon_curve(strain: float, p: np.ndarray) -> tuple[float, float]:
     """Normalised tendon force (exponential toe, then linear) and its slope in the strain."""

@@ -1,10 +1,12 @@
-"""Wrappers around `RunEnv`."""
+"""Wrappers around `RunEnv` (the noise wrappers take any env with a Box space)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 
 class ActionRepeat(gym.Wrapper):
@@ -31,3 +33,61 @@ class ActionRepeat(gym.Wrapper):
                 break
         info["inner_steps"] = inner_steps
         return obs, total, terminated, truncated, info
+
+
+class _GaussianNoise:
+    """Noise of one standard deviation from a generator of the wrapper's own, seeded by each
+    seeded reset (a stream of its own, apart from the env's episode draws), so that a seed
+    repeats the noise too."""
+
+    def __init__(self, std: float, stream: int):
+        if type(std) not in (int, float) or not math.isfinite(std) or std < 0:
+            raise ValueError(f"noise std must be a number from 0 up, got {std!r}")
+        self.std, self._stream = float(std), stream
+        self._rng = np.random.default_rng()
+
+    def seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self._rng = np.random.default_rng([seed, self._stream])
+
+    def added(self, values: np.ndarray) -> np.ndarray:
+        return (values + self._rng.normal(0.0, self.std, values.shape)).astype(values.dtype, copy=False)
+
+
+def _box(space: gym.Space, what: str) -> None:
+    if not isinstance(space, gym.spaces.Box):
+        raise ValueError(f"{what} noise needs a Box {what} space, got {space}")
+
+
+class ObservationNoise(gym.ObservationWrapper):
+    """Add N(0, std²) to every value the agent observes (the observation's own units: m, rad,
+    m/s, rad/s on the runner); the simulation is untouched."""
+
+    def __init__(self, env: gym.Env, std: float):
+        super().__init__(env)
+        _box(env.observation_space, "observation")
+        self.noise = _GaussianNoise(std, stream=1)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
+        self.noise.seed(seed)
+        return super().reset(seed=seed, options=options)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return self.noise.added(observation)
+
+
+class ActionNoise(gym.ActionWrapper):
+    """Add N(0, std²) to every value of the action before the env takes it (the runner clips the
+    excitations to [0, 1] after): a disturbance of the actuation, which the agent does not see."""
+
+    def __init__(self, env: gym.Env, std: float):
+        super().__init__(env)
+        _box(env.action_space, "action")
+        self.noise = _GaussianNoise(std, stream=2)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
+        self.noise.seed(seed)
+        return super().reset(seed=seed, options=options)
+
+    def action(self, action: np.ndarray) -> np.ndarray:
+        return self.noise.added(np.asarray(action, dtype=np.float64))

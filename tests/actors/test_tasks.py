@@ -9,6 +9,8 @@ from l2r.actors.actor import ActorConfig, make_env, observation_spec
 from l2r.evaluate import WrongTask, evaluate
 from l2r.policy import build_policy
 from l2r.protocol import ObservationSpec
+from l2r.sim.randomize import Randomization
+from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 from tests.actors.camera import CAMERA, RENDERER
 
 
@@ -43,3 +45,26 @@ def test_l2r_eval_refuses_a_vector_policy_on_a_camera_task_naming_both_observati
     with pytest.raises(WrongTask, match=r"the policy takes observations \{state: float32\[41\]\} and gives 1 "
                                         r"actions, tests.actors.camera:SmallCamera-v0 gives \{pixels: uint8\[3, 16, 16\]\}"):
         evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id=CAMERA)
+
+
+def wrapper_types(env):
+    """The types of the wrappers around an env, outermost first."""
+    types = []
+    while hasattr(env, "env"):
+        types.append(type(env))
+        env = env.env
+    return types
+
+
+def test_the_runner_takes_the_robustness_levers_configured_and_only_those():
+    plain = make_env(ActorConfig(env_id="l2r/Run-v0", action_repeat=3), seed=0)
+    assert not plain.unwrapped.randomize
+    assert not {ObservationNoise, ActionNoise} & set(wrapper_types(plain))
+    config = ActorConfig(env_id="l2r/Run-v0", action_repeat=3, randomize=Randomization(mass=0.1),
+                         observation_noise=0.01, action_noise=0.02)
+    env = make_env(config, seed=0)
+    assert env.unwrapped.randomize == Randomization(mass=0.1)
+    assert wrapper_types(env)[:3] == [ActionRepeat, ObservationNoise, ActionNoise]
+    assert (env.env.noise.std, env.env.env.noise.std) == (0.01, 0.02)
+    with pytest.raises(ValueError, match="randomisation is l2r/Run-v0's"):
+        make_env(ActorConfig(env_id="l2r/RunOpenSim-v0", randomize=Randomization(mass=0.1)), seed=0)

@@ -10,6 +10,7 @@ from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.families import PIXELS, RUNNER, family_of
+from l2r.sim.randomize import Randomization
 from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
 
 
@@ -143,3 +144,36 @@ def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
         assert exit_.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()[-1]
         assert err.startswith("l2r up: ") and why in err, err
+
+
+def test_the_robustness_levers_reach_the_training_actors_alone():
+    args, _ = parse_args(["--actors", "2", "--opensim-actors", "1", "--randomize", "mass=0.1,delay=0.5",
+                          "--observation-noise", "0.01", "--action-noise", "0.02",
+                          "--difficulty-schedule", "0:0,1000:2"])
+    children = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)
+                if c.argv[2] == "l2r.actors"}
+    port, opensim, evaluator = children["actor-0"], children["actor-1"], children["evaluator-0"]
+    for actor in (port, opensim):
+        config = actor.actor()
+        assert (config.observation_noise, config.action_noise) == (0.01, 0.02)
+        assert str(config.difficulty_schedule) == "0:0,1000:2"
+    assert port.actor().randomize == Randomization(mass=0.1, delay=0.5)
+    assert not opensim.actor().randomize  # the MuJoCo port's alone
+    config = evaluator.actor()
+    assert (config.randomize, config.observation_noise, config.action_noise, config.difficulty_schedule) == (
+        Randomization(), 0.0, 0.0, None)
+    # Off, the actors' command lines are those of before the levers.
+    args, _ = parse_args([])
+    assert not {"--randomize", "--observation-noise", "--action-noise", "--difficulty-schedule"} & {
+        flag for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) for flag in c.argv}
+
+
+@pytest.mark.parametrize("argv", [
+    ["--randomize", "mass=0.7"], ["--randomize", "speed=0.1"], ["--difficulty-schedule", "5:1"],
+    ["--observation-noise", "-1"], ["--env-id", "Hopper-v5", "--randomize", "mass=0.1"],
+    ["--env-id", "Hopper-v5", "--difficulty-schedule", "0:1"],
+])
+def test_bad_robustness_levers_are_refused_in_one_line(argv, capsys):
+    with pytest.raises(SystemExit):
+        parse_args(argv)
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
