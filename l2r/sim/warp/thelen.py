@@ -194,6 +194,27 @@ def _fiber_step(lce0: float, a: float, length: float, h: float, p: MuscleRow):
     return lce, dv_dlce, dv_dlength
 
 
+@wp.func
+def advance_one(a_in: float, lce_in: float, excitation: float, length: float, speed: float, dt: float,
+                substeps: int, p: MuscleRow):
+    """One muscle over `dt` seconds with L moving from `length` at `speed`: its new activation
+    and fibre length, the end tendon force (N) and its derivative in the end length (N/m)."""
+    h = dt / float(substeps)
+    a = float(a_in)
+    lce = float(lce_in)
+    dv_dlce = float(0.0)
+    dv_dlength = float(0.0)
+    end = float(length)
+    for k in range(1, substeps + 1):
+        a = activation_step(a, excitation, h, p)
+        end = length + speed * h * float(k)
+        lce, dv_dlce, dv_dlength = _fiber_step(lce, a, end, h, p)
+    force, df_dlength, df_dlce = _tendon(lce, end, p)
+    # how the last sub-step's fibre, and so the force, answers a change of the end length
+    dlce_dlength = h * dv_dlength / wp.max(1.0 - h * dv_dlce, 1.0e-3)
+    return a, lce, force, df_dlength + df_dlce * dlce_dlength
+
+
 @wp.kernel
 def advance(params: wp.array2d(dtype=MuscleRow), activation: wp.array2d(dtype=float),
             fiber: wp.array2d(dtype=float), excitation: wp.array2d(dtype=float),
@@ -201,23 +222,12 @@ def advance(params: wp.array2d(dtype=MuscleRow), activation: wp.array2d(dtype=fl
             force: wp.array2d(dtype=float), stiffness: wp.array2d(dtype=float)):
     """`thelen.advance`, one thread per world and muscle."""
     w, i = wp.tid()
-    p = params[w, i]
-    h = dt / float(substeps)
-    a = float(activation[w, i])
-    lce = float(fiber[w, i])
-    dv_dlce = float(0.0)
-    dv_dlength = float(0.0)
-    end = float(length[w, i])
-    for k in range(1, substeps + 1):
-        a = activation_step(a, excitation[w, i], h, p)
-        end = length[w, i] + speed[w, i] * h * float(k)
-        lce, dv_dlce, dv_dlength = _fiber_step(lce, a, end, h, p)
+    a, lce, f, k = advance_one(activation[w, i], fiber[w, i], excitation[w, i], length[w, i], speed[w, i], dt,
+                               substeps, params[w, i])
     activation[w, i] = a
     fiber[w, i] = lce
-    f, df_dlength, df_dlce = _tendon(lce, end, p)
     force[w, i] = f
-    dlce_dlength = h * dv_dlength / wp.max(1.0 - h * dv_dlce, 1.0e-3)
-    stiffness[w, i] = df_dlength + df_dlce * dlce_dlength
+    stiffness[w, i] = k
 
 
 @wp.func
