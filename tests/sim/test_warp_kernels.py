@@ -29,7 +29,6 @@ STATES_AT = (8, 25, 45, 70)  # env steps of the rollout whose states are the wor
 def rollout():
     """(model, states, muscles, env): MjData copies along a seeded random-excitation rollout
     (feet on and off the ground, knees bent and straight), with the env's muscle state."""
-    wp.config.quiet = True
     env = gymnasium.make("l2r/Run-v0", seed=0).unwrapped
     env.reset()
     actions = np.random.default_rng(0).uniform(0.0, 1.0, (max(STATES_AT), 18))
