@@ -15,7 +15,7 @@ PORT_ID = "l2r/Run-v0"
 OPENSIM_ID = "l2r/RunOpenSim-v0"
 WARP_ID = "l2r/RunWarp-v0"
 
-# Both envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
+# The envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
 gymnasium.register(id=PORT_ID, entry_point="l2r.sim.env:RunEnv")
 gymnasium.register(id=OPENSIM_ID, entry_point="l2r.sim.opensim_env:RunOpenSimEnv")
 gymnasium.register(id=WARP_ID, entry_point="l2r.sim.warp.env:RunWarpEnv",

@@ -6,29 +6,28 @@ from __future__ import annotations
 import copy
 
 import gymnasium
-import mujoco
 import numpy as np
 import pytest
+import warp as wp
 
-wp = pytest.importorskip("warp")
-
-import l2r.sim  # noqa: E402,F401  (registers the environments)
-from l2r.sim import contact, knee, ligaments, paths, thelen  # noqa: E402
-from l2r.sim import model as body  # noqa: E402
-from l2r.sim.opensim import read_osim  # noqa: E402
-from l2r.sim.warp import contact as warp_contact  # noqa: E402
-from l2r.sim.warp import knee as warp_knee  # noqa: E402
-from l2r.sim.warp import ligaments as warp_ligaments  # noqa: E402
-from l2r.sim.warp import paths as warp_paths  # noqa: E402
-from l2r.sim.warp import thelen as warp_thelen  # noqa: E402
+import l2r.sim  # noqa: F401  (registers the environments)
+from l2r.sim import contact, knee, ligaments, paths, thelen
+from l2r.sim import model as body
+from l2r.sim.opensim import read_osim
+from l2r.sim.warp import contact as warp_contact
+from l2r.sim.warp import knee as warp_knee
+from l2r.sim.warp import ligaments as warp_ligaments
+from l2r.sim.warp import paths as warp_paths
+from l2r.sim.warp import thelen as warp_thelen
 
 STATES_AT = (8, 25, 45, 70)  # env steps of the rollout whose states are the worlds
 
 
 @pytest.fixture(scope="module")
 def rollout():
-    """(model, states, muscles, env): MjData copies along a seeded random-excitation rollout
-    (feet on and off the ground, knees bent and straight), with the env's muscle state."""
+    """(model, states, muscles, osim, muscle list): MjData copies along a seeded random-excitation
+    rollout (feet on and off the ground, knees bent and straight), with the muscles' activations
+    and fibre lengths at each."""
     env = gymnasium.make("l2r/Run-v0", seed=0).unwrapped
     env.reset()
     actions = np.random.default_rng(0).uniform(0.0, 1.0, (max(STATES_AT), 18))
@@ -43,11 +42,12 @@ def rollout():
     return env.model, states, muscles, osim, [by_name[n] for n in body.MUSCLES]
 
 
-def stacked(states, field: str, dtype=float) -> "wp.array":
-    """One row per world of an MjData field, as a float32 Warp array (vec3 rows for (n, 3))."""
+def stacked(states, field: str) -> "wp.array":
+    """One row per world of an MjData field, as a float32 Warp array (vec3 or spatial-vector
+    rows for fields of 3 or 6 columns)."""
     rows = np.stack([getattr(d, field) for d in states]).astype(np.float32)
-    kind = {3: wp.vec3, 9: wp.mat33, 6: wp.spatial_vector}.get(rows.shape[-1]) if rows.ndim == 3 else None
-    return wp.array(rows, dtype=kind or dtype)
+    kind = {3: wp.vec3, 6: wp.spatial_vector}.get(rows.shape[-1]) if rows.ndim == 3 else None
+    return wp.array(rows, dtype=kind or float)
 
 
 def test_muscle_step_matches_numba(rollout):
