@@ -103,6 +103,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         done = terminated | truncated
         if done.any():
             info["final_obs"], info["final_info"] = obs.copy(), dict(info)
+            info["_final_obs"] = info["_final_info"] = done  # which worlds' entries hold a last state
             worlds = np.flatnonzero(done)
             with wp.ScopedDevice(self.device):
                 physics.reset(worlds)
@@ -169,4 +170,4 @@ class RunWarpEnv(gym.Env):
 
 
 def _world(info: dict[str, Any], w: int) -> dict[str, Any]:
-    return {k: (v[w] if isinstance(v, np.ndarray) else v) for k, v in info.items() if k not in ("final_obs", "final_info")}
+    return {k: (v[w] if isinstance(v, np.ndarray) else v) for k, v in info.items() if not k.lstrip("_").startswith("final_")}

@@ -49,16 +49,16 @@ def follow_splines(equality: wp.array(dtype=int), knee: wp.array(dtype=int), bre
 
 @wp.kernel
 def _jacobian(knee: wp.array(dtype=int), slide: wp.array(dtype=int), breaks: wp.array2d(dtype=float),
-              cubics: wp.array3d(dtype=float), qpos: wp.array2d(dtype=float), k: int,
-              jac: wp.array2d(dtype=float), residual: wp.array2d(dtype=float)):
-    """Coupling k's row of the Jacobian (slide - slope · knee) and its position residual, per world."""
-    w = wp.tid()
+              cubics: wp.array3d(dtype=float), qpos: wp.array2d(dtype=float),
+              jac: wp.array3d(dtype=float), residual: wp.array2d(dtype=float)):
+    """Each coupling's row of the Jacobian (slide - slope · knee) and position residual, per world."""
+    w, k = wp.tid()
     q = qpos[w, knee[k]]
     row = _cubic(cubics, k, _segment(breaks, k, q))
-    for j in range(jac.shape[1]):
-        jac[w, j] = 0.0
-    jac[w, slide[k]] = 1.0
-    jac[w, knee[k]] = -(row[1] + q * (2.0 * row[2] + q * 3.0 * row[3]))
+    for j in range(jac.shape[2]):
+        jac[k, w, j] = 0.0
+    jac[k, w, slide[k]] = 1.0
+    jac[k, w, knee[k]] = -(row[1] + q * (2.0 * row[2] + q * 3.0 * row[3]))
     residual[w, k] = qpos[w, slide[k]] - (row[0] + q * (row[1] + q * (row[2] + q * row[3])))
 
 
@@ -106,8 +106,8 @@ class Projection:
         self.residual = wp.zeros((nworld, NUM_COUPLINGS), dtype=float)
 
     def __call__(self, m: mjw.Model, d: mjw.Data) -> None:
-        for k in range(NUM_COUPLINGS):
-            wp.launch(_jacobian, d.nworld, [self.knee, self.slide, self.breaks, self.cubics, d.qpos, k,
-                                            self.jac[k], self.residual])
+        wp.launch(_jacobian, (d.nworld, NUM_COUPLINGS),
+                  [self.knee, self.slide, self.breaks, self.cubics, d.qpos, self.jac, self.residual])
+        for k in range(NUM_COUPLINGS):  # M^-1 J^T, a coupling at a time
             mjw.solve_m(m, d, self.moves[k], self.jac[k])
         wp.launch(_project, d.nworld, [self.jac, self.moves, self.residual, d.qpos, d.qvel])
