@@ -51,6 +51,8 @@ def test_one_world_env_has_the_single_env_api():
     assert obs.shape == (41,) and obs.dtype == np.float32
     obs, reward, terminated, truncated, info = env.step(np.full(18, 0.5))
     assert isinstance(reward, float) and not terminated and not truncated and info["muscle_force"].shape == (18,)
+    port = gymnasium.make("l2r/Run-v0").unwrapped
+    assert env.unwrapped.body_names == port.body_names and info["body_pos"].shape == (len(port.body_names), 3)
     assert env.step(np.full(18, 0.5))[3]  # truncated at max_steps
     with pytest.raises(RuntimeError):
         env.step(np.full(18, 0.5))

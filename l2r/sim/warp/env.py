@@ -24,6 +24,7 @@ from l2r.sim import model as body
 from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, STEP_SECONDS,
                          check_arguments, sensor_gathers, with_sensors)
 from l2r.sim.layout import OBS_SIZE
+from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.opensim import read_osim
 from l2r.sim.warp.physics import WarpPhysics
 
@@ -51,6 +52,8 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self.substeps = round(STEP_SECONDS / m.opt.timestep)
         self._obs_gather, _ = sensor_gathers(m)
         self._x_adr, self._y_adr = (int(m.joint(c).qposadr[0]) for c in ("pelvis_tx", "pelvis_ty"))
+        self.muscle_names, self.ligament_names = tuple(body.MUSCLES), LIGAMENTS
+        self.body_names = tuple(m.body(i).name for i in range(m.nbody))  # the rows of info["body_pos"]
         osim = read_osim(body.OSIM_PATH)
         by_name = {mu.name: mu for mu in osim.muscles}
         with wp.ScopedDevice(self.device):
@@ -125,8 +128,11 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         ground = physics.ground_force.numpy().astype(np.float64)
         contact = np.zeros((self.num_envs, len(body.CONTACT_SPHERES), 3))
         contact[:, :, :2] = ground
+        data = physics.data
         return {
             "distance": qpos[:, self._x_adr].astype(np.float64),
+            "body_pos": data.xpos.numpy().astype(np.float64),
+            "body_quat": data.xquat.numpy().astype(np.float64),
             "muscle_activation": physics.activation.numpy().astype(np.float64),
             "muscle_length": physics.muscle_length.numpy().astype(np.float64),
             "muscle_force": physics.muscle_force.numpy().astype(np.float64),
@@ -145,6 +151,8 @@ class RunWarpEnv(gym.Env):
     def __init__(self, difficulty: int = 0, seed: int | None = None, left_psoas: str = "glut_max_l",
                  max_steps: int = MAX_STEPS, device: str | None = None):
         self._worlds = RunWarpVectorEnv(1, difficulty, seed, left_psoas, max_steps, device)
+        self.muscle_names, self.ligament_names = self._worlds.muscle_names, self._worlds.ligament_names
+        self.body_names = self._worlds.body_names
         self.action_space = self._worlds.single_action_space
         self.observation_space = self._worlds.single_observation_space
         self._running = False
