@@ -329,7 +329,8 @@ class WarpPhysics:
 
     def reset(self, worlds: np.ndarray | None = None) -> None:
         """Put the worlds named (all by default) in the keyframe's pose at rest, muscles as
-        OpenSim starts them; the other worlds' state is kept."""
+        OpenSim starts them. The other worlds keep their state (MuJoCo Warp's forward pass runs
+        on every world, recomputing what their state already gives)."""
         keys = np.full(self.nworld, -1 if worlds is not None else self._keyframe, np.int32)
         if worlds is not None:
             keys[np.asarray(worlds)] = self._keyframe
