@@ -78,7 +78,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self._steps[:] = 0
         qpos = self._physics.data.qpos.numpy()
         self._x = qpos[:, self._x_adr].astype(np.float64)
-        return self._observe(qpos), self._info(qpos)
+        return self._observe(), self._info(qpos)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Advance every world 0.01 s; excitations are clipped to [0, 1]; NaN, inf or a shape
@@ -97,7 +97,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         x_before, self._x = self._x, qpos[:, self._x_adr].astype(np.float64)
         ligaments = physics.ligament_force.numpy().astype(np.float64)
         reward = (self._x - x_before) - np.sqrt((ligaments * ligaments).sum(axis=1)) * LIGAMENT_PENALTY
-        obs, info = self._observe(qpos), self._info(qpos)
+        obs, info = self._observe(), self._info(qpos)
         diverged = ~np.isfinite(obs).all(axis=1)
         terminated = (qpos[:, self._y_adr] < FALL_HEIGHT) | diverged
         reward[diverged] = 0.0
@@ -113,10 +113,10 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             self._steps[worlds] = 0
             qpos = physics.data.qpos.numpy()
             self._x[worlds] = qpos[worlds, self._x_adr]
-            obs[worlds] = self._observe(qpos)[worlds]
+            obs[worlds] = self._observe()[worlds]
         return obs, reward, terminated, truncated, info
 
-    def _observe(self, qpos: np.ndarray) -> np.ndarray:
+    def _observe(self) -> np.ndarray:
         obs = np.empty((self.num_envs, OBS_SIZE), dtype=np.float32)
         obs[:, :36] = self._physics.data.sensordata.numpy()[:, self._obs_gather]
         obs[:, 36:38] = 1.0  # psoas strengths (left, right): drawn at difficulty 2 only
