@@ -1,8 +1,9 @@
 """The Learning to Run body in MuJoCo and its gymnasium environment.
 
-Importing this package registers `l2r/Run-v0` (MuJoCo) and `l2r/RunOpenSim-v0` (the same
-environment on OpenSim 4.6, the 2017 simulator; `pip install 'l2r[opensim]'`). The simulator
-loads only when an env is made:
+Importing this package registers `l2r/Run-v0` (MuJoCo), `l2r/RunOpenSim-v0` (the same
+environment on OpenSim 4.6, the 2017 simulator; `pip install 'l2r[opensim]'`) and
+`l2r/RunWarp-v0` (MuJoCo Warp, N worlds at once through `gymnasium.make_vec`, difficulty 0). The
+simulator loads only when an env is made:
 
     import gymnasium, l2r.sim
     env = gymnasium.make("l2r/Run-v0", difficulty=2)
@@ -12,7 +13,10 @@ import gymnasium
 
 PORT_ID = "l2r/Run-v0"
 OPENSIM_ID = "l2r/RunOpenSim-v0"
+WARP_ID = "l2r/RunWarp-v0"
 
-# Both envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
+# The envs truncate at 1000 steps themselves, so no max_episode_steps (no second TimeLimit).
 gymnasium.register(id=PORT_ID, entry_point="l2r.sim.env:RunEnv")
 gymnasium.register(id=OPENSIM_ID, entry_point="l2r.sim.opensim_env:RunOpenSimEnv")
+gymnasium.register(id=WARP_ID, entry_point="l2r.sim.warp.env:RunWarpEnv",
+                   vector_entry_point="l2r.sim.warp.env:RunWarpVectorEnv")

@@ -148,13 +148,14 @@ def record_policy(policy, steps: int) -> np.ndarray:
     return np.array(actions)
 
 
-def check(sequences: dict[str, np.ndarray], progress=None) -> dict:
-    """Every rollout's figures, and whether each target holds in every rollout."""
+def check(sequences: dict[str, np.ndarray], progress=None, env_id: str = "l2r/Run-v0") -> dict:
+    """Every rollout's figures for the MuJoCo backend `env_id`, and whether each target holds in
+    every rollout."""
     rollouts = {}
     for label, excitations in sequences.items():
         if progress:
-            progress(f"rollout '{label}': {len(excitations)} steps in MuJoCo and OpenSim")
-        rollouts[label] = compare(rollout("l2r/Run-v0", excitations), rollout("l2r/RunOpenSim-v0", excitations))
+            progress(f"rollout '{label}': {len(excitations)} steps in {env_id} and OpenSim")
+        rollouts[label] = compare(rollout(env_id, excitations), rollout("l2r/RunOpenSim-v0", excitations))
     return {"rollouts": rollouts, "targets_met": targets_met(rollouts)}
 
 

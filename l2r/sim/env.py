@@ -118,17 +118,7 @@ class RunEnv(gym.Env):
 
         # Observation values 0..35, and the obstacles' forces on the feet, are gathers from the
         # sensors `with_sensors` added.
-        def sensor(name: str, size: int) -> np.ndarray:
-            adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
-            return np.arange(adr, adr + size)
-
-        pos = [sensor(f"l2r_q_{c}", 1) for c in PELVIS + JOINTS]
-        vel = [sensor(f"l2r_qdot_{c}", 1) for c in PELVIS + JOINTS]
-        self._obs_gather = np.concatenate(
-            pos[:3] + vel[:3] + pos[3:] + vel[3:] + [sensor("l2r_com", 2), sensor("l2r_com_vel", 2)]
-            + [sensor(f"l2r_pos_{b}", 2) for b in TRACKED_BODIES]
-        )
-        self._obstacle_contact = np.concatenate([sensor(f"l2r_contact_{g}", 3) for g in FOOT_SPHERES])
+        self._obs_gather, self._obstacle_contact = sensor_gathers(m)
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))
 
         # Obstacles: three spheres of the world body, parked where the model put them when unused.
@@ -315,6 +305,22 @@ def subtree_masses(m: mujoco.MjModel) -> np.ndarray:
     for b in range(m.nbody - 1, 0, -1):  # children come after their parents
         mass[m.body_parentid[b]] += mass[b]
     return mass
+
+
+def sensor_gathers(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into sensordata of a model compiled by `with_sensors`: observation values 0..35,
+    and the obstacles' forces on the foot spheres (3 per sphere, `FOOT_SPHERES` order)."""
+    def sensor(name: str, size: int) -> np.ndarray:
+        adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
+        return np.arange(adr, adr + size)
+
+    pos = [sensor(f"l2r_q_{c}", 1) for c in PELVIS + JOINTS]
+    vel = [sensor(f"l2r_qdot_{c}", 1) for c in PELVIS + JOINTS]
+    observation = np.concatenate(
+        pos[:3] + vel[:3] + pos[3:] + vel[3:] + [sensor("l2r_com", 2), sensor("l2r_com_vel", 2)]
+        + [sensor(f"l2r_pos_{b}", 2) for b in TRACKED_BODIES]
+    )
+    return observation, np.concatenate([sensor(f"l2r_contact_{g}", 3) for g in FOOT_SPHERES])
 
 
 def check_arguments(difficulty: Any, left_psoas: Any, max_steps: Any) -> None:

@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
+from l2r.sim import PORT_ID, WARP_ID
 from l2r.sim import model as body
 from l2r.sim import thelen
 from l2r.sim.opensim import read_osim
@@ -381,6 +382,9 @@ def cli(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", type=Path, metavar="CHECKPOINT",
                         help="with --dynamics, also replay a trained policy's actions (a checkpoint or `l2r up` run directory)")
     parser.add_argument("--seed", type=int, default=0, help="with --dynamics, the seed of the random excitations")
+    parser.add_argument("--env-id", default=PORT_ID, choices=(PORT_ID, WARP_ID),
+                        help=f"with --dynamics, the backend compared with OpenSim: {PORT_ID} (MuJoCo with numba kernels, "
+                             f"the default) or {WARP_ID} (MuJoCo Warp in float32, one world on Warp's default device)")
     args = parser.parse_args(argv)
     if args.policy and not args.dynamics:
         parser.error("--policy needs --dynamics")
@@ -411,7 +415,7 @@ def _dynamics(args: argparse.Namespace) -> int:
         policy = lambda obs: deterministic.act(obs[None], deterministic=True)[0]  # noqa: E731
     try:
         report = dynamics.check(dynamics.excitation_sequences(args.seed, policy=policy),
-                                progress=lambda line: print(line, file=sys.stderr))
+                                progress=lambda line: print(line, file=sys.stderr), env_id=args.env_id)
     except ImportError as e:
         print(f"l2r validate: {e}", file=sys.stderr)
         return EXIT_FAILURE

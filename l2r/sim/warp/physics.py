@@ -1,0 +1,379 @@
+"""`l2r.sim.physics` on MuJoCo Warp: the runner's force elements around its step, N worlds at once.
+
+Every physics step runs as the numba backend's does (`physics._advance`), each part a Warp
+launch over all worlds: the muscles, moving points and feet drive the actuators, MuJoCo Warp's
+transmission and step2 integrate, the knee slides go back onto their splines, the ligaments,
+moving points and knee couplings are placed for the new positions, and step1 computes the
+kinematics the next step and the observation read. The arrays are float32 (MuJoCo Warp's), the
+tables the numba modules build.
+
+Per-world model fields that the kernels write (moving sites, actuator bias, ligament damping,
+knee couplings) are batched in the MuJoCo Warp model (`put_model`'s batch_sizes).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import warp as wp
+
+from l2r.sim import model as body
+from l2r.sim import thelen
+from l2r.sim.contact import contact_law
+from l2r.sim.knee import KneeCoupling
+from l2r.sim.ligaments import default_limits, ligament_table
+from l2r.sim.opensim import Muscle, Osim
+from l2r.sim.paths import MovingPoints, PathSwitches
+from l2r.sim.physics import FIBER_SUBSTEPS
+from l2r.sim.warp import contact as feet
+from l2r.sim.warp import knee as knees
+from l2r.sim.warp import ligaments as limits
+from l2r.sim.warp import paths as points
+from l2r.sim.warp import thelen as muscles
+
+wp.set_module_options({"enable_backward": False})
+
+# Model fields the kernels change per world.
+PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data")
+
+
+def _ints(x) -> wp.array:
+    return wp.array(np.asarray(x, np.int32), dtype=int)
+
+
+def _floats(x, dtype=float) -> wp.array:
+    return wp.array(np.asarray(x, np.float32), dtype=dtype)
+
+
+@wp.struct
+class Muscles:
+    params: wp.array2d(dtype=muscles.MuscleRow)
+    excitation: wp.array2d(dtype=float)
+    activation: wp.array2d(dtype=float)
+    fiber: wp.array2d(dtype=float)
+    length: wp.array2d(dtype=float)
+    force: wp.array2d(dtype=float)
+    tendon: wp.array2d(dtype=int)  # the tendon each muscle pulls through now
+    tension: wp.array2d(dtype=float)  # per tendon
+    on: wp.array(dtype=int)
+    switch_row: wp.array(dtype=int)
+    switch_qpos: wp.array(dtype=int)
+    low: wp.array(dtype=float)
+    high: wp.array(dtype=float)
+    off_tendon: wp.array(dtype=int)
+    off_actuator: wp.array(dtype=int)
+
+
+@wp.struct
+class Moving:
+    table: wp.array2d(dtype=wp.vec3)
+    slope: wp.array2d(dtype=wp.vec3)
+    qpos: wp.array(dtype=int)
+    site: wp.array(dtype=int)
+    neighbours: wp.array(dtype=wp.vec2i)
+    body: wp.array(dtype=int)
+    tendon: wp.array(dtype=int)
+    dof: wp.array(dtype=int)
+    actuator: wp.array(dtype=int)
+    torque_actuators: wp.array(dtype=int)
+    rate: wp.array2d(dtype=float)
+
+
+@wp.struct
+class Feet:
+    law: wp.array(dtype=float)
+    radius: wp.array(dtype=float)
+    sphere: wp.array(dtype=int)
+    body: wp.array(dtype=int)
+    root: wp.array(dtype=int)
+    site: wp.array(dtype=int)
+    x_actuator: wp.array(dtype=int)
+    y_actuator: wp.array(dtype=int)
+    force: wp.array2d(dtype=wp.vec2)
+
+
+@wp.struct
+class Ligaments:
+    table: wp.array2d(dtype=float)
+    qpos: wp.array(dtype=int)
+    dof: wp.array(dtype=int)
+    spring: wp.array2d(dtype=float)
+    damping: wp.array2d(dtype=float)
+    force: wp.array2d(dtype=float)
+
+
+@wp.kernel
+def _rates(mv: Moving, qpos: wp.array2d(dtype=float), site_xpos: wp.array2d(dtype=wp.vec3),
+           xmat: wp.array2d(dtype=wp.mat33)):
+    w, k = wp.tid()
+    mv.rate[w, k] = points.point_rate(mv.slope, k, qpos[w, mv.qpos[k]], mv.site[k], mv.neighbours[k],
+                                      xmat[w, mv.body[k]], site_xpos[w])
+
+
+@wp.kernel
+def _muscle_actuation(mu: Muscles, mv: Moving, dt: float, substeps: int, qpos: wp.array2d(dtype=float),
+                      qvel: wp.array2d(dtype=float), ten_length: wp.array2d(dtype=float),
+                      ten_velocity: wp.array2d(dtype=float), ctrl: wp.array2d(dtype=float),
+                      biasprm: wp.array2d(dtype=wp.types.vector(length=10, dtype=float))):
+    """`physics._muscle_actuation` for one world and muscle, with the moving points' share of
+    its lengthening speed: each muscle pulls through the tendon its conditional point selects,
+    ctrl + bias·(tendon velocity) = -(end force + stiffness·dt·(change of that velocity))."""
+    w, i = wp.tid()
+    row = mu.switch_row[i]
+    tendon = points.selected_tendon(mu.on[i], row, mu.switch_qpos, mu.low, mu.high, mu.off_tendon, qpos[w])
+    mu.tendon[w, i] = tendon
+    speed = float(ten_velocity[w, tendon])
+    for k in range(mv.tendon.shape[0]):
+        if mv.tendon[k] == tendon:
+            speed += mv.rate[w, k] * qvel[w, mv.dof[k]]
+    a, lce, force, stiffness = muscles.advance_one(mu.activation[w, i], mu.fiber[w, i], mu.excitation[w, i],
+                                                   ten_length[w, tendon], speed, dt, substeps, mu.params[w, i])
+    mu.activation[w, i] = a
+    mu.fiber[w, i] = lce
+    # the idle tendon and actuator of a switching muscle carry nothing
+    mu.tension[w, mu.on[i]] = 0.0
+    driven = i
+    if row >= 0:
+        mu.tension[w, mu.off_tendon[row]] = 0.0
+        idle = mu.off_actuator[row]
+        if tendon == mu.off_tendon[row]:
+            driven = idle
+            idle = i
+        ctrl[w, idle] = 0.0
+        bias = biasprm[w, idle]
+        bias[2] = 0.0
+        biasprm[w, idle] = bias
+    mu.tension[w, tendon] = force
+    ctrl[w, driven] = stiffness * dt * ten_velocity[w, tendon] - force
+    bias = biasprm[w, driven]
+    bias[2] = -stiffness * dt
+    biasprm[w, driven] = bias
+
+
+@wp.kernel
+def _point_torques(mv: Moving, tension: wp.array2d(dtype=float), ctrl: wp.array2d(dtype=float)):
+    w, j = wp.tid()
+    a = mv.torque_actuators[j]
+    ctrl[w, a] = points.point_torque(a, mv.actuator, mv.tendon, mv.rate[w], tension[w])
+
+
+@wp.kernel
+def _contact_actuation(ft: Feet, geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3),
+                       xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
+                       subtree_com: wp.array2d(dtype=wp.vec3), site_pos: wp.array2d(dtype=wp.vec3),
+                       site_xpos: wp.array2d(dtype=wp.vec3), actuator_velocity: wp.array2d(dtype=float),
+                       ctrl: wp.array2d(dtype=float), biasprm: wp.array2d(dtype=wp.types.vector(length=10, dtype=float))):
+    """`physics._contact_actuation` with the ground forces, for one world and sphere: the contact
+    site moves to the contact point, ctrl cancels the actuator speed MuJoCo took at its old place."""
+    w, i = wp.tid()
+    b = ft.body[i]
+    point, local, force, damping = feet.sphere_force(ft.law, ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
+                                                     xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
+    ft.force[w, i] = force
+    site_pos[w, ft.site[i]] = local
+    site_xpos[w, ft.site[i]] = point
+    for axis in range(2):
+        a = ft.x_actuator[i]
+        if axis == 1:
+            a = ft.y_actuator[i]
+        ctrl[w, a] = force[axis] - damping[axis] * actuator_velocity[w, a]
+        bias = biasprm[w, a]
+        bias[2] = damping[axis]
+        biasprm[w, a] = bias
+
+
+@wp.kernel
+def _ligaments(lg: Ligaments, qpos: wp.array2d(dtype=float), qfrc_applied: wp.array2d(dtype=float),
+               dof_damping: wp.array2d(dtype=float)):
+    """`physics._place`'s ligaments: springs as applied forces, damping as joint damping."""
+    w, i = wp.tid()
+    spring, damping = limits.engage_one(lg.table, i, qpos[w, lg.qpos[i]])
+    lg.spring[w, i] = spring
+    lg.damping[w, i] = damping
+    qfrc_applied[w, lg.dof[i]] = spring
+    dof_damping[w, lg.dof[i]] = damping
+
+
+@wp.kernel
+def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float),
+                ten_length: wp.array2d(dtype=float), geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3),
+                xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
+                subtree_com: wp.array2d(dtype=wp.vec3)):
+    """What the env reports of each world's current state: muscle lengths and tendon forces,
+    ground forces, whole ligament forces."""
+    w = wp.tid()
+    for i in range(mu.on.shape[0]):
+        tendon = points.selected_tendon(mu.on[i], mu.switch_row[i], mu.switch_qpos, mu.low, mu.high, mu.off_tendon, qpos[w])
+        mu.tendon[w, i] = tendon
+        mu.length[w, i] = ten_length[w, tendon]
+        mu.force[w, i] = muscles.tendon_force(mu.fiber[w, i], mu.length[w, i], mu.params[w, i])
+    for i in range(ft.sphere.shape[0]):
+        b = ft.body[i]
+        point, local, force, damping = feet.sphere_force(ft.law, ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
+                                                         xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
+        ft.force[w, i] = force
+    for i in range(lg.dof.shape[0]):
+        lg.force[w, i] = lg.spring[w, i] - lg.damping[w, i] * qvel[w, lg.dof[i]]
+
+
+@wp.kernel
+def _equilibrate(mu: Muscles, reset: wp.array(dtype=int)):
+    """Muscles of the worlds being reset at their activation, fibres in equilibrium, still."""
+    w, i = wp.tid()
+    if reset[w] >= 0:
+        mu.excitation[w, i] = 0.0
+        mu.activation[w, i] = thelen.DEFAULT_ACTIVATION
+        mu.fiber[w, i] = muscles.equilibrium_fiber_length(mu.activation[w, i], mu.length[w, i], mu.params[w, i])
+
+
+class WarpPhysics:
+    """The muscles', feet's, path points' and ligaments' state of N worlds of one MjModel on a
+    Warp device, and the launches that advance it with MuJoCo Warp's step.
+
+    `model` and `data` are MuJoCo Warp's; the public arrays (world, item) are updated in place:
+    `excitation` is written by the env before `step`, `params` is the muscles' table per world
+    (the env may scale it before resetting a world).
+    """
+
+    def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int):
+        self.nworld, self.dt, self._keyframe = nworld, float(m.opt.timestep), keyframe
+        d = mujoco.MjData(m)
+        mujoco.mj_resetDataKeyframe(m, d, keyframe)
+        mujoco.mj_forward(m, d)
+        self.model = mjw.put_model(m, batch_sizes={f: nworld for f in PER_WORLD_FIELDS})
+        self.data = mjw.put_data(m, d, nworld=nworld)
+        n = len(muscle_list)
+
+        switches = PathSwitches(m, muscle_list)
+        mu = Muscles()
+        table = thelen.muscle_parameters(muscle_list)
+        mu.params = wp.array(np.broadcast_to(table, (nworld, *table.shape)).astype(np.float32), dtype=muscles.MuscleRow)
+        for name in ("excitation", "activation", "fiber", "length", "force"):
+            setattr(mu, name, wp.zeros((nworld, n), dtype=float))
+        mu.tendon = wp.array(np.broadcast_to(switches.on, (nworld, n)).astype(np.int32), dtype=int)
+        mu.tension = wp.zeros((nworld, m.ntendon), dtype=float)
+        mu.on, mu.switch_row, mu.switch_qpos = _ints(switches.on), _ints(points.switch_of_muscle(switches)), _ints(switches.qpos)
+        mu.low, mu.high = _floats(switches.low), _floats(switches.high)
+        mu.off_tendon, mu.off_actuator = _ints(switches.off_tendon), _ints(switches.off_actuator)
+        self._muscles = mu
+
+        moving = MovingPoints(m, osim, muscle_list)
+        mv = Moving()
+        position, slope = points.moving_tables(moving)
+        mv.table, mv.slope = wp.array(position, dtype=wp.vec3), wp.array(slope, dtype=wp.vec3)
+        mv.qpos, mv.site, mv.body = _ints(moving.qpos), _ints(moving.site), _ints(moving.body)
+        mv.neighbours = wp.array(moving.neighbours.astype(np.int32), dtype=wp.vec2i)
+        mv.tendon, mv.dof, mv.actuator = _ints(moving.tendon), _ints(moving.dof), _ints(moving.actuator)
+        mv.torque_actuators = _ints(moving.torque_actuators)
+        mv.rate = wp.zeros((nworld, len(moving.site)), dtype=float)
+        self._moving = mv
+
+        names = body.CONTACT_SPHERES
+        spheres = np.array([m.geom(g).id for g in names])
+        sphere_body = m.geom_bodyid[spheres]
+        ft = Feet()
+        ft.law, ft.radius = _floats(contact_law(osim).table()), _floats(m.geom_size[spheres, 0])
+        ft.sphere, ft.body, ft.root = _ints(spheres), _ints(sphere_body), _ints(m.body_rootid[sphere_body])
+        ft.site = _ints([m.site(f"{g}_contact").id for g in names])
+        ft.x_actuator = _ints([m.actuator(f"{g}_x").id for g in names])
+        ft.y_actuator = _ints([m.actuator(f"{g}_y").id for g in names])
+        ft.force = wp.zeros((nworld, len(names)), dtype=wp.vec2)
+        self._feet = ft
+
+        lim = default_limits()
+        joints = [m.joint(c).id for c in lim.coordinates]
+        lg = Ligaments()
+        lg.table = _floats(ligament_table(lim))
+        lg.qpos, lg.dof = _ints(m.jnt_qposadr[joints]), _ints(m.jnt_dofadr[joints])
+        for name in ("spring", "damping", "force"):
+            setattr(lg, name, wp.zeros((nworld, len(joints)), dtype=float))
+        self._ligaments = lg
+
+        coupling = KneeCoupling(m, osim, body.KNEE_SLIDES)
+        self._equality, self._knee = _ints(coupling.equality), _ints(coupling.knee)
+        self._projection = knees.Projection(coupling, nworld, m.nv)
+
+    # The state the env reads, (world, item) arrays on the device.
+    @property
+    def params(self) -> wp.array:
+        return self._muscles.params
+
+    @property
+    def excitation(self) -> wp.array:
+        return self._muscles.excitation
+
+    @property
+    def activation(self) -> wp.array:
+        return self._muscles.activation
+
+    @property
+    def fiber(self) -> wp.array:
+        return self._muscles.fiber
+
+    @property
+    def muscle_length(self) -> wp.array:
+        return self._muscles.length
+
+    @property
+    def muscle_force(self) -> wp.array:
+        return self._muscles.force
+
+    @property
+    def ground_force(self) -> wp.array:
+        return self._feet.force
+
+    @property
+    def ligament_force(self) -> wp.array:
+        return self._ligaments.force
+
+    def reset(self, worlds: np.ndarray | None = None) -> None:
+        """Put the worlds named (all by default) in the keyframe's pose at rest, muscles as
+        OpenSim starts them. The other worlds keep their state (MuJoCo Warp's forward pass runs
+        on every world, recomputing what their state already gives)."""
+        keys = np.full(self.nworld, -1 if worlds is not None else self._keyframe, np.int32)
+        if worlds is not None:
+            keys[np.asarray(worlds)] = self._keyframe
+        reset = wp.array(keys, dtype=int)
+        m, d = self.model, self.data
+        mjw.reset_data_keyframe(m, d, reset)
+        self._place()
+        mjw.forward(m, d)
+        self._read_state()  # the muscle lengths of the new pose
+        wp.launch(_equilibrate, self._muscles.excitation.shape, [self._muscles, reset])
+        self._read_state()
+
+    def step(self, substeps: int) -> None:
+        """Hold `excitation` over `substeps` physics steps in every world."""
+        m, d = self.model, self.data
+        for _ in range(substeps):
+            self._drive()
+            mjw.transmission(m, d)  # the contact sites moved: their actuators' moment arms
+            mjw.step2(m, d)
+            self._projection(m, d)
+            self._place()
+            mjw.step1(m, d)
+        self._read_state()
+
+    def _drive(self) -> None:
+        m, d, mu, mv = self.model, self.data, self._muscles, self._moving
+        wp.launch(_rates, mv.rate.shape, [mv, d.qpos, d.site_xpos, d.xmat])
+        wp.launch(_muscle_actuation, mu.activation.shape,
+                  [mu, mv, self.dt, FIBER_SUBSTEPS, d.qpos, d.qvel, d.ten_length, d.ten_velocity, d.ctrl, m.actuator_biasprm])
+        wp.launch(_point_torques, (self.nworld, mv.torque_actuators.shape[0]), [mv, mu.tension, d.ctrl])
+        wp.launch(_contact_actuation, self._feet.force.shape,
+                  [self._feet, d.geom_xpos, d.xpos, d.xmat, d.cvel, d.subtree_com, m.site_pos, d.site_xpos,
+                   d.actuator_velocity, d.ctrl, m.actuator_biasprm])
+
+    def _place(self) -> None:
+        m, d, mv, lg = self.model, self.data, self._moving, self._ligaments
+        wp.launch(_ligaments, lg.spring.shape, [lg, d.qpos, d.qfrc_applied, m.dof_damping])
+        wp.launch(points.place_points, mv.rate.shape, [mv.table, mv.qpos, mv.site, d.qpos, m.site_pos])
+        projection = self._projection
+        wp.launch(knees.follow_splines, (self.nworld, self._equality.shape[0]),
+                  [self._equality, self._knee, projection.breaks, projection.cubics, d.qpos, m.eq_data])
+
+    def _read_state(self) -> None:
+        d = self.data
+        wp.launch(_read_state, self.nworld, [self._muscles, self._feet, self._ligaments, d.qpos, d.qvel, d.ten_length,
+                                             d.geom_xpos, d.xpos, d.xmat, d.cvel, d.subtree_com])
