@@ -27,7 +27,8 @@ import zenoh
 from l2r.durable import FailureLog, disk_failure
 from l2r.protocol import (
     ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
-    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode, with_reply_pool,
+    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleBatch, SampleRequest, Stats, decode, encode,
+    encode_gathered, with_reply_pool,
 )
 from l2r.protocol.observations import ObservationSpec
 from l2r.replay import snapshot
@@ -210,15 +211,15 @@ class ReplayServer:
             if batches:
                 self.sampled_batches += len(batches)
                 if self.learner_version >= 0:
-                    self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b in batches)
+                    self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b, _ in batches)
                     self.lag_batches += len(batches)
             else:
                 self.not_ready_replies += 1
         if not batches:
             query.reply(query.key_expr, encode(NotReady(self.config.shard, reason, size, delay)))
             return
-        for batch in batches:
-            query.reply(query.key_expr, encode(batch))
+        for _, payload in batches:
+            query.reply(query.key_expr, payload)
 
     def _from_queue(self, request: SampleRequest) -> bool:
         """Whether ``request`` asks for the queue table (else the replay table); ProtocolError if
@@ -252,25 +253,32 @@ class ReplayServer:
                                 "too_large")
         return queue
 
-    def _sample_replay(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
-        """Batches drawn from the replay table, or none and why (reason, size, retry after)."""
+    def _sample_replay(self, request: SampleRequest) -> tuple[list[tuple[SampleBatch, bytes | bytearray]], str, int,
+                                                              float]:
+        """Batches drawn from the replay table with their encoded replies (frames gathered into
+        them while the lock keeps the storage still), or none and why (reason, size, retry after)."""
         size, wanted = self.storage.live, request.batch_size * request.count
         ok, reason = self.limiter.can_sample(size, wanted)
         if not ok:
             delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(wanted, self._insert_rate())
             return [], reason, size, delay
         self.limiter.sampled += wanted
-        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, request.n_step or 1,
-                                    request.gamma, request.frame_stack) for _ in range(request.count)], "", size, 0.0
+        batches = []
+        for _ in range(request.count):
+            batch, rows = self.storage.draw(request.batch_size, request.prioritized, self.config.shard,
+                                            request.n_step or 1, request.gamma, request.frame_stack)
+            batches.append((batch, encode(batch) if rows is None else encode_gathered(batch, self.storage.all_obs, rows)))
+        return batches, "", size, 0.0
 
-    def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
-        """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""
+    def _take_from_queue(self, request: SampleRequest) -> tuple[list[tuple[SampleBatch, bytes]], str, int, float]:
+        """Up to ``count`` batches taken from the queue with their encoded replies, or none and
+        why (reason, size, retry after)."""
         batches = []
         for _ in range(request.count):
             batch = self.queue.take(request.batch_size, self.learner_version, self.config.shard)
             if batch is None:
                 break
-            batches.append(batch)
+            batches.append((batch, encode(batch)))
         if batches:
             return batches, "", self.queue.size, 0.0
         rate = self._insert_rate()

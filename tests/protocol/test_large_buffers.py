@@ -1,14 +1,21 @@
 """What a process that moves batches of camera frames sets up: a shared-memory pool that holds
-its replies, and a C allocator that reuses large buffers instead of faulting in fresh pages."""
+its replies, and a C allocator that reuses large buffers instead of faulting in fresh pages; and
+that a batch decoded from such a reply keeps its frames while Zenoh reuses its buffers."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
 
-from l2r.protocol import session_config, with_reply_pool
+import numpy as np
+import zenoh
+
+from l2r.protocol import SampleBatch, decode, encode, session_config, with_reply_pool
 from l2r.protocol.session import REPLY_POOL_BYTES, SHARED_MEMORY_POOL
+from tests.conftest import wait_for
+from tests.protocol.factories import make_frames_batch
 
 
 def test_the_reply_pool_holds_batches_of_frames_unless_a_config_file_chose_its_own(tmp_path):
@@ -54,3 +61,26 @@ def test_large_buffers_are_reused_instead_of_faulted_in_again():
     fresh, reused = faults("plain"), faults("reuse")
     assert fresh > 10 * 5000  # 5,200 pages of 4 KiB a buffer of 21 MB, two or three buffers a reply
     assert reused < fresh / 10
+
+
+def test_a_decoded_batch_keeps_its_frames_while_the_next_batches_arrive(endpoint):
+    batch = make_frames_batch(b=64, k=3)  # 1.4 MB: through the shared-memory pool
+    replies = iter(range(1, 100))  # batch i has every frame i times the first's
+
+    def answer(query: zenoh.Query) -> None:
+        i = next(replies)
+        query.reply(query.key_expr, encode(dataclasses.replace(batch, frames={"pixels": batch.frames["pixels"] * i})))
+
+    def fetch() -> SampleBatch | None:
+        got = [r.ok.payload for r in learner.get("test/batch", timeout=5.0) if r.ok is not None]
+        return decode(got[0], SampleBatch) if got else None
+
+    with zenoh.open(with_reply_pool(session_config(listen=[endpoint]))) as shard, \
+            zenoh.open(session_config(connect=[endpoint])) as learner:
+        shard.declare_queryable("test/batch", answer)
+        first = wait_for(fetch)
+        i = int(first.frames["pixels"][1, 0, 0, 0])
+        later = [fetch() for _ in range(4)]
+        np.testing.assert_array_equal(first.frames["pixels"], batch.frames["pixels"] * i)
+        for n, b in enumerate(later):
+            np.testing.assert_array_equal(b.frames["pixels"], batch.frames["pixels"] * (i + n + 1))
