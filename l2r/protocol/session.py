@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Sequence
 
 import zenoh
+import zenoh.shm
 from pydantic import AfterValidator, field_validator
 
 from l2r.config import ONE_OR_MANY, FilePath, Settings, setting, zenoh_error_text
@@ -63,6 +64,48 @@ def with_reply_pool(conf: zenoh.Config, pool_bytes: int = REPLY_POOL_BYTES) -> z
     if json.loads(conf.get_json(SHARED_MEMORY_POOL)) == ZENOH_DEFAULT_POOL_BYTES:
         conf.insert_json5(SHARED_MEMORY_POOL, str(pool_bytes))
     return conf
+
+
+class SharedMemoryReplies:
+    """Large replies copied once into shared memory of this process's own, which Zenoh hands
+    to a peer on the same host as a reference and copies for one elsewhere.
+
+    A reply given to Zenoh as bytes is copied twice before a peer on the host can read it: into
+    Zenoh's buffer, then into its shared-memory pool (``with_reply_pool``); a reply already in
+    shared memory is copied by neither. The memory (``pool_bytes``, in /dev/shm) is made at the
+    first large reply; where it cannot be made, or is full of replies not yet read, a reply goes
+    as bytes, as before. zenoh-python's shared-memory API is marked unstable."""
+
+    def __init__(self, pool_bytes: int = REPLY_POOL_BYTES, smallest: int = 1 << 20):
+        self.pool_bytes, self.smallest = pool_bytes, smallest
+        self._provider = None
+        self._lock = threading.Lock()
+        self.sent_as_bytes = 0
+        """Large replies sent as bytes (the memory full or not to be had)."""
+
+    def payload(self, message: bytes | bytearray) -> bytes | bytearray | zenoh.ZBytes:
+        """``message`` as the payload of a reply: in shared memory when it is large."""
+        if len(message) < self.smallest:
+            return message
+        provider = self._provider_once()
+        try:
+            buffer = provider.alloc(len(message), zenoh.shm.GarbageCollect())
+        except (AttributeError, zenoh.ZError):  # no provider, or no room until readers free theirs
+            self.sent_as_bytes += 1
+            return message
+        buffer[0:len(message)] = message  # (the only copy: its __setitem__ takes bytes or bytearray alone)
+        return zenoh.ZBytes(buffer)
+
+    def _provider_once(self):
+        with self._lock:
+            if self._provider is None:
+                try:
+                    self._provider = zenoh.shm.ShmProvider.default_backend(self.pool_bytes)
+                except (AttributeError, zenoh.ZError) as e:  # a build without shared memory, or /dev/shm full
+                    logging.getLogger("l2r.protocol").warning(
+                        "no shared memory of %d MiB for replies (%s): they go as bytes", self.pool_bytes >> 20, e)
+                    self._provider = False
+            return self._provider
 
 
 def reuse_large_buffers() -> bool:

@@ -104,7 +104,8 @@ def test_frames_gathered_into_the_message_are_the_bytes_of_the_batch_gathered_fi
                "small": rng.standard_normal((60, 5), np.float32)}
     rows = np.array([7, 3, 59, 0, 12, 13, 14, 40, 41, 42, 43, 30, 31, 32, 33, 2, 5], np.int64)
     batch = make_frames_batch(b=10, k=3)
-    gathered = dataclasses.replace(batch, frames={name: rows_of.take(rows, axis=0) for name, rows_of in sources.items()})
+    gathered = dataclasses.replace(batch, frames={name: source.take(rows, axis=0) for name, source in sources.items()})
     assert encode_gathered(dataclasses.replace(batch, frames=None), sources, rows) == encode(gathered)
     small = {"small": sources["small"]}  # nothing large: msgpack packs it all
-    assert encode_gathered(batch, small, rows) == encode(dataclasses.replace(batch, frames={"small": small["small"][rows]}))
+    small_frames = dataclasses.replace(batch, frames={"small": small["small"][rows]})
+    assert encode_gathered(batch, small, rows) == encode(small_frames)

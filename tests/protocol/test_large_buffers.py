@@ -1,6 +1,7 @@
 """What a process that moves batches of camera frames sets up: a shared-memory pool that holds
-its replies, and a C allocator that reuses large buffers instead of faulting in fresh pages; and
-that a batch decoded from such a reply keeps its frames while Zenoh reuses its buffers."""
+its replies, replies written into shared memory of its own, and a C allocator that reuses large
+buffers instead of faulting in fresh pages; and that a batch decoded from such a reply keeps its
+frames while Zenoh reuses its buffers."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 import zenoh
 
 from l2r.protocol import SampleBatch, decode, encode, session_config, with_reply_pool
-from l2r.protocol.session import REPLY_POOL_BYTES, SHARED_MEMORY_POOL
+from l2r.protocol.session import REPLY_POOL_BYTES, SHARED_MEMORY_POOL, SharedMemoryReplies
 from tests.conftest import wait_for
 from tests.protocol.factories import make_frames_batch
 
@@ -84,3 +85,31 @@ def test_a_decoded_batch_keeps_its_frames_while_the_next_batches_arrive(endpoint
         np.testing.assert_array_equal(first.frames["pixels"], batch.frames["pixels"] * i)
         for n, b in enumerate(later):
             np.testing.assert_array_equal(b.frames["pixels"], batch.frames["pixels"] * (i + n + 1))
+
+
+def test_replies_in_shared_memory_reach_peers_with_and_without_it_and_go_as_bytes_when_it_is_full(endpoint):
+    rng = np.random.default_rng(4)
+    messages = [bytearray(rng.integers(0, 256, 3_000_000, np.uint8).tobytes()) for _ in range(3)]
+    replies = SharedMemoryReplies(pool_bytes=8 * 2**20)  # room for two
+    answered = []
+
+    def answer(query: zenoh.Query) -> None:
+        answered.append(len(answered) % 3)
+        query.reply(query.key_expr, replies.payload(messages[answered[-1]]))
+
+    small = replies.payload(b"ack")
+    assert small == b"ack"
+    for shared in (True, False):
+        learner_config = session_config(connect=[endpoint])
+        learner_config.insert_json5("transport/shared_memory/enabled", json.dumps(shared))
+        with zenoh.open(with_reply_pool(session_config(listen=[endpoint]))) as shard, \
+                zenoh.open(learner_config) as learner:
+            shard.declare_queryable("test/reply", answer)
+            got = wait_for(lambda: [r.ok.payload for r in learner.get("test/reply", timeout=5.0) if r.ok is not None])
+            held = [got[0], *(next(r.ok.payload for r in learner.get("test/reply", timeout=5.0)) for _ in range(3))]
+            assert [p.to_bytes() for p in held] == [bytes(messages[i]) for i in answered[-4:]]
+            assert [p.as_shm() is not None for p in held[:2]] == [shared] * 2
+            if shared:  # the first two, held by the learner, fill the memory
+                assert replies.sent_as_bytes == 2
+        answered.clear()
+        del got, held  # read: their memory is free again
