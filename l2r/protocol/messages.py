@@ -4,7 +4,8 @@ Every message is one msgpack map ``{"v": VERSION, "kind": KIND, <fields>}``, whe
 the lowest protocol version that can read it: 2 for a message with observation fields other
 than the float32 vector, else 1, so version-1 peers get the bytes they know.
 An array field is a map ``{"dtype": "<f4", "shape": [T, 41], "data": <bin>}`` in C order,
-decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data).
+decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data; data of 64 KiB or
+more is left in the payload, ``_unpackb``).
 ``decode`` checks everything a peer could get wrong, integer ranges included (``limits.py``),
 and raises ``ProtocolError`` with the reason; it never raises anything else.
 """

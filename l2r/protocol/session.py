@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Annotated, Literal, Sequence
 
 import zenoh
-import zenoh.shm
 from pydantic import AfterValidator, field_validator
 
 from l2r.config import ONE_OR_MANY, FilePath, Settings, setting, zenoh_error_text
@@ -78,7 +77,7 @@ class SharedMemoryReplies:
 
     def __init__(self, pool_bytes: int = REPLY_POOL_BYTES, smallest: int = 1 << 20):
         self.pool_bytes, self.smallest = pool_bytes, smallest
-        self._provider = None
+        self._provider, self._policy, self._tried = None, None, False
         self._lock = threading.Lock()
         self.sent_as_bytes = 0
         """Large replies sent as bytes (the memory full or not to be had)."""
@@ -89,22 +88,27 @@ class SharedMemoryReplies:
             return message
         provider = self._provider_once()
         try:
-            buffer = provider.alloc(len(message), zenoh.shm.GarbageCollect())
-        except (AttributeError, zenoh.ZError):  # no provider, or no room until readers free theirs
+            buffer = provider.alloc(len(message), self._policy) if provider else None
+        except zenoh.ZError:  # no room until readers free theirs
+            buffer = None
+        if buffer is None:
             self.sent_as_bytes += 1
             return message
         buffer[0:len(message)] = message  # (the only copy: its __setitem__ takes bytes or bytearray alone)
         return zenoh.ZBytes(buffer)
 
     def _provider_once(self):
+        """The shared memory, made on the first call; None where it cannot be had (logged once)."""
         with self._lock:
-            if self._provider is None:
+            if not self._tried:
+                self._tried = True
                 try:
+                    import zenoh.shm  # (a ModuleNotFoundError from a build without shared memory)
                     self._provider = zenoh.shm.ShmProvider.default_backend(self.pool_bytes)
-                except (AttributeError, zenoh.ZError) as e:  # a build without shared memory, or /dev/shm full
+                    self._policy = zenoh.shm.GarbageCollect()  # frees what readers have let go, never blocks
+                except (ImportError, zenoh.ZError) as e:  # no shared memory in this build, or /dev/shm full
                     logging.getLogger("l2r.protocol").warning(
                         "no shared memory of %d MiB for replies (%s): they go as bytes", self.pool_bytes >> 20, e)
-                    self._provider = False
             return self._provider
 
 
