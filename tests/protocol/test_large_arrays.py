@@ -101,7 +101,8 @@ def test_frames_gathered_into_the_message_are_the_bytes_of_the_batch_gathered_fi
     rng = np.random.default_rng(3)
     sources = {"pixels": rng.integers(0, 256, (60, 3, 84, 84), np.uint8),
                "state": rng.standard_normal((60, 201), np.float32),  # large, at an odd offset in the message
-               "small": rng.standard_normal((60, 5), np.float32)}
+               "small": rng.standard_normal((60, 5), np.float32),
+               "strided": rng.integers(0, 256, (60, 3, 84, 168), np.uint8)[..., ::2]}  # gathered first
     rows = np.array([7, 3, 59, 0, 12, 13, 14, 40, 41, 42, 43, 30, 31, 32, 33, 2, 5], np.int64)
     batch = make_frames_batch(b=10, k=3)
     gathered = dataclasses.replace(batch, frames={name: source.take(rows, axis=0) for name, source in sources.items()})
