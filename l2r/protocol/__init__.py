@@ -7,7 +7,7 @@ from l2r.protocol.keys import (
 from l2r.protocol.messages import (
     MAX_MESSAGE_BYTES, PROTOCOL_VERSION, ActorId, ActorIdRequest, EpisodeSummary, EvaluationRound, ExperienceChunk,
     Frame, LearnerVersion, Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch, SampleRequest,
-    Stats, Weights, decode, encode,
+    Stats, Weights, decode, encode, encode_gathered,
 )
 from l2r.protocol.observations import FieldSpec, ObservationSpec, as_fields
 from l2r.protocol.replay_client import ReplayClient
@@ -21,8 +21,8 @@ __all__ = [
     "STATS_QOS", "VERSION_QOS", "WEIGHTS_QOS", "Keys", "QoS", "check_name", "parse_alive", "shard_of",
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "ActorId", "ActorIdRequest", "EpisodeSummary", "EvaluationRound",
     "ExperienceChunk", "Frame", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError", "ReplayAck",
-    "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "FieldSpec", "ObservationSpec",
-    "as_fields", "ReplayClient",
+    "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "encode_gathered",
+    "FieldSpec", "ObservationSpec", "as_fields", "ReplayClient",
     "DaemonSettings", "Rejections", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
     "watched", "with_reply_pool",
 ]

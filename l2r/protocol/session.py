@@ -65,6 +65,53 @@ def with_reply_pool(conf: zenoh.Config, pool_bytes: int = REPLY_POOL_BYTES) -> z
     return conf
 
 
+class SharedMemoryReplies:
+    """Large replies copied once into shared memory of this process's own, which Zenoh hands
+    to a peer on the same host as a reference and copies for one elsewhere.
+
+    A reply given to Zenoh as bytes is copied twice before a peer on the host can read it: into
+    Zenoh's buffer, then into its shared-memory pool (``with_reply_pool``); a reply already in
+    shared memory is copied by neither. The memory (``pool_bytes``, in /dev/shm) is made at the
+    first large reply; where it cannot be made, or is full of replies not yet read, a reply goes
+    as bytes, as before. zenoh-python's shared-memory API is marked unstable."""
+
+    def __init__(self, pool_bytes: int = REPLY_POOL_BYTES, smallest: int = 1 << 20):
+        self.pool_bytes, self.smallest = pool_bytes, smallest
+        self._provider, self._policy, self._tried = None, None, False
+        self._lock = threading.Lock()
+        self.sent_as_bytes = 0
+        """Large replies sent as bytes (the memory full or not to be had)."""
+
+    def payload(self, message: bytes | bytearray) -> bytes | bytearray | zenoh.ZBytes:
+        """``message`` as the payload of a reply: in shared memory when it is large."""
+        if len(message) < self.smallest:
+            return message
+        provider = self._provider_once()
+        try:
+            buffer = provider.alloc(len(message), self._policy) if provider else None
+        except zenoh.ZError:  # no room until readers free theirs
+            buffer = None
+        if buffer is None:
+            self.sent_as_bytes += 1
+            return message
+        buffer[0:len(message)] = message  # (the only copy: its __setitem__ takes bytes or bytearray alone)
+        return zenoh.ZBytes(buffer)
+
+    def _provider_once(self):
+        """The shared memory, made on the first call; None where it cannot be had (logged once)."""
+        with self._lock:
+            if not self._tried:
+                self._tried = True
+                try:
+                    import zenoh.shm  # (a ModuleNotFoundError from a build without shared memory)
+                    self._provider = zenoh.shm.ShmProvider.default_backend(self.pool_bytes)
+                    self._policy = zenoh.shm.GarbageCollect()  # frees what readers have let go, never blocks
+                except (ImportError, zenoh.ZError) as e:  # no shared memory in this build, or /dev/shm full
+                    logging.getLogger("l2r.protocol").warning(
+                        "no shared memory of %d MiB for replies (%s): they go as bytes", self.pool_bytes >> 20, e)
+            return self._provider
+
+
 def reuse_large_buffers() -> bool:
     """Have this process's C allocator keep freed buffers of up to 32 MiB for reuse; False where
     it is not glibc's (nothing changes then). Call it before opening a Zenoh session.

@@ -7,7 +7,9 @@ tells its actors what it has stored on ``replay/<shard>/ack`` (they resend the r
 queue also asks them to wait there), publishes its stats and answers queries for them, holds the liveliness token ``alive/replay/<shard>`` and logs who
 joins and leaves. With a snapshot directory (and without --no-wal), every chunk stored goes to a
 write-ahead log that is fsynced before an ack names it, so what is acknowledged survives a crash.
-Zenoh calls the handlers from its own threads; one lock serialises access to the storage.
+Zenoh calls the handlers from its own threads; one lock serialises access to the storage (a
+reply's frames are gathered straight into its message under it). Large replies go through
+shared memory of the shard's own to learners on its host (``SharedMemoryReplies``).
 """
 
 from __future__ import annotations
@@ -27,9 +29,11 @@ import zenoh
 from l2r.durable import FailureLog, disk_failure
 from l2r.protocol import (
     ACK_QOS, MAX_MESSAGE_BYTES, STATS_QOS, ExperienceChunk, Keys, LearnerVersion, NotReady,
-    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleRequest, Stats, decode, encode, with_reply_pool,
+    PriorityUpdate, ProtocolError, Rejections, ReplayAck, SampleBatch, SampleRequest, Stats, decode, encode,
+    encode_gathered, with_reply_pool,
 )
 from l2r.protocol.observations import ObservationSpec
+from l2r.protocol.session import SharedMemoryReplies
 from l2r.replay import snapshot
 from l2r.replay.actor_ids import ActorIds
 from l2r.replay.queue import QueueConfig, QueueTable
@@ -41,6 +45,9 @@ from l2r.replay.wal import SyncPoint, WriteAheadLog
 log = logging.getLogger("l2r.replay")
 
 REPLY_OVERHEAD = 4096  # bytes of a sample_batch reply beyond its arrays' data (msgpack framing, names)
+
+Replies = list[tuple[SampleBatch, bytes | bytearray]]
+"""Sampled batches, each with its encoded reply."""
 
 
 def reply_bytes_per_transition(observation: ObservationSpec, act_dim: int, queue: bool = False, n_step: int = 1,
@@ -94,6 +101,7 @@ class ReplayServer:
         self.sequences = SequenceTracker(config.max_actors)
         self.rejections = Rejections(log)
         self.lock = threading.Lock()
+        self.shared_replies = SharedMemoryReplies()
         self.learner_version = -1
         self.newest_stored_version = -1  # of the experience taken (snapshot, log, actors)
         self.sampled_batches = 0
@@ -210,15 +218,15 @@ class ReplayServer:
             if batches:
                 self.sampled_batches += len(batches)
                 if self.learner_version >= 0:
-                    self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b in batches)
+                    self.lag_sum += sum(self.learner_version - b.policy_versions.mean() for b, _ in batches)
                     self.lag_batches += len(batches)
             else:
                 self.not_ready_replies += 1
         if not batches:
             query.reply(query.key_expr, encode(NotReady(self.config.shard, reason, size, delay)))
             return
-        for batch in batches:
-            query.reply(query.key_expr, encode(batch))
+        for _, payload in batches:
+            query.reply(query.key_expr, self.shared_replies.payload(payload))
 
     def _from_queue(self, request: SampleRequest) -> bool:
         """Whether ``request`` asks for the queue table (else the replay table); ProtocolError if
@@ -252,25 +260,32 @@ class ReplayServer:
                                 "too_large")
         return queue
 
-    def _sample_replay(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
-        """Batches drawn from the replay table, or none and why (reason, size, retry after)."""
+    def _sample_replay(self, request: SampleRequest) -> tuple[Replies, str, int, float]:
+        """Batches drawn from the replay table with their encoded replies (frames gathered into
+        them while the lock keeps the storage still), or none and why (reason, size, retry after)."""
         size, wanted = self.storage.live, request.batch_size * request.count
         ok, reason = self.limiter.can_sample(size, wanted)
         if not ok:
             delay = 0.05 if size < self.limiter.min_size else self.limiter.retry_after(wanted, self._insert_rate())
             return [], reason, size, delay
         self.limiter.sampled += wanted
-        return [self.storage.sample(request.batch_size, request.prioritized, self.config.shard, request.n_step or 1,
-                                    request.gamma, request.frame_stack) for _ in range(request.count)], "", size, 0.0
+        batches = []
+        for _ in range(request.count):
+            batch, rows = self.storage.draw(request.batch_size, request.prioritized, self.config.shard,
+                                            request.n_step or 1, request.gamma, request.frame_stack)
+            payload = encode(batch) if rows is None else encode_gathered(batch, self.storage.all_obs, rows)
+            batches.append((batch, payload))
+        return batches, "", size, 0.0
 
-    def _take_from_queue(self, request: SampleRequest) -> tuple[list[SampleBatch], str, int, float]:
-        """Up to ``count`` batches taken from the queue, or none and why (reason, size, retry after)."""
+    def _take_from_queue(self, request: SampleRequest) -> tuple[Replies, str, int, float]:
+        """Up to ``count`` batches taken from the queue with their encoded replies, or none and
+        why (reason, size, retry after)."""
         batches = []
         for _ in range(request.count):
             batch = self.queue.take(request.batch_size, self.learner_version, self.config.shard)
             if batch is None:
                 break
-            batches.append(batch)
+            batches.append((batch, encode(batch)))
         if batches:
             return batches, "", self.queue.size, 0.0
         rate = self._insert_rate()

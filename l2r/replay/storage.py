@@ -277,6 +277,17 @@ class Storage:
         With ``frame_stack`` k, observations come in the frames form (``_frames``), stacks of k;
         without, as ``obs`` and ``next_obs`` of the float32 vector, the only observation that has
         that form (ValueError for another)."""
+        batch, rows = self.draw(batch_size, prioritized, shard, n_step, gamma, frame_stack)
+        if rows is not None:
+            batch.frames = {name: field.take(rows, axis=0) for name, field in self.all_obs.items()}
+        return batch
+
+    def draw(self, batch_size: int, prioritized: bool, shard: int = 0, n_step: int = 1,
+             gamma: float | None = None, frame_stack: int | None = None) -> tuple[SampleBatch, np.ndarray | None]:
+        """``sample``'s batch before the gather of its frames: with ``frame_stack``, ``frames`` is
+        None and the rows of ``all_obs`` it holds come beside it (None without), to be gathered
+        before the storage changes (a replay shard gathers them into its reply,
+        ``messages.encode_gathered``)."""
         if frame_stack is None and self.config.observation.vector_width is None:
             raise ValueError(f"a batch of {self.config.observation} comes in the frames form alone: give frame_stack")
         if prioritized:
@@ -298,9 +309,9 @@ class Storage:
         if frame_stack is None:
             vector = self.all_obs[VECTOR_FIELD]
             batch.obs, batch.next_obs = vector.take(slots, axis=0), vector.take(next_rows, axis=0)
-        else:
-            batch.frames, batch.obs_frames, batch.next_obs_frames = self._frames(slots, last, next_rows, frame_stack)
-        return batch
+            return batch, None
+        rows, batch.obs_frames, batch.next_obs_frames = self._frames(slots, last, next_rows, frame_stack)
+        return batch, rows
 
     def _stacks(self, slots: np.ndarray, k: int) -> np.ndarray:
         """(len(slots), k): the rows of each slot's observation and its k - 1 predecessors in its
@@ -317,16 +328,15 @@ class Storage:
         return stacks
 
     def _frames(self, slots: np.ndarray, last: np.ndarray, next_rows: np.ndarray,
-                k: int) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+                k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The frames form of a batch with stacks of ``k``: each distinct row its stacks use once
-        (field -> rows), and for every transition the indices into them, oldest first, of its
+        (rows of ``all_obs``), and for every transition the indices into them, oldest first, of its
         observation (the stack ending at ``slots``) and next observation (``next_rows``, preceded
         by the stack ending at the window's ``last`` slot)."""
         obs_rows = self._stacks(slots, k)
         next_obs_rows = np.concatenate([self._stacks(last, k - 1), next_rows[:, None]], axis=1)
         rows, indices = np.unique(np.concatenate([obs_rows.ravel(), next_obs_rows.ravel()]), return_inverse=True)
-        frames = {name: field.take(rows, axis=0) for name, field in self.all_obs.items()}
-        return frames, indices[:obs_rows.size].reshape(obs_rows.shape), indices[obs_rows.size:].reshape(obs_rows.shape)
+        return rows, indices[:obs_rows.size].reshape(obs_rows.shape), indices[obs_rows.size:].reshape(obs_rows.shape)
 
     def _n_step(self, slots: np.ndarray, n: int, gamma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For windows of up to ``n`` steps from ``slots``, following next links (which stop at

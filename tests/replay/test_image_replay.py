@@ -142,3 +142,24 @@ def test_a_vector_snapshot_from_before_fields_restores(start_replay, connect, as
     assert isinstance(batch, SampleBatch), batch
     np.testing.assert_array_equal(batch.next_obs[:, 0], np.where(batch.obs[:, 0] == 3, -4, batch.obs[:, 0] + 1))
     np.testing.assert_array_equal(batch.rewards, batch.obs[:, 0] + 1)
+
+
+def test_frames_of_a_reply_past_a_megabyte_come_back_whole(start_replay, connect, run_name):
+    """Gathered straight into the message, sent through the shard's shared memory."""
+    replay = start_replay("--observation", "pixels: uint8[3, 84, 84], state: float32[5]", "--act-dim", "6")
+    session = connect(replay)
+    send(session, run_name, make_image_chunk(steps=60, ends=(), side=84))
+
+    def batch() -> SampleBatch | None:
+        reply = ask(session, run_name, SampleRequest(batch_size=256, frame_stack=3))
+        return reply if isinstance(reply, SampleBatch) else None
+
+    sampled = wait_for(batch)
+    pixels = sampled.frames["pixels"]
+    assert pixels.nbytes > 2**20
+    numbers = pixels[:, 0, 0, 0]
+    assert (pixels == numbers[:, None, None, None]).all()  # every frame whole, each pixel row t all t
+    np.testing.assert_array_equal(sampled.frames["state"], np.repeat(numbers[:, None], 5, axis=1).astype(np.float32))
+    last = numbers[sampled.obs_frames[:, -1]].astype(int)
+    np.testing.assert_array_equal(numbers[sampled.obs_frames], np.maximum(last[:, None] + [-2, -1, 0], 0))
+    np.testing.assert_array_equal(numbers[sampled.next_obs_frames], np.maximum(last[:, None] + [-1, 0, 1], 0))
