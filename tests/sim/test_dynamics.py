@@ -139,11 +139,11 @@ def test_targets_reflect_each_rollout():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env_id", ["l2r/Run-v0", "l2r/RunWarp-v0"])
-def test_validate_dynamics_cli_reports_every_rollout(capsys, env_id):
-    """Both MuJoCo backends meet the targets against live OpenSim (MuJoCo Warp here on Warp's
-    CPU device: its first step compiles for minutes with an empty kernel cache)."""
-    assert cli(["--dynamics", "--json", "--env-id", env_id]) == 0
+def test_validate_dynamics_cli_reports_every_rollout(capsys):
+    """The port meets the targets against live OpenSim. (`--env-id l2r/RunWarp-v0` meets them too,
+    docs/model.md, but takes 80 s on Warp's CPU device: tests/sim/test_warp_env.py holds the Warp
+    backend to the port instead.)"""
+    assert cli(["--dynamics", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert set(report["rollouts"]) == {"zero excitation", "all at 0.5", "random, seed 0"}
     zero = report["rollouts"]["zero excitation"]
