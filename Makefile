@@ -9,13 +9,13 @@ STAMP := $(VENV)/.installed
 setup: $(STAMP)
 
 # torch is installed first and pinned: an unpinned torch would pull several GB of CUDA wheels.
+# Warp's kernels of l2r/RunWarp-v0 compile once here (up to 4 minutes on 2 cores) rather than in
+# the first test or run that steps a Warp world.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e '.[dev,opensim]'
-	# Warp's kernels of l2r/RunWarp-v0 compile once here (up to 4 minutes on 2 cores) rather than
-	# in the first test or run that steps a Warp world.
 	$(BIN)/python -m l2r.sim.warp
 	touch $(STAMP)
 
