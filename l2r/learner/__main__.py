@@ -283,75 +283,70 @@ class LearnerSettings(DaemonSettings):
                 "hidden": tuple(int(h) for h in self.hidden.split(",")) if self.hidden else defaults.hidden,
                 "activation": self.activation or defaults.activation,
                 "layer_norm": self.layer_norm or (defaults.layer_norm and not self.no_layer_norm),
-                "reward_scale": defaults.reward_scale if self.reward_scale is None else self.reward_scale,
+                "reward_scale": self._given("reward_scale", defaults.reward_scale),
                 "relative_x": self.relative_x, "normalize_obs": self.normalize_obs}
 
     def sac(self) -> SACConfig:
         try:
             return SACConfig(
-                **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self._lr(SAC_DEFAULTS.actor_lr),
-                critic_lr=self._lr(SAC_DEFAULTS.actor_lr), alpha_lr=self._lr(SAC_DEFAULTS.actor_lr),
+                **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self._given("lr", SAC_DEFAULTS.actor_lr),
+                critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
                 update_repeat=self.update_repeat, target_entropy=self.target_entropy,
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
                 precision=self.precision)
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None
 
-    def _lr(self, default: float) -> float:
-        return default if self.lr is None else self.lr
+    def _given(self, name: str, default):
+        """The flag `name` as given, or `default` where it was left unset (None)."""
+        value = getattr(self, name)
+        return default if value is None else value
+
+    def _on_policy_common(self, defaults: PPOConfig | TRPOConfig | ACKTRConfig) -> dict:
+        """The settings every on-policy algorithm has, each unset one at the algorithm's default."""
+        return {**self._network(defaults), "lr": self._given("lr", defaults.lr),
+                "gae_lambda": self._given("gae_lambda", defaults.gae_lambda),
+                "normalize_advantages": self.normalize_advantages or (defaults.normalize_advantages
+                                                                      and not self.no_normalize_advantages),
+                "lag_correction": self.lag_correction, "is_clip": self.is_clip}
 
     def on_policy(self) -> PPOConfig:
         """PPO's, A2C's or REINFORCE's settings (--algo's), each unset one at that algorithm's default."""
         defaults = PPO_FAMILY[self.algo]
-
-        def given_or_default(name: str):
-            value = getattr(self, name)
-            return getattr(defaults, name) if value is None else value
-
         try:
             return type(defaults)(
-                **self._network(defaults), lr=self._lr(defaults.lr), clip=self.clip,
-                **{name: given_or_default(name) for name in ("epochs", "minibatches", "gae_lambda", "value_coef",
-                                                             "optimizer")},
-                entropy_coef=self.entropy_coef, max_grad_norm=self.max_grad_norm,
-                normalize_advantages=self.normalize_advantages or (defaults.normalize_advantages
-                                                                   and not self.no_normalize_advantages),
-                lag_correction=self.lag_correction, is_clip=self.is_clip)
+                **self._on_policy_common(defaults), clip=self.clip, entropy_coef=self.entropy_coef,
+                max_grad_norm=self.max_grad_norm,
+                **{name: self._given(name, getattr(defaults, name))
+                   for name in ("epochs", "minibatches", "value_coef", "optimizer")})
         except ValueError as e:  # a combination the config refuses
             raise UsageError(str(e)) from None
-
-    def _on_policy_common(self, defaults: TRPOConfig | ACKTRConfig) -> dict:
-        """The settings TRPO and ACKTR share with PPO, each unset one at the algorithm's default."""
-        return {**self._network(defaults), "lr": self._lr(defaults.lr),
-                "max_kl": defaults.max_kl if self.max_kl is None else self.max_kl,
-                "gae_lambda": defaults.gae_lambda if self.gae_lambda is None else self.gae_lambda,
-                "normalize_advantages": not self.no_normalize_advantages, "lag_correction": self.lag_correction,
-                "is_clip": self.is_clip}
 
     def trpo(self) -> TRPOConfig:
         try:
             return TRPOConfig(
-                **self._on_policy_common(TRPO_DEFAULTS), cg_steps=self.cg_steps, cg_damping=self.cg_damping,
-                line_search_shrink=self.line_search_shrink, line_search_steps=self.line_search_steps,
-                value_epochs=self.value_epochs, value_minibatch_size=self.value_minibatch_size)
+                **self._on_policy_common(TRPO_DEFAULTS), max_kl=self._given("max_kl", TRPO_DEFAULTS.max_kl),
+                cg_steps=self.cg_steps, cg_damping=self.cg_damping, line_search_shrink=self.line_search_shrink,
+                line_search_steps=self.line_search_steps, value_epochs=self.value_epochs,
+                value_minibatch_size=self.value_minibatch_size)
         except ValueError as e:  # a combination TRPOConfig refuses
             raise UsageError(str(e)) from None
 
     def acktr(self) -> ACKTRConfig:
         try:
             return ACKTRConfig(
-                **self._on_policy_common(ACKTR_DEFAULTS), momentum=self.momentum, kfac_damping=self.kfac_damping,
-                kfac_decay=self.kfac_decay, value_fisher_coef=self.value_fisher_coef,
-                value_coef=ACKTR_DEFAULTS.value_coef if self.value_coef is None else self.value_coef,
-                entropy_coef=self.entropy_coef)
+                **self._on_policy_common(ACKTR_DEFAULTS), max_kl=self._given("max_kl", ACKTR_DEFAULTS.max_kl),
+                momentum=self.momentum, kfac_damping=self.kfac_damping, kfac_decay=self.kfac_decay,
+                value_fisher_coef=self.value_fisher_coef,
+                value_coef=self._given("value_coef", ACKTR_DEFAULTS.value_coef), entropy_coef=self.entropy_coef)
         except ValueError as e:  # a combination ACKTRConfig refuses
             raise UsageError(str(e)) from None
 
     def td3(self) -> TD3Config:
         try:
             return TD3Config(
-                **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self._lr(TD3_DEFAULTS.actor_lr),
-                critic_lr=self._lr(TD3_DEFAULTS.actor_lr),
+                **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self._given("lr", TD3_DEFAULTS.actor_lr),
+                critic_lr=self._given("lr", TD3_DEFAULTS.critic_lr),
                 update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
                 target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
