@@ -116,3 +116,14 @@ def test_one_world_env_has_the_single_env_api():
     env.reset()
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros(17))
+
+
+def test_reset_options_change_the_difficulty():
+    env = gymnasium.make("l2r/RunWarp-v0", device="cpu")
+    port = gymnasium.make("l2r/Run-v0").unwrapped
+    obs, _ = env.reset(seed=3, options={"difficulty": 2})
+    np.testing.assert_allclose(obs[36:], port.reset(seed=3, options={"difficulty": 2})[0][36:], atol=1e-6)
+    obs, _ = env.reset(options={"difficulty": 0})
+    np.testing.assert_array_equal(obs[36:], [1.0, 1.0, *port_env.NO_OBSTACLE])
+    with pytest.raises(ValueError, match="difficulty"):
+        env.reset(options={"difficulty": 3})

@@ -36,8 +36,9 @@ from l2r.sim.warp import thelen as muscles
 wp.set_module_options({"enable_backward": False})
 
 # Model fields the kernels change per world: per physics step, and per episode (the obstacles).
-PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data",
-                    "geom_pos", "geom_size", "geom_rbound", "geom_aabb")
+# The obstacles' bounds for the broad phase, geom_rbound and geom_aabb, stay shared: MuJoCo Warp
+# builds its broad phase anew for each batch size of those, that is for each number of worlds.
+PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data", "geom_pos", "geom_size")
 
 
 def _ints(x) -> wp.array:
@@ -222,7 +223,6 @@ def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=flo
 @wp.kernel
 def _place_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3), reset: wp.array(dtype=int),
                      geom_pos: wp.array2d(dtype=wp.vec3), geom_size: wp.array2d(dtype=wp.vec3),
-                     geom_rbound: wp.array2d(dtype=float), geom_aabb: wp.array3d(dtype=wp.vec3),
                      geom_xpos: wp.array2d(dtype=wp.vec3)):
     """The obstacle spheres of the worlds being reset at their course's (x, y, radius)."""
     w, i = wp.tid()
@@ -235,8 +235,19 @@ def _place_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec
         size = geom_size[w, g]
         size[0] = r
         geom_size[w, g] = size
-        geom_rbound[w, g] = r
-        geom_aabb[w, g, 1] = wp.vec3(r, r, r)  # the broad phase reads the box, not only rbound
+
+
+@wp.kernel
+def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3), geom_rbound: wp.array2d(dtype=float),
+                     geom_aabb: wp.array3d(dtype=wp.vec3)):
+    """Each obstacle's bounds for the broad phase, shared by the worlds: its largest radius in
+    any world (the narrow phase reads each world's own)."""
+    i = wp.tid()
+    r = float(0.0)
+    for w in range(course.shape[0]):
+        r = wp.max(r, course[w, i][2])
+    geom_rbound[0, geoms[i]] = r
+    geom_aabb[0, geoms[i], 1] = wp.vec3(r, r, r)  # the broad phase reads the box, not only rbound
 
 
 @wp.kernel
@@ -372,8 +383,10 @@ class WarpPhysics:
         reset = wp.array(keys, dtype=int)
         m, d = self.model, self.data
         mjw.reset_data_keyframe(m, d, reset)
-        wp.launch(_place_obstacles, self.obstacles.shape, [self._obstacle_geoms, self.obstacles, reset, m.geom_pos,
-                                                           m.geom_size, m.geom_rbound, m.geom_aabb, d.geom_xpos])
+        obstacles = self._obstacle_geoms
+        wp.launch(_place_obstacles, self.obstacles.shape, [obstacles, self.obstacles, reset, m.geom_pos, m.geom_size,
+                                                           d.geom_xpos])
+        wp.launch(_bound_obstacles, obstacles.shape, [obstacles, self.obstacles, m.geom_rbound, m.geom_aabb])
         self._place()
         mjw.forward(m, d)
         wp.copy(self._acc_sensordata, d.sensordata)
