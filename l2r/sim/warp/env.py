@@ -62,10 +62,9 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self._psoas = [self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT)]
         osim = read_osim(body.OSIM_PATH)
         by_name = {mu.name: mu for mu in osim.muscles}
-        muscle_list = [by_name[n] for n in body.MUSCLES]
-        self._muscle_table = thelen.muscle_parameters(muscle_list)  # before the psoas strengths
         with wp.ScopedDevice(self.device):
-            self._physics = WarpPhysics(m, osim, muscle_list, num_envs, m.keyframe(body.DEFAULT_KEYFRAME).id)
+            self._physics = WarpPhysics(m, osim, [by_name[n] for n in body.MUSCLES], num_envs,
+                                        m.keyframe(body.DEFAULT_KEYFRAME).id)
         self._parked = self._physics.obstacles.numpy()[0].astype(np.float64)  # (x, y, r) of the unused spheres
 
         self.single_action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
@@ -161,9 +160,9 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             self.obstacles[w, :len(course)] = np.reshape(course, (-1, 3))
         physics = self._physics
         physics.obstacles.assign(np.where(np.isnan(self.obstacles), self._parked, self.obstacles).astype(np.float32))
-        params = np.repeat(self._muscle_table[None], self.num_envs, axis=0)
-        params[:, self._psoas, thelen.MAX_FORCE] *= self.psoas
-        physics.params.assign(params.astype(np.float32))
+        strength = np.ones(physics.strength.shape)
+        strength[:, self._psoas] = self.psoas
+        physics.strength.assign(strength.astype(np.float32))
 
     def _observe(self) -> np.ndarray:
         obs = np.empty((self.num_envs, OBS_SIZE), dtype=np.float32)

@@ -51,7 +51,9 @@ def _floats(x, dtype=float) -> wp.array:
 
 @wp.struct
 class Muscles:
-    params: wp.array2d(dtype=muscles.MuscleRow)
+    table: wp.array(dtype=muscles.MuscleRow)  # the muscles' parameters as the model has them
+    strength: wp.array2d(dtype=float)  # per world and muscle: max isometric force over the table's
+    params: wp.array2d(dtype=muscles.MuscleRow)  # per world: the table, strengths applied
     excitation: wp.array2d(dtype=float)
     activation: wp.array2d(dtype=float)
     fiber: wp.array2d(dtype=float)
@@ -252,9 +254,13 @@ def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec
 
 @wp.kernel
 def _equilibrate(mu: Muscles, reset: wp.array(dtype=int)):
-    """Muscles of the worlds being reset at their activation, fibres in equilibrium, still."""
+    """Muscles of the worlds being reset at their strengths and activation, fibres in equilibrium,
+    still."""
     w, i = wp.tid()
     if reset[w] >= 0:
+        row = mu.table[i]
+        row[muscles.MAX_FORCE] *= mu.strength[w, i]
+        mu.params[w, i] = row
         mu.excitation[w, i] = 0.0
         mu.activation[w, i] = thelen.DEFAULT_ACTIVATION
         mu.fiber[w, i] = muscles.equilibrium_fiber_length(mu.activation[w, i], mu.length[w, i], mu.params[w, i])
@@ -265,9 +271,11 @@ class WarpPhysics:
     Warp device, and the launches that advance it with MuJoCo Warp's step.
 
     `model` and `data` are MuJoCo Warp's; the public arrays (world, item) are updated in place:
-    `excitation` is written by the env before `step`, `params` is the muscles' table per world
-    and `obstacles` each world's obstacle spheres as (x, y, radius), at first where the model
-    parks them (the env may change both before resetting a world).
+    `excitation` is written by the env before `step`; `strength` (each muscle's max isometric
+    force as a fraction of the .osim's, 1 at first) and `obstacles` (the obstacle spheres as
+    (x, y, radius), at first where the model parks them) are the next episode's, which the env
+    may write before resetting a world; `params` is the muscles' table per world, strengths
+    applied.
     """
 
     def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int):
@@ -283,6 +291,8 @@ class WarpPhysics:
         switches = PathSwitches(m, muscle_list)
         mu = Muscles()
         table = thelen.muscle_parameters(muscle_list)
+        mu.table = wp.array(table.astype(np.float32), dtype=muscles.MuscleRow)
+        mu.strength = wp.ones((nworld, n), dtype=float)
         mu.params = wp.array(np.broadcast_to(table, (nworld, *table.shape)).astype(np.float32), dtype=muscles.MuscleRow)
         for name in ("excitation", "activation", "fiber", "length", "force"):
             setattr(mu, name, wp.zeros((nworld, n), dtype=float))
@@ -338,6 +348,10 @@ class WarpPhysics:
     @property
     def params(self) -> wp.array:
         return self._muscles.params
+
+    @property
+    def strength(self) -> wp.array:
+        return self._muscles.strength
 
     @property
     def excitation(self) -> wp.array:
