@@ -1,5 +1,5 @@
 """`l2r/RunWarp-v0` (MuJoCo Warp, float32, Warp's CPU device here) against `l2r/Run-v0` (numba,
-float64) driven by the same excitations from the same reset.
+float64) driven by the same excitations from the same reset, on flat ground and with obstacles.
 
 Cost: the first MuJoCo Warp step compiles its kernels, about 4 minutes on a 2-core CPU with an
 empty Warp kernel cache (~/.cache/warp), under a second with a warm one.
@@ -13,6 +13,7 @@ import pytest
 
 import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim import env as port_env
+from l2r.sim import model as body
 from l2r.sim.layout import JOINTS, OBS_LABELS
 from l2r.sim.warp import env as warp_env
 
@@ -53,7 +54,7 @@ def test_warp_worlds_draw_the_ports_obstacles_and_psoas_strengths():
     (observation values 36-37, max forces scaled alike, left_psoas honoured), in the first
     episode and the one the same-step reset begins."""
     port = gymnasium.make("l2r/Run-v0", difficulty=2, left_psoas="iliopsoas_l").unwrapped
-    obstacle_geoms = [port.model.geom(g).id for g in port_env.body.OBSTACLES]
+    obstacle_geoms = [port.model.geom(g).id for g in body.OBSTACLES]
 
     def port_episodes(seed: int) -> list[tuple]:
         """Observation values 36-40, obstacle places and max forces of the port's first two
@@ -79,10 +80,10 @@ def test_warp_worlds_draw_the_ports_obstacles_and_psoas_strengths():
 
 def test_warp_worlds_meet_an_obstacle_as_the_port_does(monkeypatch):
     """A sphere just ahead of the toes (no seed draws one within the feet's reach so soon: every
-    obstacle lies at x >= 1 m): random excitation presses the right toe on it from the second
+    drawn obstacle's centre lies at x >= 1 m): random excitation presses a toe on it from the second
     step to the fourth and takes it off; over 0.1 s the joints stay within 0.01 degrees and the
     pelvis within 0.01 cm of the port's, the obstacle's forces on the feet within 0.1 N of the
-    port's (about 100 N; MuJoCo Warp's contacts in float32 against MuJoCo's in float64)."""
+    port's (up to 200 N; MuJoCo Warp's contacts in float32 against MuJoCo's in float64)."""
     course = [(0.158, 0.02, 0.1), (4.0, 0.0, 0.05), (4.5, 0.0, 0.05)]
     for backend in (port_env, warp_env):
         monkeypatch.setattr(backend, "draw_episode", lambda rng, difficulty: (course, (1.0, 1.0)))

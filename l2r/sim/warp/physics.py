@@ -240,8 +240,8 @@ def _place_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec
 
 
 @wp.kernel
-def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3), geom_rbound: wp.array2d(dtype=float),
-                     geom_aabb: wp.array3d(dtype=wp.vec3)):
+def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3),
+                     geom_rbound: wp.array2d(dtype=float), geom_aabb: wp.array3d(dtype=wp.vec3)):
     """Each obstacle's bounds for the broad phase, shared by the worlds: its largest radius in
     any world (the narrow phase reads each world's own)."""
     i = wp.tid()
