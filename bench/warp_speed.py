@@ -9,8 +9,11 @@ first_step_s: the first `mujoco_warp.step` on the device, kernel compilation inc
 c_steps_per_s: `mujoco.mj_step` on one core, the same model and state.
 warp_N_steps_per_s: physics steps per second summed over N worlds (and per world), on the device.
 env_N_steps_per_s: `l2r/RunWarp-v0` env steps (0.01 s, four physics steps with the muscles,
-    feet, ligaments and knee kernels) per second summed over N worlds, random excitations.
-port_env_steps_per_s: `l2r/Run-v0` (numba, one core) the same way, for comparison.
+    feet, ligaments and knee kernels) per second summed over N worlds, random excitations, at
+    difficulty 0; env_N_difficultyD_steps_per_s: the same at difficulty D (1: three obstacles
+    per world and MuJoCo Warp's contacts on).
+port_env_steps_per_s: `l2r/Run-v0` (numba, one core) the same way, for comparison
+    (port_env_difficultyD_steps_per_s at difficulty D).
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ def env_rate(env_id: str, worlds: int, steps: int, **kwargs) -> float:
     """Env steps per second summed over the worlds, random excitations, resets included."""
     actions = np.random.default_rng(0).uniform(0.0, 1.0, (steps + 1, worlds, 18))
     if worlds == 1 and "device" not in kwargs:
-        env = gymnasium.make(env_id).unwrapped
+        env = gymnasium.make(env_id, **kwargs).unwrapped
         env.reset(seed=0)
         start = time.perf_counter()
         for a in actions[:steps]:
@@ -81,6 +84,11 @@ def env_rate(env_id: str, worlds: int, steps: int, **kwargs) -> float:
     for a in actions[:steps]:
         env.step(a)
     return worlds * steps / (time.perf_counter() - start)
+
+
+def _difficulty(d: int) -> str:
+    """The difficulty's part of a result key: none for 0, the keys of earlier runs."""
+    return f"_difficulty{d}" if d else ""
 
 
 def cpu_model() -> str:
@@ -97,6 +105,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50, help="timed physics steps per world count")
     parser.add_argument("--env-steps", type=int, default=10,
                         help="timed env steps of l2r/RunWarp-v0 per world count (0: skip the env)")
+    parser.add_argument("--difficulties", type=int, nargs="+", default=[0, 1], choices=[0, 1, 2],
+                        help="env difficulties to time (0 flat ground; 1 obstacles, MuJoCo's contacts on)")
     parser.add_argument("--clear-cache", action="store_true",
                         help="empty Warp's kernel cache first, so that first_step_s is a cold compile")
     args = parser.parse_args()
@@ -119,10 +129,12 @@ def main() -> None:
             rate = warp_rate(m, d, n, args.steps)
             result[f"warp_{n}_steps_per_s"] = round(rate)
             result[f"warp_{n}_per_world_steps_per_s"] = round(rate / n, 1)
-        for n in args.worlds if args.env_steps else ():
-            result[f"env_{n}_steps_per_s"] = round(env_rate("l2r/RunWarp-v0", n, args.env_steps, device=args.device), 1)
-    if args.env_steps:
-        result["port_env_steps_per_s"] = round(env_rate("l2r/Run-v0", 1, 2000))
+        for d in args.difficulties if args.env_steps else ():
+            for n in args.worlds:
+                rate = env_rate("l2r/RunWarp-v0", n, args.env_steps, device=args.device, difficulty=d)
+                result[f"env_{n}{_difficulty(d)}_steps_per_s"] = round(rate, 1)
+    for d in args.difficulties if args.env_steps else ():
+        result[f"port_env{_difficulty(d)}_steps_per_s"] = round(env_rate("l2r/Run-v0", 1, 2000, difficulty=d))
     print(json.dumps(result))
 
 

@@ -2,8 +2,8 @@
 
 Importing this package registers `l2r/Run-v0` (MuJoCo), `l2r/RunOpenSim-v0` (the same
 environment on OpenSim 4.6, the 2017 simulator; `pip install 'l2r[opensim]'`) and
-`l2r/RunWarp-v0` (MuJoCo Warp, N worlds at once through `gymnasium.make_vec`, difficulty 0). The
-simulator loads only when an env is made:
+`l2r/RunWarp-v0` (MuJoCo Warp, N worlds at once through `gymnasium.make_vec`). The simulator
+loads only when an env is made:
 
     import gymnasium, l2r.sim
     env = gymnasium.make("l2r/Run-v0", difficulty=2)

@@ -325,7 +325,7 @@ def sensor_gathers(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
 
 def check_arguments(difficulty: Any, left_psoas: Any, max_steps: Any) -> None:
     """ValueError, saying what is wrong, for constructor arguments no backend accepts."""
-    _check_difficulty(difficulty)
+    check_difficulty(difficulty)
     if left_psoas not in LEFT_PSOAS_CHOICES:
         raise ValueError(f"left_psoas must be one of {LEFT_PSOAS_CHOICES}, got {left_psoas!r}")
     if max_steps < 1:
@@ -352,7 +352,7 @@ def start_episode(env: gym.Env, seed: int | None, options: dict | None) -> None:
         seed, env._seed = env._seed, None
     gym.Env.reset(env, seed=seed)
     if options and "difficulty" in options:
-        _check_difficulty(options["difficulty"])
+        check_difficulty(options["difficulty"])
         env.difficulty = options["difficulty"]
     env.obstacles, env.psoas = draw_episode(env.np_random, env.difficulty)
 
@@ -384,7 +384,8 @@ def next_obstacle(obstacles: list[Obstacle], pelvis_x: float) -> Obstacle:
     return NO_OBSTACLE
 
 
-def _check_difficulty(difficulty: Any) -> None:
+def check_difficulty(difficulty: Any) -> None:
+    """ValueError for a difficulty other than 0, 1 or 2."""
     if difficulty not in (0, 1, 2):
         raise ValueError(f"difficulty must be 0, 1 or 2, got {difficulty!r}")
 

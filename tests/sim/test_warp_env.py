@@ -1,5 +1,5 @@
 """`l2r/RunWarp-v0` (MuJoCo Warp, float32, Warp's CPU device here) against `l2r/Run-v0` (numba,
-float64) driven by the same excitations from the same reset.
+float64) driven by the same excitations from the same reset, on flat ground and with obstacles.
 
 Cost: the first MuJoCo Warp step compiles its kernels, about 4 minutes on a 2-core CPU with an
 empty Warp kernel cache (~/.cache/warp), under a second with a warm one.
@@ -12,7 +12,10 @@ import numpy as np
 import pytest
 
 import l2r.sim  # noqa: F401  (registers the environments)
+from l2r.sim import env as port_env
+from l2r.sim import model as body
 from l2r.sim.layout import JOINTS, OBS_LABELS
+from l2r.sim.warp import env as warp_env
 
 STEPS = 20  # 0.2 s
 ANGLES = [OBS_LABELS.index(c) for c in ("pelvis_tilt", *JOINTS)]
@@ -45,6 +48,61 @@ def test_warp_worlds_follow_the_numba_port():
     np.testing.assert_allclose(got, first, atol=1e-6)  # both reset in the step they ended
 
 
+def test_warp_worlds_draw_the_ports_obstacles_and_psoas_strengths():
+    """At difficulty 2 world w's episodes are the port's from seed + w: the same obstacles (the
+    observation's last 3 values, and the spheres where the port puts them) and psoas strengths
+    (observation values 36-37, max forces scaled alike, left_psoas honoured), in the first
+    episode and the one the same-step reset begins."""
+    port = gymnasium.make("l2r/Run-v0", difficulty=2, left_psoas="iliopsoas_l").unwrapped
+    obstacle_geoms = [port.model.geom(g).id for g in body.OBSTACLES]
+
+    def port_episodes(seed: int) -> list[tuple]:
+        """Observation values 36-40, obstacle places and max forces of the port's first two
+        episodes from `seed`."""
+        return [(port.reset(seed=s)[0][36:], port.model.geom_pos[obstacle_geoms].copy(), port.max_isometric_force)
+                for s in (seed, None)]
+
+    expected = [port_episodes(7 + w) for w in range(3)]
+    worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=3, difficulty=2, left_psoas="iliopsoas_l",
+                                max_steps=1, device="cpu")
+    got, _ = worlds.reset(seed=7)
+    for episode in range(2):
+        geom_pos = worlds.unwrapped._physics.model.geom_pos.numpy()[:, obstacle_geoms]
+        forces = worlds.unwrapped.max_isometric_force
+        for w in range(3):
+            obs, places, max_force = expected[w][episode]
+            np.testing.assert_allclose(got[w, 36:], obs, atol=1e-6)
+            np.testing.assert_allclose(geom_pos[w], places, atol=1e-6)
+            np.testing.assert_allclose(forces[w], max_force, rtol=1e-6)
+        assert len({tuple(o) for o in got[:, 36:]}) == 3  # each world drew its own
+        got = worlds.step(np.zeros((3, 18)))[0]  # every world truncated and began its next episode
+
+
+def test_warp_worlds_meet_an_obstacle_as_the_port_does(monkeypatch):
+    """A sphere just ahead of the toes (no seed draws one within the feet's reach so soon: every
+    drawn obstacle's centre lies at x >= 1 m): random excitation presses a toe on it from the second
+    step to the fourth and takes it off; over 0.1 s the joints stay within 0.01 degrees and the
+    pelvis within 0.01 cm of the port's, the obstacle's forces on the feet within 0.1 N of the
+    port's (up to 200 N; MuJoCo Warp's contacts in float32 against MuJoCo's in float64)."""
+    course = [(0.158, 0.02, 0.1), (4.0, 0.0, 0.05), (4.5, 0.0, 0.05)]
+    for backend in (port_env, warp_env):
+        monkeypatch.setattr(backend, "draw_episode", lambda rng, difficulty: (course, (1.0, 1.0)))
+    port = gymnasium.make("l2r/Run-v0", difficulty=1).unwrapped
+    worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=1, difficulty=1, device="cpu")
+    port.reset(seed=0)
+    worlds.reset(seed=0)
+    pressed = []
+    for a in np.random.default_rng(0).uniform(0.0, 1.0, (10, 18)):
+        obs, _, _, _, info = port.step(a)
+        got, _, _, _, got_info = worlds.step(a[None])
+        assert np.degrees(np.abs(got[0, ANGLES] - obs[ANGLES])).max() < 0.01
+        assert 100 * np.abs(got[0, PELVIS] - obs[PELVIS]).max() < 0.01
+        np.testing.assert_allclose(got[0, 38:], obs[38:], atol=1e-5)
+        np.testing.assert_allclose(got_info["contact_force"][0], info["contact_force"], atol=0.1)
+        pressed.append(np.abs(info["contact_force"][:, 2]).max() > 1.0)  # the ground's forces have no z
+    assert pressed[1:4] == [True] * 3 and not any(pressed[4:])  # the toe met the sphere and left it
+
+
 def test_one_world_env_has_the_single_env_api():
     env = gymnasium.make("l2r/RunWarp-v0", max_steps=2, device="cpu")
     obs, _ = env.reset(seed=0)
@@ -59,3 +117,14 @@ def test_one_world_env_has_the_single_env_api():
     env.reset()
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros(17))
+
+
+def test_reset_options_change_the_difficulty():
+    env = gymnasium.make("l2r/RunWarp-v0", device="cpu")
+    port = gymnasium.make("l2r/Run-v0").unwrapped
+    obs, _ = env.reset(seed=3, options={"difficulty": 2})
+    np.testing.assert_allclose(obs[36:], port.reset(seed=3, options={"difficulty": 2})[0][36:], atol=1e-6)
+    obs, _ = env.reset(options={"difficulty": 0})
+    np.testing.assert_array_equal(obs[36:], [1.0, 1.0, *port_env.NO_OBSTACLE])
+    with pytest.raises(ValueError, match="difficulty"):
+        env.reset(options={"difficulty": 3})

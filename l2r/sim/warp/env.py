@@ -6,9 +6,14 @@ num_envs=N)` gives `RunWarpVectorEnv`, which resets a finished world in the same
 observation is the new episode's first; `info["final_obs"]` holds the last); `gymnasium.make(ID)`
 gives `RunWarpEnv`, one world with the single-env API.
 
-Only difficulty 0 (flat ground) so far: the obstacles need per-world geoms and MuJoCo Warp's
-contacts. A world whose state turns non-finite ends its episode with reward 0 and
-`info["diverged"]` (MuJoCo Warp resets no world on its own and counts no warnings per world).
+Difficulties 1 and 2 draw each world's obstacles and psoas strengths as `l2r/Run-v0` does, from
+a generator per world seeded as gymnasium seeds a vector env's worlds (world w: seed + w), so a
+world's episodes are those of `RunEnv` reset with that seed. The obstacles are the model's three
+sphere geoms in each world's row of MuJoCo Warp's per-world geom fields, met through MuJoCo
+Warp's contacts (on at difficulties 1 and 2, off at 0 as in the port); their forces on the feet
+come from MuJoCo Warp's contact sensors, as the port's from MuJoCo's. A world whose state turns
+non-finite ends its episode with reward 0 and `info["diverged"]` (MuJoCo Warp resets no world on
+its own and counts no warnings per world).
 """
 
 from __future__ import annotations
@@ -21,8 +26,10 @@ import numpy as np
 import warp as wp
 
 from l2r.sim import model as body
-from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, STEP_SECONDS,
-                         check_arguments, sensor_gathers, with_sensors)
+from l2r.sim import thelen
+from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, NUM_OBSTACLES,
+                         PSOAS_RIGHT, STEP_SECONDS, check_arguments, check_difficulty, draw_episode, sensor_gathers,
+                         with_sensors)
 from l2r.sim.layout import OBS_SIZE
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.opensim import read_osim
@@ -33,7 +40,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
     """`num_envs` runners stepped together on a Warp device.
 
     device: a Warp device ("cpu", "cuda", "cuda:1"); None takes Warp's default (a GPU when there
-        is one). The other arguments are `RunEnv`'s; difficulty must be 0.
+        is one). The other arguments are `RunEnv`'s (no `randomize`).
     """
 
     metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
@@ -41,24 +48,24 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
     def __init__(self, num_envs: int = 1, difficulty: int = 0, seed: int | None = None,
                  left_psoas: str = "glut_max_l", max_steps: int = MAX_STEPS, device: str | None = None):
         check_arguments(difficulty, left_psoas, max_steps)
-        if difficulty != 0:
-            raise ValueError(f"l2r/RunWarp-v0 runs difficulty 0 only (no obstacles yet), got {difficulty}")
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
         self.num_envs, self.difficulty, self.max_steps, self._seed = num_envs, difficulty, max_steps, seed
+        self.left_psoas = left_psoas
         self.device = wp.get_device(device)
         m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
-        m.opt.disableflags |= NO_CONTACTS  # no obstacles: nothing MuJoCo could find to collide
         self.substeps = round(STEP_SECONDS / m.opt.timestep)
-        self._obs_gather, _ = sensor_gathers(m)
+        self._obs_gather, self._obstacle_contact = sensor_gathers(m)
         self._x_adr, self._y_adr = (int(m.joint(c).qposadr[0]) for c in ("pelvis_tx", "pelvis_ty"))
         self.muscle_names, self.ligament_names = tuple(body.MUSCLES), LIGAMENTS
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))  # the rows of info["body_pos"]
+        self._psoas = [self.muscle_names.index(left_psoas), self.muscle_names.index(PSOAS_RIGHT)]
         osim = read_osim(body.OSIM_PATH)
         by_name = {mu.name: mu for mu in osim.muscles}
         with wp.ScopedDevice(self.device):
             self._physics = WarpPhysics(m, osim, [by_name[n] for n in body.MUSCLES], num_envs,
                                         m.keyframe(body.DEFAULT_KEYFRAME).id)
+        self._parked = self._physics.obstacles.numpy()[0].astype(np.float64)  # (x, y, r) of the unused spheres
 
         self.single_action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_SIZE,), dtype=np.float32)
@@ -66,13 +73,39 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)
         self._steps = np.zeros(num_envs, dtype=np.int64)
         self._x = np.zeros(num_envs)
+        self._rngs: list[np.random.Generator] = []  # each world's, for its episodes' draws
+        # This episode's obstacles (world, obstacle, (x, y, r)), sorted by x, NaN where there is
+        # none, and psoas strengths (world, (left, right)).
+        self.obstacles = np.full((num_envs, NUM_OBSTACLES, 3), np.nan)
+        self.psoas = np.ones((num_envs, 2))
+
+    @property
+    def max_isometric_force(self) -> np.ndarray:
+        """Each world's max isometric forces (N) this episode, psoas strengths applied, (world, muscle)."""
+        return self._physics.params.numpy()[:, :, thelen.MAX_FORCE].astype(np.float64)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        """Every world from the default pose at rest (difficulty 0 draws nothing: no obstacles,
-        psoas strengths 1)."""
+        """Every world from the default pose at rest, with a new obstacle course and psoas
+        strengths. seed: an int seeds world w with seed + w, a list one seed per world; None
+        (after the constructor's seed) goes on with each world's generator.
+
+        options: {"difficulty": 0|1|2} changes every world's difficulty from this episode on.
+        """
         if seed is None:
             seed, self._seed = self._seed, None
-        super().reset(seed=seed if not isinstance(seed, list) else seed[0])
+        seeds = seed if isinstance(seed, list) else [None if seed is None else seed + w for w in range(self.num_envs)]
+        if len(seeds) != self.num_envs:
+            raise ValueError(f"reset(seed=...) takes one seed per world ({self.num_envs}); got {len(seeds)}")
+        super().reset(seed=seeds[0])
+        if seed is not None or not self._rngs:
+            self._rngs = [gym.utils.seeding.np_random(s)[0] for s in seeds]
+        if options and "difficulty" in options:
+            check_difficulty(options["difficulty"])
+            self.difficulty = options["difficulty"]
+        # Contacts only where there are obstacles: collision detection could find nothing else.
+        opt = self._physics.model.opt
+        opt.disableflags = opt.disableflags | NO_CONTACTS if self.difficulty == 0 else opt.disableflags & ~NO_CONTACTS
+        self._draw_episodes(range(self.num_envs))
         with wp.ScopedDevice(self.device):
             self._physics.reset()
         self._steps[:] = 0
@@ -108,6 +141,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             info["final_obs"], info["final_info"] = obs.copy(), dict(info)
             info["_final_obs"] = info["_final_info"] = done  # which worlds' entries hold a last state
             worlds = np.flatnonzero(done)
+            self._draw_episodes(worlds)
             with wp.ScopedDevice(self.device):
                 physics.reset(worlds)
             self._steps[worlds] = 0
@@ -116,19 +150,34 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             obs[worlds] = self._observe()[worlds]
         return obs, reward, terminated, truncated, info
 
+    def _draw_episodes(self, worlds) -> None:
+        """The next episode's obstacles and psoas strengths of the worlds named, each drawn from
+        its world's generator as `RunEnv` draws them, into the physics' per-world arrays (which
+        the worlds take when reset)."""
+        for w in worlds:
+            course, self.psoas[w] = draw_episode(self._rngs[w], self.difficulty)
+            self.obstacles[w] = np.nan
+            self.obstacles[w, :len(course)] = np.reshape(course, (-1, 3))
+        physics = self._physics
+        physics.obstacles.assign(np.where(np.isnan(self.obstacles), self._parked, self.obstacles).astype(np.float32))
+        strength = np.ones(physics.strength.shape)
+        strength[:, self._psoas] = self.psoas
+        physics.strength.assign(strength.astype(np.float32))
+
     def _observe(self) -> np.ndarray:
         obs = np.empty((self.num_envs, OBS_SIZE), dtype=np.float32)
         obs[:, :36] = self._physics.data.sensordata.numpy()[:, self._obs_gather]
-        obs[:, 36:38] = 1.0  # psoas strengths (left, right): drawn at difficulty 2 only
-        obs[:, 38:] = NO_OBSTACLE
+        obs[:, 36:38] = self.psoas
+        obs[:, 38:] = next_obstacles(self.obstacles, self._x)
         return obs
 
     def _info(self, qpos: np.ndarray) -> dict[str, Any]:
         physics = self._physics
-        ground = physics.ground_force.numpy().astype(np.float64)
-        contact = np.zeros((self.num_envs, len(body.CONTACT_SPHERES), 3))
-        contact[:, :, :2] = ground
         data = physics.data
+        # The sensors report the force each sphere exerts on the obstacles; the force on it is the opposite.
+        contact = -physics.acc_sensordata.numpy()[:, self._obstacle_contact].astype(np.float64)
+        contact = contact.reshape(self.num_envs, len(body.CONTACT_SPHERES), 3)
+        contact[:, :, :2] += physics.ground_force.numpy()
         return {
             "distance": qpos[:, self._x_adr].astype(np.float64),
             "body_pos": data.xpos.numpy().astype(np.float64),
@@ -175,6 +224,17 @@ class RunWarpEnv(gym.Env):
         if done:  # the vector env has already begun the next episode: report the last state
             obs, info = info["final_obs"], info["final_info"]
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), _world(info, 0)
+
+
+def next_obstacles(obstacles: np.ndarray, pelvis_x: np.ndarray) -> np.ndarray:
+    """`next_obstacle` of each world: obstacles (world, obstacle, (x, y, r)) sorted by x, NaN
+    rows where there is none; (x - pelvis x, y, r) of the first not behind the pelvis, or
+    `NO_OBSTACLE`."""
+    ahead = obstacles[:, :, 0] + obstacles[:, :, 2] >= pelvis_x[:, None]  # False for NaN rows
+    found = ahead.any(axis=1)
+    nearest = obstacles[np.arange(len(obstacles)), ahead.argmax(axis=1)]
+    nearest[:, 0] -= pelvis_x
+    return np.where(found[:, None], nearest, NO_OBSTACLE)
 
 
 def _world(info: dict[str, Any], w: int) -> dict[str, Any]:

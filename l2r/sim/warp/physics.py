@@ -8,7 +8,8 @@ kinematics the next step and the observation read. The arrays are float32 (MuJoC
 tables the numba modules build.
 
 Per-world model fields that the kernels write (moving sites, actuator bias, ligament damping,
-knee couplings) are batched in the MuJoCo Warp model (`put_model`'s batch_sizes).
+knee couplings, the obstacles' places and sizes) are batched in the MuJoCo Warp model
+(`put_model`'s batch_sizes).
 """
 
 from __future__ import annotations
@@ -34,8 +35,10 @@ from l2r.sim.warp import thelen as muscles
 
 wp.set_module_options({"enable_backward": False})
 
-# Model fields the kernels change per world.
-PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data")
+# Model fields the kernels change per world: per physics step, and per episode (the obstacles).
+# The obstacles' bounds for the broad phase, geom_rbound and geom_aabb, stay shared: MuJoCo Warp
+# builds its broad phase anew for each batch size of those, that is for each number of worlds.
+PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data", "geom_pos", "geom_size")
 
 
 def _ints(x) -> wp.array:
@@ -48,7 +51,9 @@ def _floats(x, dtype=float) -> wp.array:
 
 @wp.struct
 class Muscles:
-    params: wp.array2d(dtype=muscles.MuscleRow)
+    table: wp.array(dtype=muscles.MuscleRow)  # the muscles' parameters as the model has them
+    strength: wp.array2d(dtype=float)  # per world and muscle: max isometric force over the table's
+    params: wp.array2d(dtype=muscles.MuscleRow)  # per world: the table, strengths applied
     excitation: wp.array2d(dtype=float)
     activation: wp.array2d(dtype=float)
     fiber: wp.array2d(dtype=float)
@@ -218,10 +223,44 @@ def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=flo
 
 
 @wp.kernel
-def _equilibrate(mu: Muscles, reset: wp.array(dtype=int)):
-    """Muscles of the worlds being reset at their activation, fibres in equilibrium, still."""
+def _place_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3), reset: wp.array(dtype=int),
+                     geom_pos: wp.array2d(dtype=wp.vec3), geom_size: wp.array2d(dtype=wp.vec3),
+                     geom_xpos: wp.array2d(dtype=wp.vec3)):
+    """The obstacle spheres of the worlds being reset at their course's (x, y, radius)."""
     w, i = wp.tid()
     if reset[w] >= 0:
+        g = geoms[i]
+        x, y, r = course[w, i][0], course[w, i][1], course[w, i][2]
+        geom_pos[w, g] = wp.vec3(x, y, 0.0)
+        # MuJoCo Warp places geoms of the world body once, in put_data, not in its kinematics.
+        geom_xpos[w, g] = wp.vec3(x, y, 0.0)
+        size = geom_size[w, g]
+        size[0] = r
+        geom_size[w, g] = size
+
+
+@wp.kernel
+def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3),
+                     geom_rbound: wp.array2d(dtype=float), geom_aabb: wp.array3d(dtype=wp.vec3)):
+    """Each obstacle's bounds for the broad phase, shared by the worlds: its largest radius in
+    any world (the narrow phase reads each world's own)."""
+    i = wp.tid()
+    r = float(0.0)
+    for w in range(course.shape[0]):
+        r = wp.max(r, course[w, i][2])
+    geom_rbound[0, geoms[i]] = r
+    geom_aabb[0, geoms[i], 1] = wp.vec3(r, r, r)  # the broad phase reads the box, not only rbound
+
+
+@wp.kernel
+def _equilibrate(mu: Muscles, reset: wp.array(dtype=int)):
+    """Muscles of the worlds being reset at their strengths and activation, fibres in equilibrium,
+    still."""
+    w, i = wp.tid()
+    if reset[w] >= 0:
+        row = mu.table[i]
+        row[muscles.MAX_FORCE] *= mu.strength[w, i]
+        mu.params[w, i] = row
         mu.excitation[w, i] = 0.0
         mu.activation[w, i] = thelen.DEFAULT_ACTIVATION
         mu.fiber[w, i] = muscles.equilibrium_fiber_length(mu.activation[w, i], mu.length[w, i], mu.params[w, i])
@@ -232,8 +271,11 @@ class WarpPhysics:
     Warp device, and the launches that advance it with MuJoCo Warp's step.
 
     `model` and `data` are MuJoCo Warp's; the public arrays (world, item) are updated in place:
-    `excitation` is written by the env before `step`, `params` is the muscles' table per world
-    (the env may scale it before resetting a world).
+    `excitation` is written by the env before `step`; `strength` (each muscle's max isometric
+    force as a fraction of the .osim's, 1 at first) and `obstacles` (the obstacle spheres as
+    (x, y, radius), at first where the model parks them) are the next episode's, which the env
+    may write before resetting a world; `params` is the muscles' table per world, strengths
+    applied.
     """
 
     def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int):
@@ -243,11 +285,14 @@ class WarpPhysics:
         mujoco.mj_forward(m, d)
         self.model = mjw.put_model(m, batch_sizes={f: nworld for f in PER_WORLD_FIELDS})
         self.data = mjw.put_data(m, d, nworld=nworld)
+        self._acc_sensordata = wp.zeros_like(self.data.sensordata)
         n = len(muscle_list)
 
         switches = PathSwitches(m, muscle_list)
         mu = Muscles()
         table = thelen.muscle_parameters(muscle_list)
+        mu.table = wp.array(table.astype(np.float32), dtype=muscles.MuscleRow)
+        mu.strength = wp.ones((nworld, n), dtype=float)
         mu.params = wp.array(np.broadcast_to(table, (nworld, *table.shape)).astype(np.float32), dtype=muscles.MuscleRow)
         for name in ("excitation", "activation", "fiber", "length", "force"):
             setattr(mu, name, wp.zeros((nworld, n), dtype=float))
@@ -294,10 +339,19 @@ class WarpPhysics:
         self._equality, self._knee = _ints(coupling.equality), _ints(coupling.knee)
         self._projection = knees.Projection(coupling, nworld, m.nv)
 
+        obstacles = [m.geom(g).id for g in body.OBSTACLES]
+        self._obstacle_geoms = _ints(obstacles)
+        course = np.column_stack([m.geom_pos[obstacles, :2], m.geom_size[obstacles, 0]])
+        self.obstacles = wp.array(np.broadcast_to(course, (nworld, *course.shape)).astype(np.float32), dtype=wp.vec3)
+
     # The state the env reads, (world, item) arrays on the device.
     @property
     def params(self) -> wp.array:
         return self._muscles.params
+
+    @property
+    def strength(self) -> wp.array:
+        return self._muscles.strength
 
     @property
     def excitation(self) -> wp.array:
@@ -327,6 +381,12 @@ class WarpPhysics:
     def ligament_force(self) -> wp.array:
         return self._ligaments.force
 
+    @property
+    def acc_sensordata(self) -> wp.array:
+        """`data.sensordata` as the last step2 (or reset) left it: its acceleration-stage sensors,
+        the contact forces, as MuJoCo reports them after a step (MuJoCo Warp's step1 zeroes them)."""
+        return self._acc_sensordata
+
     def reset(self, worlds: np.ndarray | None = None) -> None:
         """Put the worlds named (all by default) in the keyframe's pose at rest, muscles as
         OpenSim starts them. The other worlds keep their state (MuJoCo Warp's forward pass runs
@@ -337,8 +397,13 @@ class WarpPhysics:
         reset = wp.array(keys, dtype=int)
         m, d = self.model, self.data
         mjw.reset_data_keyframe(m, d, reset)
+        obstacles = self._obstacle_geoms
+        wp.launch(_place_obstacles, self.obstacles.shape, [obstacles, self.obstacles, reset, m.geom_pos, m.geom_size,
+                                                           d.geom_xpos])
+        wp.launch(_bound_obstacles, obstacles.shape, [obstacles, self.obstacles, m.geom_rbound, m.geom_aabb])
         self._place()
         mjw.forward(m, d)
+        wp.copy(self._acc_sensordata, d.sensordata)
         self._read_state()  # the muscle lengths of the new pose
         wp.launch(_equilibrate, self._muscles.excitation.shape, [self._muscles, reset])
         self._read_state()
@@ -346,10 +411,12 @@ class WarpPhysics:
     def step(self, substeps: int) -> None:
         """Hold `excitation` over `substeps` physics steps in every world."""
         m, d = self.model, self.data
-        for _ in range(substeps):
+        for substep in range(substeps):
             self._drive()
             mjw.transmission(m, d)  # the contact sites moved: their actuators' moment arms
             mjw.step2(m, d)
+            if substep == substeps - 1:
+                wp.copy(self._acc_sensordata, d.sensordata)
             self._projection(m, d)
             self._place()
             mjw.step1(m, d)
