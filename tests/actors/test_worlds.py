@@ -1,0 +1,104 @@
+"""The worlds an actor steps: a list of single envs and a gymnasium VectorEnv give the actor the
+same episodes and the same experience chunks."""
+
+from __future__ import annotations
+
+import dataclasses
+import uuid
+
+import gymnasium
+import numpy as np
+import pytest
+import zenoh
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+from l2r.actors.actor import Actor, ActorConfig
+from l2r.actors.worlds import EnvList, VectorWorlds
+from l2r.protocol import Keys, decode, encode, session_config
+from tests.conftest import free_port, wait_for
+
+FALLER = "tests.actors.standin:Faller-v0"
+
+
+class Counter(gymnasium.Env):
+    """Counts its steps, one reward each; falls (terminated) at step ``length``. Draws nothing."""
+
+    observation_space = gymnasium.spaces.Box(0.0, np.inf, (1,), np.float32)
+    action_space = gymnasium.spaces.Box(0.0, 1.0, (1,), np.float32)
+
+    def __init__(self, length: int):
+        self.length, self.t = length, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(1, np.float32), {"distance": 0.0}
+
+    def step(self, action):
+        self.t += 1
+        return np.full(1, self.t, np.float32), 1.0, self.t >= self.length, False, {"distance": float(self.t)}
+
+
+def counters(mode: AutoresetMode) -> SyncVectorEnv:
+    return SyncVectorEnv([lambda: Counter(3), lambda: Counter(5)], autoreset_mode=mode)
+
+
+def test_a_repeated_action_ends_an_episode_where_it_ends_and_the_next_begins_after_the_repeats():
+    """Two worlds falling at steps 3 and 5, each action taken twice: the reward is summed up to
+    the fall, the fall's observation and info are the episode's last, and the next episode
+    starts where the world's left-over repeat took it (the env reset it in that repeat)."""
+    worlds = VectorWorlds(counters(AutoresetMode.SAME_STEP), repeat=2)
+    assert [obs[0] for obs, _ in worlds.reset([7, 8], None)] == [0.0, 0.0]
+    actions = np.zeros((2, 1), np.float32)
+    assert [(s[0][0], s[1], s[2], s[4]["inner_steps"]) for s in worlds.step(actions)] == [(2, 2, False, 2)] * 2
+    fell, running = worlds.step(actions)
+    assert (fell[0][0], fell[1], fell[2], fell[3], fell[4]["distance"], fell[4]["inner_steps"]) == (3, 1, True, False, 3, 1)
+    assert (running[0][0], running[1], running[2]) == (4, 2, False)
+    obs, info = worlds.reset_world(0, 9, None)
+    assert obs[0] == 1.0 and info["distance"] == 1.0
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.SAME_STEP, AutoresetMode.DISABLED])
+def test_a_vector_env_steps_its_worlds_as_the_single_envs_step(mode):
+    single, vector = EnvList([Counter(3), Counter(5)]), VectorWorlds(counters(mode))
+    assert [o[0] for o, _ in single.reset([1, 2], None)] == [o[0] for o, _ in vector.reset([1, 2], None)]
+    for _ in range(12):
+        steps = single.step(np.zeros((2, 1), np.float32))
+        assert [s[:4] for s in steps] == [s[:4] for s in vector.step(np.zeros((2, 1), np.float32))]
+        for i, (_, _, terminated, truncated, _) in enumerate(steps):
+            if terminated or truncated:
+                assert single.reset_world(i, i, None)[0] == vector.reset_world(i, i, None)[0]
+
+
+def test_an_unfit_autoreset_mode_is_refused():
+    with pytest.raises(ValueError, match="autoreset mode"):
+        VectorWorlds(counters(AutoresetMode.NEXT_STEP))
+
+
+def sent(config: ActorConfig, steps: int) -> tuple[list[bytes], list]:
+    """The chunks (their epoch, the process's start, set to 0) and episode summaries (time 0)
+    that an actor of ``config`` sends in ``steps`` steps."""
+    with zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{free_port()}"])) as session:
+        keys, chunks, episodes = Keys(config.run), [], []
+        session.declare_subscriber(keys.experience_of_shard(0), lambda s: chunks.append(decode(s.payload)))
+        session.declare_subscriber(keys.all_episodes, lambda s: episodes.append(decode(s.payload)))
+        actor = Actor(config, session)
+        for _ in range(steps):
+            actor.step()
+        actor.close()
+        assert wait_for(lambda: len(chunks) == actor.chunks_sent and len(episodes) == actor.episodes)
+    return ([encode(dataclasses.replace(c, epoch=0)) for c in chunks],
+            [dataclasses.replace(e, time=0.0) for e in episodes])
+
+
+def test_an_actor_on_a_vector_env_sends_the_chunks_and_episodes_of_one_on_single_envs():
+    """Falls and time limits within repeated actions, each episode on its own seed, final
+    observations: the same bytes whether the actor steps a list of envs or a SyncVectorEnv of them
+    (resetting its worlds itself, with their seeds)."""
+    config = ActorConfig(run=f"test-worlds-{uuid.uuid4().hex[:8]}", env_id=FALLER, num_envs=3, action_repeat=3,
+                         chunk_size=8, chunk_delay=60.0, resend_buffer_mb=0, max_speed=0.0)
+    chunks, episodes = sent(dataclasses.replace(config, vector_env=False), 40)
+    assert len(episodes) >= 10 and {e.env_id for e in episodes} == {0, 1, 2}
+    assert len({e.seed for e in episodes}) == len(episodes)
+    assert {e.length for e in episodes} >= {40} and min(e.length for e in episodes) < 40  # truncated, and falls
+    assert sent(dataclasses.replace(config, vector_env=True), 40) == (chunks, episodes)
