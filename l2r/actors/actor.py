@@ -657,9 +657,10 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
             actor = Actor(config, session)
         except ObservationError as e:
             raise StartupFailure(str(e)) from None
-        log.info("%s %d up: %d x %s (difficulty %d, action repeat %d), run %r", config.role,
-                 config.actor_id, config.num_envs, config.env_id, config.difficulty,
-                 config.action_repeat, config.run)
+        log.info("%s %d up: %d x %s%s (difficulty %d, action repeat %d), run %r", config.role,
+                 config.actor_id, config.num_envs, config.env_id,
+                 f" as one vector env on {config.device}" if isinstance(actor.worlds, VectorWorlds) else "",
+                 config.difficulty, config.action_repeat, config.run)
         next_stats = 0.0
         waited_since = None
         try:

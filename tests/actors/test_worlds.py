@@ -4,6 +4,9 @@ same episodes and the same experience chunks."""
 from __future__ import annotations
 
 import dataclasses
+import signal
+import subprocess
+import sys
 import uuid
 
 import gymnasium
@@ -15,7 +18,7 @@ from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from l2r.actors.actor import Actor, ActorConfig
 from l2r.actors.worlds import EnvList, VectorWorlds
 from l2r.protocol import Keys, decode, encode, session_config
-from tests.conftest import free_port, wait_for
+from tests.conftest import ROOT, free_port, wait_for
 
 FALLER = "tests.actors.standin:Faller-v0"
 
@@ -102,3 +105,46 @@ def test_an_actor_on_a_vector_env_sends_the_chunks_and_episodes_of_one_on_single
     assert len({e.seed for e in episodes}) == len(episodes)
     assert {e.length for e in episodes} >= {40} and min(e.length for e in episodes) < 40  # truncated, and falls
     assert sent(dataclasses.replace(config, vector_env=True), 40) == (chunks, episodes)
+
+
+@pytest.mark.slow
+def test_an_actor_steps_runwarp_worlds_in_one_call_and_its_replay_shard_stores_their_chunks(tmp_path):
+    """A real actor on l2r/RunWarp-v0 (Warp's CPU device, its kernels cached on disk by make
+    setup) feeding a real replay shard: the worlds' chunks are stored without gaps, and their
+    episodes end with the runner's lengths and distances."""
+    keys = Keys(f"test-warp-actor-{uuid.uuid4().hex[:8]}")
+    replay = f"tcp/127.0.0.1:{free_port()}"
+    logs = {name: tmp_path / f"{name}.log" for name in ("replay", "actor")}
+    with open(logs["replay"], "wb") as out:
+        procs = [subprocess.Popen([sys.executable, "-m", "l2r.replay", "--run", keys.run, "--listen", replay,
+                                   "--capacity", "100000", "--min-size", "1", "--stats-interval", "0.3"],
+                                  cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)]
+    stats, episodes = {}, []
+
+    def text() -> str:
+        return "\n".join(f"--- {name}\n{path.read_text()[-3000:]}" for name, path in logs.items() if path.exists())
+
+    try:
+        with zenoh.open(session_config(connect=[replay])) as session:
+            session.declare_subscriber(keys.all_stats, lambda s: stats.update({str(s.key_expr): decode(s.payload).values}))
+            session.declare_subscriber(keys.all_episodes, lambda s: episodes.append(decode(s.payload)))
+            assert wait_for(lambda: keys.stats("replay", 0) in stats, 30), text()
+            with open(logs["actor"], "wb") as out:
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "l2r.actors", "--run", keys.run, "--connect", replay,
+                     "--env-id", "l2r/RunWarp-v0", "--num-envs", "3", "--chunk-size", "16", "--stats-interval", "0.3",
+                     "--random-steps", "100000", "--device", "cpu"], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT))
+            assert wait_for(lambda: episodes, 180), f"{stats}\n{text()}"
+            actor = stats[keys.stats("actor", 0)]
+            assert wait_for(lambda: stats[keys.stats("replay", 0)]["inserted"] >= 16 * 3, 30), f"{stats}\n{text()}"
+            shard = stats[keys.stats("replay", 0)]
+    finally:
+        for proc in reversed(procs):
+            proc.send_signal(signal.SIGTERM)
+        for proc in reversed(procs):
+            assert proc.wait(timeout=30) == 0, text()
+    assert "3 x l2r/RunWarp-v0 as one vector env on cpu" in logs["actor"].read_text()
+    assert actor["num_envs"] == 3 and actor["blowups"] == 0
+    assert shard["gaps"] == 0 and shard["rejected"] == 0
+    for e in episodes:  # random excitations: the runner falls within a second or two, near where it stood
+        assert 0 < e.length < 1000 and abs(e.distance) < 2.0, e
