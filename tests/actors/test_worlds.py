@@ -24,7 +24,7 @@ FALLER = "tests.actors.standin:Faller-v0"
 
 
 class Counter(gymnasium.Env):
-    """Counts its steps, one reward each; falls (terminated) at step ``length``. Draws nothing."""
+    """Counts its steps, one reward each; falls (terminated, `info["fell"]`) at step ``length``. Draws nothing."""
 
     observation_space = gymnasium.spaces.Box(0.0, np.inf, (1,), np.float32)
     action_space = gymnasium.spaces.Box(0.0, 1.0, (1,), np.float32)
@@ -39,7 +39,8 @@ class Counter(gymnasium.Env):
 
     def step(self, action):
         self.t += 1
-        return np.full(1, self.t, np.float32), 1.0, self.t >= self.length, False, {"distance": float(self.t)}
+        fell = self.t >= self.length
+        return np.full(1, self.t, np.float32), 1.0, fell, False, {"distance": float(self.t), **({"fell": True} if fell else {})}
 
 
 def counters(mode: AutoresetMode) -> SyncVectorEnv:
@@ -66,8 +67,8 @@ def test_a_vector_env_steps_its_worlds_as_the_single_envs_step(mode):
     single, vector = EnvList([Counter(3), Counter(5)]), VectorWorlds(counters(mode))
     assert [o[0] for o, _ in single.reset([1, 2], None)] == [o[0] for o, _ in vector.reset([1, 2], None)]
     for _ in range(12):
-        steps = single.step(np.zeros((2, 1), np.float32))
-        assert [s[:4] for s in steps] == [s[:4] for s in vector.step(np.zeros((2, 1), np.float32))]
+        steps, vector_steps = single.step(np.zeros((2, 1), np.float32)), vector.step(np.zeros((2, 1), np.float32))
+        assert [(s[0][0], *s[1:]) for s in steps] == [(s[0][0], *s[1:]) for s in vector_steps]  # infos too
         for i, (_, _, terminated, truncated, _) in enumerate(steps):
             if terminated or truncated:
                 assert single.reset_world(i, i, None)[0] == vector.reset_world(i, i, None)[0]
