@@ -141,7 +141,7 @@ class ActorSettings(DaemonSettings):
     @property
     def native_vector_env(self) -> bool:
         """Whether the actor steps the env id's own vector env (a training actor, --vector-env not off)."""
-        return (not self.evaluate and self.vector_env != "off" and registers_vector_env(self.env_id))
+        return not self.evaluate and self.vector_env != "off" and registers_vector_env(self.env_id)
 
     def actor(self) -> ActorConfig:
         episode_log = {}

@@ -15,8 +15,10 @@ import pytest
 import zenoh
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
+from l2r.actors.__main__ import parse_settings
 from l2r.actors.actor import Actor, ActorConfig
 from l2r.actors.worlds import EnvList, VectorWorlds
+from l2r.config import UsageError
 from l2r.protocol import Keys, decode, encode, session_config
 from tests.conftest import ROOT, free_port, wait_for
 
@@ -149,3 +151,11 @@ def test_an_actor_steps_runwarp_worlds_in_one_call_and_its_replay_shard_stores_t
     assert shard["gaps"] == 0 and shard["rejected"] == 0
     for e in episodes:  # random excitations: the runner falls within a second or two, near where it stood
         assert 0 < e.length < 1000 and abs(e.distance) < 2.0, e
+
+
+@pytest.mark.parametrize("flags", [["--observation-noise", "0.1"], ["--action-noise", "0.1"],
+                                   ["--difficulty-schedule", "0:0,100:1"]])
+def test_what_l2r_runwarp_s_own_vector_env_cannot_take_is_refused_with_the_way_out(flags):
+    with pytest.raises(UsageError, match="add --vector-env off"):
+        parse_settings(["--env-id", "l2r/RunWarp-v0", *flags])
+    assert parse_settings(["--env-id", "l2r/RunWarp-v0", "--vector-env", "off", *flags]).actor().vector_env is False
