@@ -447,7 +447,8 @@ class Actor:
         score = score_of(self.config.env_id)
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
-            results = run_deterministic(self.weights.policy, self.worlds.envs[:len(seeds)], seeds, stop,
+            envs = self.worlds.envs[:len(seeds)]  # an evaluator's worlds are single envs (`uses_vector_env`)
+            results = run_deterministic(self.weights.policy, envs, seeds, stop,
                                         self.record_evaluation if self.episode_logger is not None else None,
                                         self.config.max_speed, self.weights.frame_stack, self.config.env_id)
             for env_index, (seed, result) in enumerate(zip(seeds, results)):

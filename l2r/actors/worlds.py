@@ -32,10 +32,8 @@ Step = tuple[Any, float, bool, bool, dict]  # one world's observation, reward, t
 class Worlds(Protocol):
     """The worlds one actor steps in lock-step."""
 
-    num_worlds: int
     action_space: gymnasium.Space  # one world's
     observation_space: gymnasium.Space  # one world's
-    takes_seeds: bool  # whether reset_world starts the episode from the seed it is given
 
     def reset(self, seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
         """Start every world's first episode, world i's from seeds[i]; each world's (observation, info)."""
@@ -56,11 +54,8 @@ class Worlds(Protocol):
 class EnvList:
     """Single envs, each with the actor's wrappers (action repeat, noise), stepped one by one."""
 
-    takes_seeds = True
-
     def __init__(self, envs: list[gymnasium.Env]):
         self.envs = envs
-        self.num_worlds = len(envs)
         self.action_space, self.observation_space = envs[0].action_space, envs[0].observation_space
 
     def reset(self, seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
@@ -96,7 +91,7 @@ class VectorWorlds:
             raise ValueError(f"a vector env for the actor autoresets its worlds in the same step or not at all; "
                              f"this one's autoreset mode is {mode}")
         self.env, self.repeat = env, repeat
-        self.takes_seeds = mode == AutoresetMode.DISABLED
+        self.same_step = mode == AutoresetMode.SAME_STEP
         self.num_worlds = env.num_envs
         self.action_space, self.observation_space = env.single_action_space, env.single_observation_space
         self._latest: tuple[Any, dict] = (None, {})  # the batch observation and info of the last inner step
@@ -117,10 +112,10 @@ class VectorWorlds:
             inner_steps[running] += 1
             done = running & (terminated | truncated)
             for i in np.flatnonzero(done):
-                if self.takes_seeds:  # DISABLED: the world holds its last state until reset
-                    last_obs, last_info = world_of(obs, i), world_info(info, i)
-                else:
+                if self.same_step:
                     last_obs, last_info = world_of(info["final_obs"], i), world_info(info["final_info"], i)
+                else:  # DISABLED: the world holds its last state until reset
+                    last_obs, last_info = world_of(obs, i), world_info(info, i)
                 steps[i] = (last_obs, float(returns[i]), bool(terminated[i]), bool(truncated[i]),
                             self._counted(last_info, inner_steps[i]))
             ended |= done
@@ -134,7 +129,7 @@ class VectorWorlds:
         return {**info, "inner_steps": int(inner_steps)} if self.repeat > 1 else info
 
     def reset_world(self, i: int, seed: int, options: dict | None) -> tuple[Any, dict]:
-        if not self.takes_seeds:
+        if self.same_step:
             # SAME_STEP: the env began world i's next episode itself. (Where the actor ended an
             # episode the env did not, a blow-up, the world can only go on from where it is.)
             obs, info = self._latest
