@@ -1,4 +1,5 @@
-"""The `l2r-actor` daemon: several environments in one process, one batched policy call per step.
+"""The `l2r-actor` daemon: several environments in one process (single envs, or the worlds of one
+vector env: `worlds.py`), one batched policy call per step.
 
 Each loop iteration swaps in the newest weights if some arrived, picks actions for all
 environments at once (uniform random excitations during warm-up, the stochastic policy while
