@@ -7,18 +7,20 @@ import dataclasses
 import signal
 import subprocess
 import sys
+import threading
 import uuid
 
 import gymnasium
 import numpy as np
 import pytest
+import torch
 import zenoh
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from l2r.actors.__main__ import parse_settings
-from l2r.actors.actor import Actor, ActorConfig
+from l2r.actors.actor import Actor, ActorConfig, main
 from l2r.actors.worlds import EnvList, VectorWorlds
-from l2r.config import UsageError
+from l2r.config import StartupFailure, UsageError
 from l2r.protocol import Keys, decode, encode, session_config
 from tests.conftest import ROOT, free_port, wait_for
 
@@ -159,3 +161,11 @@ def test_what_l2r_runwarp_s_own_vector_env_cannot_take_is_refused_with_the_way_o
     with pytest.raises(UsageError, match="add --vector-env off"):
         parse_settings(["--env-id", "l2r/RunWarp-v0", *flags])
     assert parse_settings(["--env-id", "l2r/RunWarp-v0", "--vector-env", "off", *flags]).actor().vector_env is False
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a machine with CUDA serves --device cuda")
+def test_device_cuda_without_cuda_is_a_start_up_failure_not_a_silent_cpu_run():
+    stopped = threading.Event()
+    stopped.set()
+    with pytest.raises(StartupFailure, match="--device cuda, but torch"):
+        main(ActorConfig(env_id=FALLER, num_envs=1, device="cuda"), session_config(), stopped)
