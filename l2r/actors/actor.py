@@ -179,8 +179,8 @@ def make_worlds(config: ActorConfig, seeds: list[int]) -> Worlds:
     if not uses_vector_env(config):
         return EnvList([make_env(config, seed) for seed in seeds])
     if not registers_vector_env(config.env_id):
-        return VectorWorlds(gymnasium.vector.SyncVectorEnv([functools.partial(make_env, config, seed) for seed in seeds],
-                                                            autoreset_mode=AutoresetMode.DISABLED))
+        envs = [functools.partial(make_env, config, seed) for seed in seeds]
+        return VectorWorlds(gymnasium.vector.SyncVectorEnv(envs, autoreset_mode=AutoresetMode.DISABLED))
     options = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
     if config.env_id == WARP_ID:
         options["device"] = config.device
