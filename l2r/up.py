@@ -46,6 +46,7 @@ import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id 
 import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
 from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.actors.actor import registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.best_policy import BestPolicy
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
@@ -197,7 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="std of Gaussian noise the actors add to every action value before the env takes it (the "
                          "runner's excitations, then clipped to [0, 1]); replay stores the policy's action (0: off)")
     le = p.add_argument_group("learner and replay")
-    le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"), help="learner device")
+    le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
+                    help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
+                         "(l2r/RunWarp-v0: the worlds and the policy's batched call on the GPU with cuda)")
     le.add_argument("--learner-threads", type=int, default=0,
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
                          "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
@@ -513,7 +516,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--env-id", args.env_id, "--num-envs", str(recipe["envs_per_actor"]),
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
-              "--seed", str(args.seed),
+              "--seed", str(args.seed), *(["--device", args.device] if registers_vector_env(args.env_id) else []),
               *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"])]  # a runner's speed limit
     reserve = disk_budget.reserve_bytes(run_dir, disk_budget.task_checkpoint_bytes(args.env_id, recipe["hidden"]))
     # MCAP episode logs record the runner's body or a camera task's frames: none for another task

@@ -9,7 +9,7 @@ from typing import Annotated, Literal, Sequence
 
 from pydantic import Field, field_validator
 
-from l2r.actors.actor import ActorConfig, main
+from l2r.actors.actor import ActorConfig, main, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
@@ -31,6 +31,15 @@ class ActorSettings(DaemonSettings):
         metavar="{N,auto}")
     num_envs: int = setting(DEFAULTS.num_envs, "environments stepped together, their observations batched into "
                             "one policy call", group=ACTING, ge=1)
+    vector_env: Literal["auto", "on", "off"] = setting(
+        "auto", "step the --num-envs envs as one gymnasium vector env, one call for all of them: auto when the env "
+        "id registers a vector env of its own (l2r/RunWarp-v0: its worlds stepped together on a Warp device, the "
+        "way to step thousands of runners on a GPU); on for any env (another one's single envs in a "
+        "SyncVectorEnv: the same experience, for comparison); off: single envs one by one (l2r/RunWarp-v0 then one "
+        "world each). Training actors only: an evaluator runs single envs", group=ACTING)
+    device: Literal["auto", "cpu", "cuda"] = setting(
+        "cpu", "where the policy acts, and where l2r/RunWarp-v0's worlds step (auto: cuda when there is a GPU)",
+        group=ACTING)
     env_id: str = setting(DEFAULTS.env_id, "gymnasium id of the environment: l2r/Run-v0 (the MuJoCo port), "
                           "l2r/RunOpenSim-v0 (OpenSim 4.6, the 2017 simulator: about 100 steps/s; "
                           "pip install 'l2r[opensim]'), another task such as Hopper-v5, or a camera task "
@@ -121,6 +130,18 @@ class ActorSettings(DaemonSettings):
                 raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")
             if self.evaluate:
                 raise UsageError("--difficulty-schedule is for training actors: an evaluator keeps --difficulty")
+        if self.native_vector_env:
+            if self.difficulty_schedule is not None:
+                raise UsageError(f"--difficulty-schedule: {self.env_id}'s vector env starts its episodes itself, "
+                                 "without the actor's options; add --vector-env off")
+            if self.observation_noise or self.action_noise:
+                raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
+                                 "vector env; add --vector-env off")
+
+    @property
+    def native_vector_env(self) -> bool:
+        """Whether the actor steps the env id's own vector env (a training actor, --vector-env not off)."""
+        return not self.evaluate and self.vector_env != "off" and registers_vector_env(self.env_id)
 
     def actor(self) -> ActorConfig:
         episode_log = {}
@@ -131,6 +152,8 @@ class ActorSettings(DaemonSettings):
         actor_id = None if self.actor_id == "auto" else self.actor_id  # None: asked of replay shard 0
         return ActorConfig(
             run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,
+            vector_env={"auto": None, "on": True, "off": False}[self.vector_env],
+            device=self.device,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
             difficulty_schedule=None if self.difficulty_schedule is None else
             DifficultySchedule.parse(self.difficulty_schedule),

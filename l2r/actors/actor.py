@@ -1,4 +1,5 @@
-"""The `l2r-actor` daemon: several environments in one process, one batched policy call per step.
+"""The `l2r-actor` daemon: several environments in one process (single envs, or the worlds of one
+vector env: `worlds.py`), one batched policy call per step.
 
 Each loop iteration swaps in the newest weights if some arrived, picks actions for all
 environments at once (uniform random excitations during warm-up, the stochastic policy while
@@ -13,6 +14,7 @@ not lost, and on shutdown the actor waits a little for the acks of its last chun
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import threading
 import time
@@ -21,6 +23,7 @@ from typing import NamedTuple
 
 import gymnasium
 import numpy as np
+from gymnasium.vector import AutoresetMode
 from gymnasium.wrappers import RescaleAction
 import torch
 import zenoh
@@ -32,6 +35,7 @@ from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
 from l2r.actors.weights import WeightFollower
+from l2r.actors.worlds import EnvList, VectorWorlds, Worlds
 from l2r.config import StartupFailure
 from l2r.episodes.live import LiveFrames
 from l2r.families import PHOTO, RUNNER, family_of, score_of
@@ -40,7 +44,7 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, Keys, ObservationSpec,
     ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.sim import PORT_ID  # (importing l2r.sim registers l2r/Run-v0)
+from l2r.sim import PORT_ID, WARP_ID  # (importing l2r.sim registers l2r/Run-v0 and l2r/RunWarp-v0)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 
@@ -70,6 +74,11 @@ class ActorConfig:
     """None: ask replay shard 0 for an id no other actor process of the run has (--actor-id auto)."""
     num_envs: int = 4
     """Environments stepped in lock-step, their observations batched into one policy call."""
+    vector_env: bool | None = None
+    """Step the envs as one gymnasium VectorEnv, one call for all (`make_worlds`); None: when the
+    env id registers a vector entry point (l2r/RunWarp-v0). Training actors only."""
+    device: str = "cpu"
+    """Where the policy acts, and l2r/RunWarp-v0's worlds step: cpu, cuda, or auto (cuda if there is one)."""
     env_id: str = "l2r/Run-v0"
     """Gymnasium id of the environment: any env with Box actions and a Box, or Dict of Box,
     observation space (`ObservationSpec.from_space`)."""
@@ -147,6 +156,38 @@ def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
     return ActionRepeat(env, config.action_repeat) if config.action_repeat > 1 else env
 
 
+def registers_vector_env(env_id: str) -> bool:
+    """Whether ``env_id`` registers a vector entry point: a VectorEnv of its own (l2r/RunWarp-v0)."""
+    try:
+        return gymnasium.spec(env_id).vector_entry_point is not None
+    except gymnasium.error.Error:  # an unknown id: make_env says so
+        return False
+
+
+def uses_vector_env(config: ActorConfig) -> bool:
+    """Whether the actor steps its envs as one VectorEnv (an evaluator runs single envs, as `l2r eval` does)."""
+    if config.evaluate:
+        return False
+    return registers_vector_env(config.env_id) if config.vector_env is None else config.vector_env
+
+
+def make_worlds(config: ActorConfig, seeds: list[int]) -> Worlds:
+    """The actor's ``config.num_envs`` envs, world i's first episode to start from seeds[i]:
+    single envs (`make_env`) stepped one by one, or where `uses_vector_env` one VectorEnv, the env
+    id's own (its action repeated across it; no noise wrappers) or else a SyncVectorEnv of the
+    single envs, which the actor resets itself (the same experience as the single envs)."""
+    if not uses_vector_env(config):
+        return EnvList([make_env(config, seed) for seed in seeds])
+    if not registers_vector_env(config.env_id):
+        envs = [functools.partial(make_env, config, seed) for seed in seeds]
+        return VectorWorlds(gymnasium.vector.SyncVectorEnv(envs, autoreset_mode=AutoresetMode.DISABLED))
+    options = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
+    if config.env_id == WARP_ID:
+        options["device"] = config.device
+    return VectorWorlds(gymnasium.make_vec(config.env_id, num_envs=config.num_envs,
+                                           vectorization_mode="vector_entry_point", **options), config.action_repeat)
+
+
 class ObservationError(RuntimeError):
     """The environment's observations are not ones l2r takes: its declared space, or a reset or
     step that breaks it. The actor stops: every chunk would be refused."""
@@ -200,9 +241,8 @@ class ReplayWatch:
 
 @dataclass
 class EnvSlot:
-    """One environment and its episode in progress."""
+    """One world's episode in progress."""
 
-    env: gymnasium.Env
     obs: dict[str, np.ndarray]  # the fields of the observation to act on
     seed: int
     difficulty: int
@@ -236,18 +276,17 @@ class Actor:
         self.random_phase = not config.evaluate and config.random_steps > 0
         self.slots: list[EnvSlot] = []
         seeds = [episode_seed(config, i, 0) for i in range(config.num_envs)]
-        envs = [make_env(config, seed) for seed in seeds]
-        self.observation = observation_spec(envs[0], config.env_id)
+        self.worlds = make_worlds(config, seeds)
+        self.observation = observation_spec(self.worlds, config.env_id)
         # Photos are images too, but no camera renders them: no frames to count.
         images = any(field.dtype == np.uint8 for field in self.observation.fields.values())
         self.camera = images and family_of(config.env_id) != PHOTO
         self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
-        for env, seed in zip(envs, seeds):
-            difficulty, options = episode_difficulty(self.config, self.steps)
-            obs, info = env.reset(seed=seed, options=options)
+        difficulty, options = episode_difficulty(self.config, self.steps)
+        for seed, (obs, info) in zip(seeds, self.worlds.reset(seeds, options)):
             x = float(info.get("distance", 0.0))
-            self.slots.append(EnvSlot(env, self.observe(obs), seed, difficulty, start_x=x, x=x))
-        self.weights = WeightFollower(session, self.keys, self.observation)
+            self.slots.append(EnvSlot(self.observe(obs), seed, difficulty, start_x=x, x=x))
+        self.weights = WeightFollower(session, self.keys, self.observation, config.device)
         self.stacks = FrameStack(self.observation, self.weights.frame_stack, config.num_envs)
         self.builders = [ChunkBuilder(config.actor_id, i, self.epoch, config.chunk_size, self.observation)
                          for i in range(config.num_envs)]
@@ -266,8 +305,8 @@ class Actor:
         self.episode_logger = make_episode_logger(config)
         self.live = LiveFrames(session, self.keys, config.actor_id)  # frames only while a viewer watches
         if not config.evaluate:  # evaluation rounds start their own recordings
-            for slot in self.slots:
-                self.begin_record(slot)
+            for i, slot in enumerate(self.slots):
+                self.begin_record(i, slot)
         self._rate_steps, self._rate_frames, self._rate_time = 0, 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
@@ -283,7 +322,7 @@ class Actor:
 
     def actions(self) -> tuple[np.ndarray, np.ndarray]:
         """Excitations for every env, and the log-probability of each under what chose it."""
-        act_dim = self.slots[0].env.action_space.shape[0]
+        act_dim = self.worlds.action_space.shape[0]
         uniform = np.full(len(self.slots), uniform_log_prob(act_dim), np.float32)
         if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
@@ -312,8 +351,8 @@ class Actor:
             log.info("warm-up over after %d random steps; acting with the policy", self.steps)
         actions, log_probs = self.actions()
         now = time.time()
-        for i, (slot, action) in enumerate(zip(self.slots, actions)):
-            raw, reward, terminated, truncated, info = slot.env.step(action)
+        for i, (slot, action, (raw, reward, terminated, truncated, info)) in enumerate(
+                zip(self.slots, actions, self.worlds.step(actions))):
             obs = self.observe(raw)
             if blew_up(reward, info, self.config.max_speed):
                 self.blowups += 1
@@ -342,12 +381,12 @@ class Actor:
         self.steps += len(self.slots)
         self.flush()
 
-    def begin_record(self, slot: EnvSlot) -> None:
+    def begin_record(self, i: int, slot: EnvSlot) -> None:
         if self.episode_logger is not None:
             slot.recorder = self.episode_logger.begin_episode({
                 "env_id": self.config.env_id, "seed": slot.seed, "difficulty": slot.difficulty, "evaluation": False,
                 "policy_version": -1 if self.acting_randomly else self.weights.version,
-                "obstacles": getattr(slot.env.unwrapped, "obstacles", [])})
+                "obstacles": getattr(self.worlds.unwrapped(i), "obstacles", [])})
 
     def record_evaluation(self, env: gymnasium.Env, seed: int):
         return self.episode_logger.begin_episode({
@@ -371,10 +410,10 @@ class Actor:
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
         slot.difficulty, options = episode_difficulty(self.config, self.steps)
-        obs, info = slot.env.reset(seed=slot.seed, options=options)
+        obs, info = self.worlds.reset_world(i, slot.seed, options)
         slot.obs = self.observe(obs)
         slot.start_x = slot.x = float(info.get("distance", 0.0))
-        self.begin_record(slot)
+        self.begin_record(i, slot)
 
     def flush(self, force: bool = False, version: int | None = None) -> None:
         """Send every chunk that is full, older than the delay, or any at all when forced.
@@ -409,7 +448,8 @@ class Actor:
         score = score_of(self.config.env_id)
         for start in range(0, self.config.eval_episodes, n):
             seeds = [self.config.seed + k for k in range(start, min(start + n, self.config.eval_episodes))]
-            results = run_deterministic(self.weights.policy, [s.env for s in self.slots[:len(seeds)]], seeds, stop,
+            envs = self.worlds.envs[:len(seeds)]  # an evaluator's worlds are single envs (`uses_vector_env`)
+            results = run_deterministic(self.weights.policy, envs, seeds, stop,
                                         self.record_evaluation if self.episode_logger is not None else None,
                                         self.config.max_speed, self.weights.frame_stack, self.config.env_id)
             for env_index, (seed, result) in enumerate(zip(seeds, results)):
@@ -458,8 +498,7 @@ class Actor:
             self.episode_logger.close()
         self.weights.close()
         self.live.close()
-        for slot in self.slots:
-            slot.env.close()
+        self.worlds.close()
 
 
     def held(self) -> bool:
@@ -604,6 +643,10 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
     """Run the actor until ``stop`` is set (or ``config.max_steps`` is reached)."""
     stop = stop or threading.Event()
     torch.set_num_threads(config.torch_threads)
+    if config.device == "auto":
+        config = dataclasses.replace(config, device="cuda" if torch.cuda.is_available() else "cpu")
+    elif config.device == "cuda" and not torch.cuda.is_available():
+        raise StartupFailure(f"--device cuda, but torch {torch.__version__} sees no CUDA device")
     with zenoh.open(zenoh_config) as session:
         keys = Keys(config.run)
         if config.actor_id is None:
@@ -616,9 +659,10 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
             actor = Actor(config, session)
         except ObservationError as e:
             raise StartupFailure(str(e)) from None
-        log.info("%s %d up: %d x %s (difficulty %d, action repeat %d), run %r", config.role,
-                 config.actor_id, config.num_envs, config.env_id, config.difficulty,
-                 config.action_repeat, config.run)
+        log.info("%s %d up: %d x %s%s (difficulty %d, action repeat %d), run %r", config.role,
+                 config.actor_id, config.num_envs, config.env_id,
+                 f" as one vector env on {config.device}" if isinstance(actor.worlds, VectorWorlds) else "",
+                 config.difficulty, config.action_repeat, config.run)
         next_stats = 0.0
         waited_since = None
         try:

@@ -29,8 +29,10 @@ log = logging.getLogger("l2r.actor.weights")
 class WeightFollower:
     """Keeps the newest `Weights` seen and turns them into a policy on request."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, observation: ObservationSpec, query_every: float = 2.0):
+    def __init__(self, session: zenoh.Session, keys: Keys, observation: ObservationSpec, device: str = "cpu",
+                 query_every: float = 2.0):
         self._session = session
+        self.device = device  # where the policy is built and acts
         self.observation = observation  # the environment's: weights of a policy for others are refused
         self._keys = keys
         self._query_every = query_every
@@ -112,7 +114,7 @@ class WeightFollower:
         try:
             policy = self.policy
             if policy is None or policy.spec != check_spec(weights.spec):
-                policy = build_policy(weights.spec)
+                policy = build_policy(weights.spec).to(self.device)
                 policy.eval()
             # Decoded arrays are read-only views of the message; torch wants writable ones.
             load_policy_state(policy, {k: np.array(v) for k, v in weights.params.items()})

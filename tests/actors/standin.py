@@ -50,3 +50,15 @@ class Counting(StandIn):
 
 
 gymnasium.register("CountingStandIn-v0", entry_point=Counting)
+
+
+class Faller(StandIn):
+    """A stand-in whose episodes also end by a fall (terminated), at steps its seed draws: about
+    one step in 15."""
+
+    def step(self, action):
+        obs, reward, _, truncated, info = super().step(action)
+        return obs, reward, bool(obs[0] > 1.5), truncated, info
+
+
+gymnasium.register("Faller-v0", entry_point=Faller)

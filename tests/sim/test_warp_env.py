@@ -34,7 +34,7 @@ def test_warp_worlds_follow_the_numba_port():
     got, got_info = worlds.reset(seed=0)
     np.testing.assert_allclose(got[0], obs, atol=1e-5)
     np.testing.assert_allclose(got_info["muscle_force"][0], info["muscle_force"], rtol=1e-4, atol=0.01)
-    first = got.copy()
+    first, first_distance = got.copy(), got_info["distance"].copy()
     for k, a in enumerate(actions):
         obs, reward, terminated, truncated, info = port.step(a)
         got, got_reward, got_terminated, got_truncated, got_info = worlds.step(np.stack([a, np.zeros(18)]))
@@ -46,6 +46,7 @@ def test_warp_worlds_follow_the_numba_port():
     assert np.degrees(np.abs(last[1, ANGLES] - obs[ANGLES])).max() > 1.0  # the idle world went its own way
     assert got_truncated.all()
     np.testing.assert_allclose(got, first, atol=1e-6)  # both reset in the step they ended
+    np.testing.assert_allclose(got_info["distance"], first_distance)  # and report their new episode's info
 
 
 def test_warp_worlds_draw_the_ports_obstacles_and_psoas_strengths():

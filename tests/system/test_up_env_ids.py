@@ -177,3 +177,14 @@ def test_bad_robustness_levers_are_refused_in_one_line(argv, capsys):
     with pytest.raises(SystemExit):
         parse_args(argv)
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_actors_of_a_vector_env_step_their_worlds_on_the_job_s_device():
+    args, _ = parse_args(["--env-id", "l2r/RunWarp-v0", "--envs-per-actor", "256", "--device", "cuda"])
+    settings = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)
+                if c.argv[2] == "l2r.actors"}
+    assert settings["actor-0"].device == "cuda" and settings["actor-0"].num_envs == 256
+    assert settings["actor-0"].native_vector_env and not settings["evaluator-0"].native_vector_env
+    args, _ = parse_args(["--device", "cuda"])  # single envs: the actors' policy stays on the CPU
+    assert all(actor_settings(c.argv[3:]).device == "cpu"
+               for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) if c.argv[2] == "l2r.actors")

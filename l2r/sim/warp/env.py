@@ -148,6 +148,9 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             qpos = physics.data.qpos.numpy()
             self._x[worlds] = qpos[worlds, self._x_adr]
             obs[worlds] = self._observe()[worlds]
+            for name, value in self._info(qpos).items():  # a reset world's info is its new episode's, as its obs
+                value[~done] = info[name][~done]
+                info[name] = value
         return obs, reward, terminated, truncated, info
 
     def _draw_episodes(self, worlds) -> None:
