@@ -3,7 +3,7 @@
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
 comes from the task (l2r.families): `runner` for the Learning to Run runner (`l2r/Run-v0`,
 `l2r/RunOpenSim-v0`), `pixels` for the camera tasks (`l2r/dmc-...`), `photo` for the
-photo-finishing tasks (`l2r/PhotoTune-v0`), `standard` for any other gymnasium task (Hopper-v5,
+photo-finishing tasks (`l2r/PhotoTune-v0`, `l2r/PhotoEnhance-v0`), `standard` for any other gymnasium task (Hopper-v5,
 Walker2d-v5). `l2r up --recipe` picks another family's recipe, and each setting has an `l2r up`
 flag of its own name that replaces the recipe's value.
 

@@ -1,4 +1,6 @@
-"""`PhotoTuneEnv` (`l2r/PhotoTune-v0`): find the pipeline parameters that turn a photo into a goal.
+"""`PhotoTuneEnv` (`l2r/PhotoTune-v0`): find the pipeline parameters that turn a photo into a goal;
+`PhotoEnhanceEnv` (`l2r/PhotoEnhance-v0`): the same with the images swapped and the goal unseen,
+bring a photo degraded by hidden pipeline parameters back towards its original.
 
 RLPixTuner's goal-conditioned tuning task (its `envs/isp_env.py`) in the "FiveK-Random" setting:
 each episode crops a 256 × 256 working image from a photo of the split and makes its goal by
