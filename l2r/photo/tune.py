@@ -96,7 +96,7 @@ def cmaes(problem: Problem, queries: int, seed: int = 0) -> Trace:
 
 def policy_tune(policy, problem: Problem, env_ids: tuple[str, ...] = TUNE_IDS) -> Trace:
     """The deterministic actions of a policy (l2r.policy) through the photo task of `env_ids` it
-    was trained on (`l2r/PhotoTune-v0` or `l2r/PhotoTuneStats-v0`, told by its observation spec)
+    was trained on (by default `l2r/PhotoTune-v0` or `l2r/PhotoTuneStats-v0`; told by its observation spec)
     as an actor makes it (l2r.actors.actor.make_task), posed this problem: one query per step, up
     to 10. ValueError when the policy takes other observations or actions than each task's."""
     from l2r.actors.actor import fields_of, make_task
