@@ -22,8 +22,9 @@ def auto_levels(image: np.ndarray) -> np.ndarray:
     [0, 1], what lies outside clipped (scikit-image's `exposure.rescale_intensity`)."""
     from skimage import exposure
 
-    return np.stack([exposure.rescale_intensity(channel, in_range=tuple(np.percentile(channel, AUTO_LEVELS_PERCENTILES)),
-                                                out_range=(0.0, 1.0)) for channel in image]).astype(np.float32)
+    levels = [tuple(np.percentile(channel, AUTO_LEVELS_PERCENTILES)) for channel in image]
+    return np.stack([exposure.rescale_intensity(channel, in_range=in_range, out_range=(0.0, 1.0))
+                     for channel, in_range in zip(image, levels)]).astype(np.float32)
 
 
 def equalized(image: np.ndarray) -> np.ndarray:
