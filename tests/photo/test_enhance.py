@@ -4,8 +4,6 @@ by photo; the reward as the PSNR change to the original) and its baselines (l2r.
 
 import json
 import math
-import subprocess
-import sys
 
 import gymnasium
 from gymnasium.utils.env_checker import check_env
