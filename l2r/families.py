@@ -3,7 +3,8 @@
 A task's family comes from its id: `runner` for the Learning to Run runner (`l2r/Run-v0` and
 `l2r/RunOpenSim-v0`), `pixels` for the camera tasks of `l2r.control` (`l2r/dmc-cartpole-swingup-v0`:
 the DeepMind Control suite seen through 84 × 84 frames), `standard` for any other gymnasium task
-(Hopper-v5, Walker2d-v5), `photo` for the photo-finishing tasks of `l2r.photo` (`l2r/PhotoTune-v0`).
+(Hopper-v5, Walker2d-v5), `photo` for the photo-finishing tasks of `l2r.photo` (`l2r/PhotoTune-v0`,
+`l2r/PhotoEnhance-v0`).
 The family picks the
 recipe a job trains with (l2r.recipes) and its score: what `l2r up` keeps `learner/best.pt` by and
 names the best evaluation episode by, and what the status line, the final report, summary.json,

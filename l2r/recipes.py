@@ -3,7 +3,7 @@
 A recipe is a flat table of values, one per setting, keyed by (family, algorithm). The family
 comes from the task (l2r.families): `runner` for the Learning to Run runner (`l2r/Run-v0`,
 `l2r/RunOpenSim-v0`), `pixels` for the camera tasks (`l2r/dmc-...`), `photo` for the
-photo-finishing tasks (`l2r/PhotoTune-v0`), `standard` for any other gymnasium task (Hopper-v5,
+photo-finishing tasks (`l2r/PhotoTune-v0`, `l2r/PhotoEnhance-v0`), `standard` for any other gymnasium task (Hopper-v5,
 Walker2d-v5). `l2r up --recipe` picks another family's recipe, and each setting has an `l2r up`
 flag of its own name that replaces the recipe's value.
 
@@ -201,6 +201,18 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=100, samples_per_insert=128.0, hold_actors=True,
         random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0,
+    ),
+    # PPO for the photo tasks through their statistics (l2r/PhotoEnhanceStats-v0, l2r/PhotoTuneStats-v0):
+    # CleanRL's continuous-action PPO (standard/ppo) at a quarter of its rollout, 512 transitions
+    # (51 episodes of 10 steps), its minibatches of 64 and 10 epochs kept, so that the ~40 env
+    # steps/s of a loaded 2-core machine make an update every 10-15 s rather than every minute;
+    # photo/td3's discount (RLPixTuner's 0.9) over the 10-step episodes.
+    (PHOTO, "ppo"): dict(
+        hidden="64,64", activation="tanh", layer_norm=False, batch_size=512, epochs=10, minibatches=8, lr=3e-4,
+        gamma=0.9, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
+        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
+        relative_x=False, normalize_obs=True,
+        random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
 }
 

@@ -1,7 +1,9 @@
-"""`l2r photo`: tune a photo's finishing towards a goal image, and compare tuners on held-out photos.
+"""`l2r photo`: tune a photo's finishing towards a goal image, compare tuners on held-out photos,
+and compare enhancers of degraded held-out photos.
 
     l2r photo tune INPUT --goal TARGET --out OUT.png [--checkpoint CK | --optimizer cmaes --queries N]
     l2r photo compare [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
+    l2r photo enhance [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from l2r.config import CommandParser
-from l2r.photo import photos, tune
-from l2r.photo.env import psnr_db
+from l2r.photo import enhance, photos, tune
+from l2r.photo.env import PhotoEnhanceEnv, psnr_db
 from l2r.photo.pipeline import NAMES, finish, params_from_actions
 
 OPTIMIZERS = {"cmaes": tune.cmaes, "random": tune.random_search}
@@ -31,10 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="l2r photo",
                       description="Photo finishing with the nine parameters of RLPixTuner's pipeline (exposure, "
                                   "white balance, saturation, contrast, highlights, shadows, sharpening; "
-                                  "docs/photo.md): tune one photo towards a goal image, or compare the tuners on the "
-                                  "held-out photos. A query is one run of the pipeline on the 256 x 256 working "
-                                  "image; PSNR and SSIM are to the goal.")
-    commands = p.add_subparsers(dest="command", required=True, metavar="{tune,compare}")
+                                  "docs/photo.md): tune one photo towards a goal image, compare the tuners on the "
+                                  "held-out photos, or compare enhancers of degraded held-out photos. A query is one "
+                                  "run of the pipeline on the 256 x 256 working image; PSNR and SSIM are to the goal.")
+    commands = p.add_subparsers(dest="command", required=True, metavar="{tune,compare,enhance}")
     t = commands.add_parser("tune", help="find the parameters that turn INPUT into TARGET and write the finished image",
                             description="Find the parameters that turn INPUT into the look of TARGET (the same "
                                         "photo, finished otherwise), with a trained policy (--checkpoint, 10 "
@@ -69,6 +71,23 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--budgets", default=",".join(map(str, tune.BUDGETS)), metavar="N,N,...",
                    help=f"the optimisers' query budgets (default: {','.join(map(str, tune.BUDGETS))})")
     add_common(c)
+    e = commands.add_parser("enhance", help="the enhancer's policy against automatic levels and histogram "
+                                            "equalisation on degraded held-out photos",
+                            description="On held-out problems as l2r/PhotoEnhance-v0 poses them (a crop of a test "
+                                        "photo degraded by the pipeline with hidden random parameters), the mean "
+                                        "PSNR and SSIM to the original crop of the degraded input, of scikit-image's "
+                                        "automatic levels (each channel's 2nd-98th percentile stretched to [0, 1]) "
+                                        "and histogram equalisation (per channel), and of the policy's edits at 10 "
+                                        "queries when --checkpoint is given; a table, or one JSON line.")
+    e.add_argument("folder", metavar="FIVEK_FOLDER", type=Path, nargs="?",
+                   help="crop the test split of a MIT-Adobe FiveK folder's inputs (input/ beside expertC_gt/) "
+                        "instead of l2r's held-out photos (chelsea, coffee, grace_hopper)")
+    e.add_argument("--checkpoint", metavar="CK", type=Path,
+                   help="also run this policy of l2r/PhotoEnhance-v0 or l2r/PhotoEnhanceStats-v0 (a checkpoint "
+                        "file, best.pt, or an `l2r up` run directory)")
+    e.add_argument("--photos", type=int, default=12, metavar="N",
+                   help="problems, on the task's seeds --seed, --seed + 1, ... (default: 12)")
+    add_common(e)
     return p
 
 
@@ -180,6 +199,29 @@ def run_compare(args: argparse.Namespace) -> dict:
     return result | {"problems": [p.name for p in problems], "seconds": round(time.monotonic() - started, 1)}
 
 
+def run_enhance(args: argparse.Namespace) -> dict:
+    if args.photos < 1:
+        raise PhotoError("--photos must be at least 1")
+    policy = None if args.checkpoint is None else load_policy(args.checkpoint)
+    started = time.monotonic()
+    try:
+        problems = tune.held_out_problems(args.photos, args.seed, args.folder, PhotoEnhanceEnv)
+        result = enhance.compare(problems, policy)
+    except (FileNotFoundError, ValueError) as e:
+        raise PhotoError(str(e)) from None
+    return result | {"problems": [p.name for p in problems], "seconds": round(time.monotonic() - started, 1)}
+
+
+def print_enhance(result: dict) -> None:
+    print(f"{result['photos']} degraded held-out crops ({', '.join(result['problems'])}), {result['seconds']:.0f} s")
+    print(f"{'method':<22} {'PSNR (dB)':>10} {'SSIM':>7}")
+    labels = {"input": "degraded input", "auto_levels": "auto levels 2-98%", "equalized": "histogram equalised",
+              "policy": f"policy, {result['policy_queries']} queries"}
+    for name, label in labels.items():
+        if result[f"{name}_psnr_db"] is not None:
+            print(f"{label:<22} {result[f'{name}_psnr_db']:>10.2f} {result[f'{name}_ssim']:>7.4f}")
+
+
 def print_compare(result: dict) -> None:
     print(f"{result['photos']} held-out problems ({', '.join(result['problems'])}), {result['seconds']:.0f} s")
     print(f"{'method':<14} {'queries':>7} {'PSNR (dB)':>10} {'SSIM':>7}")
@@ -195,7 +237,7 @@ def print_compare(result: dict) -> None:
 def cli(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        result = run_tune(args) if args.command == "tune" else run_compare(args)
+        result = {"tune": run_tune, "compare": run_compare, "enhance": run_enhance}[args.command](args)
     except PhotoError as e:
         print(f"l2r photo {args.command}: {e}", file=sys.stderr)
         return 1
@@ -204,7 +246,7 @@ def cli(argv: list[str] | None = None) -> int:
     elif args.command == "tune":
         print_tune(args, result)
     else:
-        print_compare(result)
+        {"compare": print_compare, "enhance": print_enhance}[args.command](result)
     return 0
 
 

@@ -1,4 +1,6 @@
-"""`PhotoTuneEnv` (`l2r/PhotoTune-v0`): find the pipeline parameters that turn a photo into a goal.
+"""`PhotoTuneEnv` (`l2r/PhotoTune-v0`): find the pipeline parameters that turn a photo into a goal;
+`PhotoEnhanceEnv` (`l2r/PhotoEnhance-v0`): the same with the images swapped and the goal unseen,
+bring a photo degraded by hidden pipeline parameters back towards its original.
 
 RLPixTuner's goal-conditioned tuning task (its `envs/isp_env.py`) in the "FiveK-Random" setting:
 each episode crops a 256 × 256 working image from a photo of the split and makes its goal by
@@ -53,10 +55,6 @@ MAX_PSNR_DB = 100.0
 """PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
 MAX_DRAWS = 100
 VIEWS = ("images", "statistics")
-STATE_FIELDS = (
-    "luminance", "contrast", "saturation", "goal_luminance", "goal_contrast", "goal_saturation",
-    *(f"{p.name}_action" for p in PARAMETERS), "steps_taken",
-)
 
 
 def psnr_db(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
@@ -115,6 +113,8 @@ class PhotoTuneEnv(gym.Env):
     """
 
     metadata = {"render_modes": []}
+    shows_goal = True
+    """Whether the observation shows the goal (the tuner's task) or the current image alone."""
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
                  sources: Mapping[str, np.ndarray] | None = None, view: str = "images"):
@@ -128,17 +128,14 @@ class PhotoTuneEnv(gym.Env):
         self.split, self.max_steps, self.view = split, max_steps, view
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
-        side = photos.OBSERVATION_SIZE
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
-        if view == "images":
-            self.observation_space = gym.spaces.Dict({
-                "pixels": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
-                "goal": gym.spaces.Box(0, 255, (3, side, side), np.uint8),
-                "state": gym.spaces.Box(-1.0, 1.0, (len(STATE_FIELDS),), np.float32),
-            })
-        else:
-            width = 2 * FEATURES_PER_IMAGE + len(PARAMETERS) + 1
-            self.observation_space = gym.spaces.Dict({"state": gym.spaces.Box(-1.0, 1.0, (width,), np.float32)})
+        images_shown = 2 if self.shows_goal else 1
+        statistics = 3 if view == "images" else FEATURES_PER_IMAGE
+        state = gym.spaces.Box(-1.0, 1.0, (images_shown * statistics + len(PARAMETERS) + 1,), np.float32)
+        image = gym.spaces.Box(0, 255, (3, photos.OBSERVATION_SIZE, photos.OBSERVATION_SIZE), np.uint8)
+        fields = {"state": state} if view == "statistics" else \
+            {"pixels": image, "state": state} | ({"goal": image} if self.shows_goal else {})
+        self.observation_space = gym.spaces.Dict(fields)
         self.episode_over = True
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
@@ -150,26 +147,31 @@ class PhotoTuneEnv(gym.Env):
             self.source, self.goal = (self.check_image(options, name) for name in ("source", "goal"))
         else:
             self.draw()
-        self.goal_small = photos.downsample(self.goal)
+        self.goal_small = photos.downsample(self.goal) if self.shows_goal else None
         self.image, self.params, self.steps = self.source, NEUTRAL, 0
         self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
         self.episode_over = False
         return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name}
 
     def draw(self) -> None:
-        """A crop of a photo of the split and its goal, neither collapsed."""
+        """The episode's input, a crop of a photo of the split, and its goal, that crop edited with
+        hidden random parameters."""
+        self.photo_name, self.source, self.goal_params, self.goal = self.random_edit()
+
+    def random_edit(self) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+        """A photo of the split by name, a random crop of it, parameters drawn uniformly as actions
+        in [-1, 1], and the crop finished with them: neither image collapsed."""
         if self.photos is None:
             self.photos = photos.load_split(self.split)
         names = list(self.photos)
         for _ in range(MAX_DRAWS):
-            self.photo_name = names[int(self.np_random.integers(len(names)))]
-            self.source = photos.random_crop(self.photos[self.photo_name], self.np_random)
-            self.goal_params = params_from_actions(self.np_random.uniform(-1.0, 1.0, len(PARAMETERS)))
-            self.goal = finish(self.source[None], self.goal_params)[0]
-            if not collapsed(self.source) and not collapsed(self.goal):
-                break
-        else:
-            raise RuntimeError(f"{MAX_DRAWS} crops and goals of the {self.split} photos in a row were collapsed")
+            name = names[int(self.np_random.integers(len(names)))]
+            crop = photos.random_crop(self.photos[name], self.np_random)
+            params = params_from_actions(self.np_random.uniform(-1.0, 1.0, len(PARAMETERS)))
+            edited = finish(crop[None], params)[0]
+            if not collapsed(crop) and not collapsed(edited):
+                return name, crop, params, edited
+        raise RuntimeError(f"{MAX_DRAWS} crops of the {self.split} photos and their edits in a row were collapsed")
 
     @staticmethod
     def check_image(options: dict, name: str) -> np.ndarray:
@@ -194,13 +196,31 @@ class PhotoTuneEnv(gym.Env):
 
     def observation(self) -> dict[str, np.ndarray]:
         current = photos.downsample(self.image)
-        both = np.stack([current, self.goal_small])
-        statistics = image_statistics(both) if self.view == "images" else image_features(both)
+        shown = np.stack([current, self.goal_small]) if self.shows_goal else current[None]
+        statistics = image_statistics(shown) if self.view == "images" else image_features(shown)
         state = np.concatenate([statistics.ravel(), actions_from_params(self.params), [self.steps / self.max_steps]])
         if self.view == "statistics":
             return {"state": state.astype(np.float32)}
-        return {
-            "pixels": photos.to_uint8(current),
-            "goal": photos.to_uint8(self.goal_small),
-            "state": np.clip(state, -1.0, 1.0).astype(np.float32),
-        }
+        images = {"pixels": photos.to_uint8(current)} | (
+            {"goal": photos.to_uint8(self.goal_small)} if self.shows_goal else {})
+        return images | {"state": np.clip(state, -1.0, 1.0).astype(np.float32)}
+
+
+class PhotoEnhanceEnv(PhotoTuneEnv):
+    """The enhancer's task: bring a photo degraded by hidden random edits back to its original,
+    which the observation does not show.
+
+    The tuner's task with its two images swapped: the episode's input is a crop of a photo of the
+    split finished with hidden random parameters (`degradation`), its goal that crop untouched.
+    Actions, reward (the change in PSNR to the original x 0.01), ends, `info["psnr_db"]` and
+    `reset(options={"source": DEGRADED, "goal": ORIGINAL})` are the tuner's; the observation is
+    the tuner's without the goal: `pixels: uint8[3, 64, 64], state: float32[13]` (the current
+    image's luminance, contrast and saturation, the parameters, the steps taken) or, with
+    `view="statistics"` (`l2r/PhotoEnhanceStats-v0`), `state: float32[35]` (`image_features` of
+    the current image, the parameters, the steps taken).
+    """
+
+    shows_goal = False
+
+    def draw(self) -> None:
+        self.photo_name, self.goal, self.degradation, self.source = self.random_edit()

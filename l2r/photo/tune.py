@@ -94,18 +94,18 @@ def cmaes(problem: Problem, queries: int, seed: int = 0) -> Trace:
     return Trace(np.array(tried), np.array(values))
 
 
-def policy_tune(policy, problem: Problem) -> Trace:
-    """The deterministic actions of a policy (l2r.policy) through the photo task it was trained on
-    (`l2r/PhotoTune-v0` or `l2r/PhotoTuneStats-v0`, told by its observation spec) as an actor
-    makes it (l2r.actors.actor.make_task), posed this problem: one query per step, up to 10.
-    ValueError when the policy takes other observations or actions than either task's."""
+def policy_tune(policy, problem: Problem, env_ids: tuple[str, ...] = TUNE_IDS) -> Trace:
+    """The deterministic actions of a policy (l2r.policy) through the photo task of `env_ids` it
+    was trained on (by default `l2r/PhotoTune-v0` or `l2r/PhotoTuneStats-v0`; told by its observation spec)
+    as an actor makes it (l2r.actors.actor.make_task), posed this problem: one query per step, up
+    to 10. ValueError when the policy takes other observations or actions than each task's."""
     from l2r.actors.actor import fields_of, make_task
     from l2r.actors.frame_stack import FrameStack, frame_stack_of
     from l2r.policy import act
     from l2r.protocol import ObservationSpec
 
     trained = ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"]
-    tasks = {env_id: ObservationSpec.from_space(make_task(env_id).observation_space) for env_id in TUNE_IDS}
+    tasks = {env_id: ObservationSpec.from_space(make_task(env_id).observation_space) for env_id in env_ids}
     env_id = next((env_id for env_id, spec in tasks.items() if trained == (spec, len(PARAMETERS))), None)
     if env_id is None:
         raise ValueError(f"the policy takes observations {trained[0]} and gives {trained[1]} actions; " + "; ".join(
@@ -126,15 +126,17 @@ def policy_tune(policy, problem: Problem) -> Trace:
     return Trace(np.array(tried, np.float32), np.array(values))
 
 
-def held_out_problems(count: int, seed: int = 0, folder: str | Path | None = None) -> list[Problem]:
-    """`count` problems as `l2r/PhotoTune-v0` poses them on seeds seed, seed + 1, ...: crops of
-    the held-out photos (the test split, or the test split of a FiveK folder's inputs) and goals
-    made with hidden random parameters (RLPixTuner's FiveK-Random)."""
+def held_out_problems(count: int, seed: int = 0, folder: str | Path | None = None,
+                      task: type[PhotoTuneEnv] = PhotoTuneEnv) -> list[Problem]:
+    """`count` problems as `task` poses them on seeds seed, seed + 1, ...: crops of the held-out
+    photos (the test split, or the test split of a FiveK folder's inputs) and goals made with
+    hidden random parameters (RLPixTuner's FiveK-Random); with `PhotoEnhanceEnv`, those edits
+    are the sources and the crops the goals."""
     sources = None
     if folder is not None:
         pairs = photos.fivek_split(photos.fivek_pairs(folder), "test")
         sources = {source.stem: photos.read_image(source) for source, _ in pairs}
-    env = PhotoTuneEnv(split="test", sources=sources)
+    env = task(split="test", sources=sources)
     problems = []
     for i in range(count):
         env.reset(seed=seed + i)

@@ -113,8 +113,9 @@ def test_the_runner_trains_as_before_recipes(algo):
 @pytest.mark.parametrize("family, algo", RECIPES)
 def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, algo):
     recipe = RECIPES[family, algo]
-    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: "l2r/PhotoTune-v0",
-              STANDARD: "Walker2d-v5"}[family]
+    # PPO takes no images: the photo family's PPO recipe is for its statistics views.
+    photo = "l2r/PhotoTune-v0" if algo == "td3" else "l2r/PhotoEnhanceStats-v0"
+    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: photo, STANDARD: "Walker2d-v5"}[family]
     assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == recipe
 
 
@@ -171,7 +172,7 @@ def test_each_flag_s_help_names_the_recipes_values():
     assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
                                           "runner/a2c 1, standard/a2c 1, runner/reinforce 1, standard/reinforce 1, "
                                           "runner/trpo 1, standard/trpo 1, runner/acktr 1, standard/acktr 1, "
-                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1")
+                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1, photo/ppo 1")
     assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off, "
                                     "photo/td3 off")
     assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2, pixels/td3 1, photo/td3 2")
