@@ -62,12 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                                         "FiveK-Random), the mean PSNR and SSIM to the goal of the untouched input, of "
                                         "random search and CMA-ES at each budget, and of the policy at 10 queries "
                                         "when --checkpoint is given; a table, or one JSON line.")
-    c.add_argument("folder", metavar="FIVEK_FOLDER", type=Path, nargs="?",
-                   help="crop the test split of a MIT-Adobe FiveK folder's inputs (input/ beside expertC_gt/) "
-                        "instead of l2r's held-out photos (chelsea, coffee, grace_hopper)")
-    c.add_argument("--checkpoint", metavar="CK", type=Path, help="also run this policy of l2r/PhotoTune-v0")
-    c.add_argument("--photos", type=int, default=12, metavar="N",
-                   help="problems, on the task's seeds --seed, --seed + 1, ... (default: 12)")
+    add_held_out(c, "also run this policy of l2r/PhotoTune-v0")
     c.add_argument("--budgets", default=",".join(map(str, tune.BUDGETS)), metavar="N,N,...",
                    help=f"the optimisers' query budgets (default: {','.join(map(str, tune.BUDGETS))})")
     add_common(c)
@@ -79,20 +74,24 @@ def build_parser() -> argparse.ArgumentParser:
                                         "automatic levels (each channel's 2nd-98th percentile stretched to [0, 1]) "
                                         "and histogram equalisation (per channel), and of the policy's edits at 10 "
                                         "queries when --checkpoint is given; a table, or one JSON line.")
-    e.add_argument("folder", metavar="FIVEK_FOLDER", type=Path, nargs="?",
-                   help="crop the test split of a MIT-Adobe FiveK folder's inputs (input/ beside expertC_gt/) "
-                        "instead of l2r's held-out photos (chelsea, coffee, grace_hopper)")
-    e.add_argument("--checkpoint", metavar="CK", type=Path,
-                   help="also run this policy of l2r/PhotoEnhance-v0 or l2r/PhotoEnhanceStats-v0 (a checkpoint "
-                        "file, best.pt, or an `l2r up` run directory)")
-    e.add_argument("--photos", type=int, default=12, metavar="N",
-                   help="problems, on the task's seeds --seed, --seed + 1, ... (default: 12)")
+    add_held_out(e, "also run this policy of l2r/PhotoEnhance-v0 or l2r/PhotoEnhanceStats-v0 (a checkpoint file, "
+                    "best.pt, or an `l2r up` run directory)")
     add_common(e)
     return p
 
 
+def add_held_out(p: argparse.ArgumentParser, checkpoint_help: str) -> None:
+    """The arguments of a command run on held-out problems: where they come from, how many, and a policy."""
+    p.add_argument("folder", metavar="FIVEK_FOLDER", type=Path, nargs="?",
+                   help="crop the test split of a MIT-Adobe FiveK folder's inputs (input/ beside expertC_gt/) "
+                        "instead of l2r's held-out photos (chelsea, coffee, grace_hopper)")
+    p.add_argument("--checkpoint", metavar="CK", type=Path, help=checkpoint_help)
+    p.add_argument("--photos", type=int, default=12, metavar="N",
+                   help="problems, on the task's seeds --seed, --seed + 1, ... (default: 12)")
+
+
 def add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=0, help="seed of the problems and the optimisers (default: 0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the problems (and of the optimisers, where they run) (default: 0)")
     p.add_argument("--json", action="store_true", help="print one JSON line instead of text")
 
 

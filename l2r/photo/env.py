@@ -115,16 +115,18 @@ class PhotoTuneEnv(gym.Env):
     metadata = {"render_modes": []}
     shows_goal = True
     """Whether the observation shows the goal (the tuner's task) or the current image alone."""
+    task = "PhotoTune"
+    """The name errors begin with."""
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
                  sources: Mapping[str, np.ndarray] | None = None, view: str = "images"):
         photos.check_split(split)
         if view not in VIEWS:
-            raise ValueError(f"PhotoTune: view must be one of {', '.join(VIEWS)}, got {view!r}")
+            raise ValueError(f"{self.task}: view must be one of {', '.join(VIEWS)}, got {view!r}")
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if sources is not None and not sources:
-            raise ValueError("PhotoTune: sources holds no photo")
+            raise ValueError(f"{self.task}: sources holds no photo")
         self.split, self.max_steps, self.view = split, max_steps, view
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
@@ -173,19 +175,18 @@ class PhotoTuneEnv(gym.Env):
                 return name, crop, params, edited
         raise RuntimeError(f"{MAX_DRAWS} crops of the {self.split} photos and their edits in a row were collapsed")
 
-    @staticmethod
-    def check_image(options: dict, name: str) -> np.ndarray:
+    def check_image(self, options: dict, name: str) -> np.ndarray:
         side = photos.WORKING_SIZE
         image = np.asarray(options.get(name), dtype=np.float32)
         if image.shape != (3, side, side) or not np.isfinite(image).all():
-            raise ValueError(f"PhotoTune: reset option {name!r} must be a finite float image [3, {side}, {side}], "
+            raise ValueError(f"{self.task}: reset option {name!r} must be a finite float image [3, {side}, {side}], "
                              f"got shape {list(image.shape)}")
         return np.clip(image, 0.0, 1.0)
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self.episode_over:
-            raise RuntimeError("PhotoTune: step() before the first reset() or after the episode ended; call reset()")
-        self.params = params_from_actions(checked_action("PhotoTune", action, self.action_space.shape))
+            raise RuntimeError(f"{self.task}: step() before the first reset() or after the episode ended; call reset()")
+        self.params = params_from_actions(checked_action(self.task, action, self.action_space.shape))
         self.image = finish(self.source[None], self.params)[0]
         psnr = float(psnr_db(self.image[None], self.goal[None])[0])
         reward = REWARD_SCALE * (psnr - self.psnr)
@@ -221,6 +222,7 @@ class PhotoEnhanceEnv(PhotoTuneEnv):
     """
 
     shows_goal = False
+    task = "PhotoEnhance"
 
     def draw(self) -> None:
         self.photo_name, self.goal, self.degradation, self.source = self.random_edit()
