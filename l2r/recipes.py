@@ -13,7 +13,7 @@ Left out, and the same in every recipe of an algorithm: the temperature is learn
 entropy of -act-dim, PPO and REINFORCE standardise their advantages per minibatch and A2C does
 not; `--learner-arg` sets those.
 
-The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `ReinforceConfig`)
+The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `A3CConfig`, `ReinforceConfig`)
 stay the 2017 reference solution's, CleanRL's, Stable-Baselines3's and Spinning Up's; `l2r up`
 passes every value of the recipe, so the learner's command line shows it.
 """
@@ -203,6 +203,11 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0,
     ),
 }
+# A3C: A2C's recipe with its rollout, the 5 steps of one environment per gradient (Stable-Baselines3's
+# n_steps; A3C's t_max), that each actor turns into a gradient at the weights it acted with. A
+# gradient more than 4 versions behind the learner's is refused.
+RECIPES |= {(family, "a3c"): {**RECIPES[family, "a2c"], "batch_size": 5, "max_gradient_staleness": 4}
+            for family in (RUNNER, STANDARD)}
 
 # What each setting is, for its `l2r up` flag's help.
 SETTINGS: dict[str, str] = {
@@ -235,6 +240,8 @@ SETTINGS: dict[str, str] = {
     "value_coef": "weight of the value loss, half the squared error (PPO, A2C, REINFORCE, ACKTR)",
     "entropy_coef": "weight of the entropy bonus (PPO, A2C, REINFORCE, ACKTR)",
     "max_grad_norm": "gradient norm clip (PPO, A2C, REINFORCE)",
+    "max_gradient_staleness": "a gradient computed at weights more than this many versions behind the learner's is "
+                              "refused (A3C)",
     "lag_correction": "what the on-policy algorithms do about the actors' policy lag (docs/learner.md)",
     "optimizer": "adam or rmsprop (PPO, A2C, REINFORCE)",
     "max_kl": "the trust region: how far, in mean KL from the policy before it, one step may move the policy "
