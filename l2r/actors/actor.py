@@ -313,6 +313,9 @@ class Actor:
                 self.stacks = self.stacks.with_depth(self.weights.frame_stack)
             if self.first_version is None:
                 self.first_version = self.weights.version
+        if self.gradients is not None and self.weights.policy is None:
+            time.sleep(0.05)  # an A3C actor learns nothing from random steps: it waits for the first weights
+            return
         if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > UNTRAINED):
             # A first policy past the untrained one means the run was already training: no warm-up.
             self.random_phase = False
