@@ -133,15 +133,15 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # ended at 43 after 1M env steps (docs/training.md, "TRPO and ACKTR").
     (RUNNER, "acktr"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
-        max_kl=0.001, momentum=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
-        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        max_kl=0.001, momentum=0.0, target_kl=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0,
+        value_fisher_coef=1.0, entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
         relative_x=True, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=3,
     ),
     (STANDARD, "acktr"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
-        max_kl=0.001, momentum=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
-        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        max_kl=0.001, momentum=0.0, target_kl=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0,
+        value_fisher_coef=1.0, entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
         relative_x=False, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
@@ -253,6 +253,8 @@ SETTINGS: dict[str, str] = {
     "value_epochs": "passes of the value network's Adam over each batch (TRPO)",
     "value_minibatch_size": "transitions per value-network step (TRPO)",
     "momentum": "SGD momentum on the scaled natural gradient (ACKTR)",
+    "target_kl": "the KL each step should make: the step size adapts to it, as the ACKTR paper's MuJoCo code; 0: "
+                 "--lr fixed (ACKTR)",
     "kfac_damping": "added to the Kronecker-factored Fisher before it is inverted (ACKTR)",
     "kfac_decay": "running-average decay of the K-FAC factors (ACKTR)",
     "value_fisher_coef": "weight of the value network's sampled log-likelihood in the Fisher statistics (ACKTR)",

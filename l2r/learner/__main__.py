@@ -220,6 +220,9 @@ class LearnerSettings(DaemonSettings):
                                 "batch", group=NATURAL, ge=1)
     value_minibatch_size: int = setting(TRPO_DEFAULTS.value_minibatch_size, "TRPO: transitions per value-network "
                                         "step", group=NATURAL, ge=1)
+    target_kl: float = setting(ACKTR_DEFAULTS.target_kl, "ACKTR: after each step, the KL it made adapts --lr (its "
+                               "start): divided by 1.5 above twice this, times 1.5 below half of it, as the paper's "
+                               "MuJoCo code does (0: --lr fixed)", group=NATURAL, ge=0)
     momentum: float = setting(ACKTR_DEFAULTS.momentum, "ACKTR: SGD momentum on the scaled natural gradient",
                               group=NATURAL, ge=0, lt=1)
     kfac_damping: float = setting(ACKTR_DEFAULTS.kfac_damping, "ACKTR: added to the Kronecker-factored Fisher "
@@ -346,7 +349,7 @@ class LearnerSettings(DaemonSettings):
         try:
             return ACKTRConfig(
                 **self._on_policy_common(ACKTR_DEFAULTS), max_kl=self._given("max_kl", ACKTR_DEFAULTS.max_kl),
-                momentum=self.momentum, kfac_damping=self.kfac_damping, kfac_decay=self.kfac_decay,
+                momentum=self.momentum, target_kl=self.target_kl, kfac_damping=self.kfac_damping, kfac_decay=self.kfac_decay,
                 value_fisher_coef=self.value_fisher_coef,
                 value_coef=self._given("value_coef", ACKTR_DEFAULTS.value_coef), entropy_coef=self.entropy_coef)
         except ValueError as e:  # a combination ACKTRConfig refuses

@@ -544,7 +544,7 @@ LOGGED = {
     "trpo": (("surrogate", "surrogate"), ("value", "value_loss"), ("entropy", "entropy"), ("kl", "kl"),
              ("step", "step_fraction")),
     "acktr": (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
-              ("step size", "step_size"), ("kl", "quadratic_kl")),
+              ("step size", "step_size"), ("kl", "kl"), ("lr", "lr")),
 }
 
 
