@@ -121,7 +121,8 @@ class LearnerSettings(DaemonSettings):
         "sac", "sac: off-policy, from the replay table; td3: off-policy with a deterministic policy, from the replay "
         "table; on-policy, from the replay server's queue table (l2r-replay --queue-capacity): ppo; a2c, synchronous "
         "advantage actor-critic (PPO's update, one step per batch, RMSprop); a3c, A2C asynchronously: the actors send "
-        "gradients of their own rollouts instead of experience, applied as they come (no replay); reinforce, Monte-Carlo returns and a "
+        "gradients of their own rollouts instead of experience, applied as they come (no replay); reinforce, "
+        "Monte-Carlo returns and a "
         "value baseline (PPO's update, one step per batch, lambda 1); trpo, trust-region policy optimisation "
         "(conjugate gradients on the KL's Fisher, a line search under --max-kl); acktr, K-FAC natural gradients for "
         "policy and value network in a trust region", group=BOTH)
@@ -349,7 +350,8 @@ class LearnerSettings(DaemonSettings):
         try:
             return ACKTRConfig(
                 **self._on_policy_common(ACKTR_DEFAULTS), max_kl=self._given("max_kl", ACKTR_DEFAULTS.max_kl),
-                momentum=self.momentum, target_kl=self.target_kl, kfac_damping=self.kfac_damping, kfac_decay=self.kfac_decay,
+                momentum=self.momentum, target_kl=self.target_kl, kfac_damping=self.kfac_damping,
+                kfac_decay=self.kfac_decay,
                 value_fisher_coef=self.value_fisher_coef,
                 value_coef=self._given("value_coef", ACKTR_DEFAULTS.value_coef), entropy_coef=self.entropy_coef)
         except ValueError as e:  # a combination ACKTRConfig refuses

@@ -206,6 +206,7 @@ def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, to
         kl = gaussian_kl(mean, log_std, *state.actor(batch.obs)).mean()
     if config.target_kl:
         state.step_size = adapted_step_size(lr, float(kl), config.target_kl)
-    return {"kl": kl, "lr": torch.tensor(lr), "policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(), "entropy": entropy.detach(),
+    return {"kl": kl, "lr": torch.tensor(lr), "policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(),
+            "entropy": entropy.detach(),
             "step_size": step_sizes[0], "value_step_size": step_sizes[1], "quadratic_kl": quadratic_kls[0],
             "value_quadratic_kl": quadratic_kls[1]} | batch_metrics(estimates, batch)

@@ -80,7 +80,8 @@ UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of thei
 # TrainState, update, ...). A2C, A3C and REINFORCE are PPO's state at their own settings (A3C's update,
 # on gradients, is l2r.learner.a3c.apply).
 ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo), "td3": (TD3Config, td3),
-              "a2c": (A2CConfig, ppo), "a3c": (A3CConfig, ppo), "reinforce": (ReinforceConfig, ppo), "trpo": (TRPOConfig, trpo),
+              "a2c": (A2CConfig, ppo), "a3c": (A3CConfig, ppo), "reinforce": (ReinforceConfig, ppo),
+              "trpo": (TRPOConfig, trpo),
               "acktr": (ACKTRConfig, acktr)}
 AlgorithmConfig = SACConfig | PPOConfig | TD3Config | TRPOConfig | ACKTRConfig
 TrainState = sac.TrainState | ppo.TrainState | td3.TrainState | acktr.TrainState

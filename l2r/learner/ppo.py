@@ -353,7 +353,8 @@ def minibatch_loss(state: TrainState, batch: Batch, estimates: Estimates, rows: 
     if config.normalize_advantages:
         adv = (adv - adv.mean()) / (adv.std(correction=0) + 1e-8)
     policy_loss, ratio = clipped_surrogate(log_prob, estimates.old_log_prob[rows], adv, config.clip)
-    value_loss = 0.5 * (state.value(state.actor.observation_filter(batch.obs[rows])) - estimates.targets[rows]).pow(2).mean()
+    values = state.value(state.actor.observation_filter(batch.obs[rows]))
+    value_loss = 0.5 * (values - estimates.targets[rows]).pow(2).mean()
     loss = policy_loss - config.entropy_coef * entropy.mean() + config.value_coef * value_loss
     with torch.no_grad():
         log_ratio = ratio.log()
