@@ -123,7 +123,8 @@ def gradient(replica: Replica, batch: ppo.Batch, config: A3CConfig) -> tuple[np.
 def check(state: ppo.TrainState, message: Gradient, config: A3CConfig) -> None:
     """ProtocolError unless the learner applies `message`: of its parameters' size, with moments
     of its observations' width where it standardises them, and at most `max_gradient_staleness`
-    versions behind (never ahead of) the newest weights."""
+    versions behind the newest weights (`stale`), and not ahead of them (`ahead`: computed at
+    weights this learner never published, so it restarted from an older checkpoint)."""
     size = sum(p.numel() for p in state.parameters())
     if len(message.gradient) != size:
         raise ProtocolError(f"gradient of {len(message.gradient)} values, this learner's networks have {size}",
@@ -133,7 +134,10 @@ def check(state: ppo.TrainState, message: Gradient, config: A3CConfig) -> None:
     if got != moments:
         raise ProtocolError(f"gradient with {got} observation moments, this learner takes {moments}", "wrong_size")
     staleness = state.version - message.policy_version
-    if not 0 <= staleness <= config.max_gradient_staleness:
+    if staleness < 0:
+        raise ProtocolError(f"gradient of version {message.policy_version}, ahead of the learner's {state.version}",
+                            "ahead")
+    if staleness > config.max_gradient_staleness:
         raise ProtocolError(f"gradient of version {message.policy_version}, the learner's is {state.version} "
                             f"(at most {config.max_gradient_staleness} behind)", "stale")
 

@@ -481,6 +481,11 @@ def _learn_from_gradients(config: LearnerConfig, algo: a3c.A3CConfig, state: ppo
             metrics = a3c.apply(state, message, algo)
         except ProtocolError as e:
             inbox.rejections.add(e, f"actor {message.actor_id}")
+            if e.reason == "ahead":  # resumed from before the actors' weights, which take only newer versions
+                log.info("actors hold version %d: going on above it, not from %d", message.policy_version,
+                         state.version)
+                state.version = message.policy_version
+                outlet.publish(state)
             continue
         meter.add(metrics, 1, message.env_steps, float(metrics["staleness"]))
         state.extra["samples"] = state.extra.get("samples", 0) + message.env_steps

@@ -124,7 +124,7 @@ def test_the_learner_refuses_stale_and_ill_fitting_gradients_and_stays_as_it_was
         with pytest.raises(ProtocolError) as e:
             a3c.apply(state, message, config)
         reasons[name] = e.value.reason
-    assert reasons == {"stale": "stale", "ahead": "stale", "wrong size": "wrong_size", "no moments": "wrong_size",
+    assert reasons == {"stale": "stale", "ahead": "ahead", "wrong size": "wrong_size", "no moments": "wrong_size",
                        "moments of another width": "wrong_size"}
     after = state.state_dict()
     for net in ("actor", "value"):

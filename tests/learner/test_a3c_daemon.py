@@ -1,6 +1,7 @@
 """A3C through a real learner process and real Zenoh: a gradient sent at the published version is
 applied and the next weights follow; stale, ill-fitting, non-finite and unreadable ones are
-logged and counted, and the learner goes on."""
+logged and counted, and the learner goes on; one from a version ahead of the learner's (it
+resumed from an older checkpoint) moves its weights above that version."""
 
 import signal
 
@@ -53,6 +54,8 @@ def test_the_learner_applies_fresh_gradients_and_counts_the_ones_it_refuses(netw
         return (metrics.get("rejected.stale", 0), metrics.get("rejected.wrong_size", 0),
                 metrics.get("rejected.not_finite", 0), metrics.get("rejected.version", 0)) == (1, 2, 1, 1)
     watcher.wait(lambda _: any(counted(m) for m in watcher.metrics), 30, "the refusals counted", learner)
+    send(first.version + 10, ones)  # from weights of an earlier life of the learner
+    watcher.wait(lambda v: v[-1] == first.version + 11, 30, "weights above the actors' version", learner)
     assert learner.stop(signal.SIGTERM) == 0
     saved = load_checkpoint(run_dir / "learner" / "checkpoint.pt")
-    assert saved.algo == "a3c" and saved.train_state["updates"] == 3
+    assert saved.algo == "a3c" and saved.train_state["updates"] == 3 and saved.train_state["version"] == first.version + 11
