@@ -52,7 +52,7 @@ MILESTONES = (100_000, 300_000, 1_000_000)
 PUBLISHED = {("Hopper", "ppo"): (2382.86, 271.74), ("Walker2d", "ppo"): (2287.95, 571.78),
              ("Hopper", "sac"): (2310.46, 342.82), ("Walker2d", "sac"): (3591.45, 911.33)}
 COLOURS = {"ppo": "tab:blue", "sac": "tab:green", "td3": "tab:purple", "a2c": "tab:orange", "reinforce": "tab:brown",
-           "trpo": "tab:red", "acktr": "tab:olive"}
+           "trpo": "tab:red", "acktr": "tab:olive", "a3c": "tab:pink"}
 # The package whose class of the algorithm's name (upper case) is its --sb3 baseline.
 BASELINE_PACKAGES = {"ppo": "stable_baselines3", "sac": "stable_baselines3", "td3": "stable_baselines3",
                      "a2c": "stable_baselines3", "trpo": "sb3_contrib"}
@@ -119,8 +119,36 @@ def summary(run_dir: Path, milestones: list[int]) -> dict:
                      "eval_return": round(sum(evaluated) / len(evaluated), 1) if evaluated else None}
     return {"run_dir": str(run_dir), "seconds": round(done["time"], 1), "env_steps": done["env_steps"],
             "env_steps_per_s": round(done["env_steps"] / max(done["time"], 1e-9), 1), "updates": done["updates"],
+            "updates_per_s": round(done["updates"] / max(done["time"], 1e-9), 1),
             "queue_dropped_stale": replay.get("queue.dropped_stale"), "queue_given": replay.get("queue.given"),
-            "returns": at}
+            **traffic(run_dir), "returns": at}
+
+
+def traffic(run_dir: Path) -> dict:
+    """What the actors sent per update: A3C's gradients (their bytes as sent), else the experience of the
+    same env steps (a chunk of the task's widths encoded as the actors encode it)."""
+    import numpy as np
+
+    from l2r.protocol import ExperienceChunk, encode
+    from l2r.spaces import task_spaces
+
+    args = json.loads((run_dir / "launch.json").read_text())["args"]
+    actors = read_rows(run_dir / "metrics" / "actors.csv")
+    last = {}  # each actor's last row: its counters
+    for row in actors:
+        if row.get("role") == "actor":
+            last[row["instance"]] = row
+    observation, act_dim = task_spaces(args["env_id"])
+    steps = 64
+    chunk = ExperienceChunk(0, 0, 0, 0, 0, np.zeros((steps + 1, observation.vector_width), np.float32),
+                            np.zeros((steps, act_dim), np.float32), np.zeros(steps, np.float32), np.zeros(steps, bool),
+                            np.zeros(steps, bool), np.zeros((0, observation.vector_width), np.float32),
+                            np.zeros(steps, np.float32))
+    per_step = len(encode(chunk)) / steps
+    gradients = sum(float(r.get("gradients_sent") or 0) for r in last.values())
+    sent = sum(float(r.get("gradient_bytes_sent") or 0) for r in last.values())
+    return {"experience_bytes_per_env_step": round(per_step, 1), "gradients_sent": int(gradients),
+            "gradient_bytes_per_update": round(sent / gradients, 1) if gradients else None}
 
 
 def plot(run_dirs: list[Path], results: list[dict], out: Path) -> None:

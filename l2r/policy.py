@@ -190,12 +190,23 @@ class ObservationFilter(nn.Module):
         """
         if not self.normalize:
             return
-        x = self._relative(obs).double()
-        count = torch.full((1,), len(x), dtype=x.dtype, device=x.device)  # a fill: no copy that waits for a GPU
-        moments = torch.cat([count, x.sum(0), x.pow(2).sum(0)])
+        moments = self.moments(obs)
         if reduce is not None:
             reduce(moments)
-        n, total, squares = moments[0], moments[1:1 + x.shape[1]], moments[1 + x.shape[1]:]
+        self.merge(moments)
+
+    @torch.no_grad()
+    def moments(self, obs: torch.Tensor) -> torch.Tensor:
+        """What `update` merges of a batch (n, obs_dim): float64 [n, sum of rows, sum of squared rows]."""
+        x = self._relative(obs).double()
+        count = torch.full((1,), len(x), dtype=x.dtype, device=x.device)  # a fill: no copy that waits for a GPU
+        return torch.cat([count, x.sum(0), x.pow(2).sum(0)])
+
+    @torch.no_grad()
+    def merge(self, moments: torch.Tensor) -> None:
+        """Merge a batch's `moments` into the running statistics."""
+        width = len(self.mean)
+        n, total, squares = moments[0], moments[1:1 + width], moments[1 + width:]
         batch_mean = total / n
         batch_var = (squares / n - batch_mean.pow(2)).clamp(min=0.0)
         count = self.count + n

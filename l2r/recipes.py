@@ -13,7 +13,7 @@ Left out, and the same in every recipe of an algorithm: the temperature is learn
 entropy of -act-dim, PPO and REINFORCE standardise their advantages per minibatch and A2C does
 not; `--learner-arg` sets those.
 
-The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `ReinforceConfig`)
+The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `A3CConfig`, `ReinforceConfig`)
 stay the 2017 reference solution's, CleanRL's, Stable-Baselines3's and Spinning Up's; `l2r up`
 passes every value of the recipe, so the learner's command line shows it.
 """
@@ -133,15 +133,15 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # ended at 43 after 1M env steps (docs/training.md, "TRPO and ACKTR").
     (RUNNER, "acktr"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
-        max_kl=0.001, momentum=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
-        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        max_kl=0.001, momentum=0.0, target_kl=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0,
+        value_fisher_coef=1.0, entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
         relative_x=True, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=3,
     ),
     (STANDARD, "acktr"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
-        max_kl=0.001, momentum=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0, value_fisher_coef=1.0,
-        entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
+        max_kl=0.001, momentum=0.0, target_kl=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0,
+        value_fisher_coef=1.0, entropy_coef=0.0, lag_correction="ratio", reward_scale=1.0,
         relative_x=False, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
@@ -215,6 +215,11 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
 }
+# A3C: A2C's recipe with its rollout, the 5 steps of one environment per gradient (Stable-Baselines3's
+# n_steps; A3C's t_max), that each actor turns into a gradient at the weights it acted with. A
+# gradient more than 4 versions behind the learner's is refused.
+RECIPES |= {(family, "a3c"): {**RECIPES[family, "a2c"], "batch_size": 5, "max_gradient_staleness": 4}
+            for family in (RUNNER, STANDARD)}
 
 # What each setting is, for its `l2r up` flag's help.
 SETTINGS: dict[str, str] = {
@@ -247,6 +252,8 @@ SETTINGS: dict[str, str] = {
     "value_coef": "weight of the value loss, half the squared error (PPO, A2C, REINFORCE, ACKTR)",
     "entropy_coef": "weight of the entropy bonus (PPO, A2C, REINFORCE, ACKTR)",
     "max_grad_norm": "gradient norm clip (PPO, A2C, REINFORCE)",
+    "max_gradient_staleness": "a gradient computed at weights more than this many versions behind the learner's is "
+                              "refused (A3C)",
     "lag_correction": "what the on-policy algorithms do about the actors' policy lag (docs/learner.md)",
     "optimizer": "adam or rmsprop (PPO, A2C, REINFORCE)",
     "max_kl": "the trust region: how far, in mean KL from the policy before it, one step may move the policy "
@@ -258,6 +265,8 @@ SETTINGS: dict[str, str] = {
     "value_epochs": "passes of the value network's Adam over each batch (TRPO)",
     "value_minibatch_size": "transitions per value-network step (TRPO)",
     "momentum": "SGD momentum on the scaled natural gradient (ACKTR)",
+    "target_kl": "the KL each step should make: the step size adapts to it, as the ACKTR paper's MuJoCo code; 0: "
+                 "--lr fixed (ACKTR)",
     "kfac_damping": "added to the Kronecker-factored Fisher before it is inverted (ACKTR)",
     "kfac_decay": "running-average decay of the K-FAC factors (ACKTR)",
     "value_fisher_coef": "weight of the value network's sampled log-likelihood in the Fisher statistics (ACKTR)",

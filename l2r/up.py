@@ -209,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
                          "deterministic policy); ppo, a2c, reinforce, trpo and acktr on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
-                         "policy versions")
+                         "policy versions; a3c from gradients the actors compute on their own rollouts "
+                         "(--batch-size steps each) and send instead of experience")
     le.add_argument("--capacity", type=int,
                     help=f"replay capacity in transitions (SAC, TD3); unset: {VECTOR_CAPACITY:,}, and {IMAGE_CAPACITY:,} "
                          f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start), "
@@ -529,7 +530,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
-                                         "--random-steps", str(recipe["random_steps"]),
+                                         "--random-steps", str(recipe["random_steps"]), *gradient_flags(args, recipe),
                                          *robustness_flags(args, opensim=bool(opensim)), *logs, *args.actor_arg,
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):
@@ -545,6 +546,11 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
                                          *eval_env]))
     return children
+
+
+def gradient_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
+    """A training actor's flags for A3C: a gradient of each rollout of the recipe's batch size, sent instead of it."""
+    return ["--send-gradients", "--chunk-size", str(recipe["batch_size"])] if args.algo == "a3c" else []
 
 
 def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:

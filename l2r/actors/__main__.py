@@ -92,6 +92,10 @@ class ActorSettings(DaemonSettings):
     resend_delay: float = setting(DEFAULTS.resend_delay, "seconds after its last send before an unacknowledged "
                                   "chunk is sent again; the wait doubles with each resend, up to 30 s",
                                   group=EXPERIENCE, gt=0)
+    send_gradients: bool = setting(False, "A3C (l2r-learner --algo a3c): send the gradient of each chunk's rollout, "
+                                   "computed at the weights that acted it, instead of the chunk; weights are "
+                                   "swapped in only between chunks (--chunk-size: A2C's n-steps, 5)",
+                                   group=EXPERIENCE)
     evaluate: bool = setting(False, "run deterministic episodes on fixed seeds for each new policy, report them as "
                              "evaluation episodes, and send no experience", group=EVALUATION)
     eval_episodes: int = setting(DEFAULTS.eval_episodes, "episodes per evaluation round, on seeds seed, seed+1, ...",
@@ -163,7 +167,7 @@ class ActorSettings(DaemonSettings):
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
             torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,
             max_speed=self.max_speed, resend_buffer_mb=self.resend_buffer_mb, resend_delay=self.resend_delay,
-            episode_log=episode_log,
+            episode_log=episode_log, send_gradients=self.send_gradients,
         )
 
 

@@ -34,6 +34,7 @@ from l2r.actors.actor_id import ask_actor_id
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
+from l2r.actors.gradients import GradientSender
 from l2r.actors.weights import WeightFollower
 from l2r.actors.worlds import EnvList, VectorWorlds, Worlds
 from l2r.config import StartupFailure
@@ -123,6 +124,9 @@ class ActorConfig:
     """Stop after this many steps of this actor (0: run until stopped)."""
     episode_log: dict = field(default_factory=dict)
     """Keyword arguments for the MCAP episode logger; empty: no logging."""
+    send_gradients: bool = False
+    """A3C: each chunk's gradient (at the weights that acted it) goes to the learner instead of the
+    chunk, and weights are swapped in only between chunks (`l2r.actors.gradients`)."""
 
     @property
     def role(self) -> str:
@@ -296,7 +300,9 @@ class Actor:
         self.experience = session.declare_publisher(
             self.keys.experience(config.actor_id, config.num_shards), **EXPERIENCE_QOS.publisher())
         self.resend = self.resender = None
-        if not config.evaluate and config.resend_buffer_mb > 0:
+        self.gradients = None if config.evaluate or not config.send_gradients else GradientSender(
+            session, self.keys, config.actor_id)
+        if not config.evaluate and config.resend_buffer_mb > 0 and self.gradients is None:
             self.resend = ResendBuffer(int(config.resend_buffer_mb * 2**20), config.resend_delay, MAX_RESEND_DELAY)
             self.resender = Resender(self, session)
         self.summaries = session.declare_publisher(self.keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
@@ -339,12 +345,16 @@ class Actor:
 
     def step(self) -> None:
         acted_by = self.weights.version
-        if self.weights.poll():
+        # A gradient is of one policy's rollout: an A3C actor swaps weights only between chunks.
+        if (self.gradients is None or not any(self.builders)) and self.weights.poll():
             self.flush(force=True, version=acted_by)  # a chunk carries the one version that produced it
             if self.weights.frame_stack != self.stacks.depth:
                 self.stacks = self.stacks.with_depth(self.weights.frame_stack)
             if self.first_version is None:
                 self.first_version = self.weights.version
+        if self.gradients is not None and self.weights.policy is None:
+            time.sleep(0.05)  # an A3C actor learns nothing from random steps: it waits for the first weights
+            return
         if self.random_phase and (self.steps >= self.config.random_steps or (self.first_version or 0) > UNTRAINED):
             # A first policy past the untrained one means the run was already training: no warm-up.
             self.random_phase = False
@@ -422,7 +432,11 @@ class Actor:
         version = max(self.weights.version if version is None else version, 0)
         for builder in self.builders:
             if builder and (force or builder.full or builder.started_at < deadline):
-                payload = encode(builder.take(self.seq, version))
+                chunk = builder.take(self.seq, version)
+                if self.gradients is not None:
+                    self.gradients.send(chunk, None if self.acting_randomly else self.weights.in_use)
+                    continue
+                payload = encode(chunk)
                 if self.resend is not None:
                     self.resend.add(self.seq, payload, time.monotonic())
                 self.experience.put(payload)
@@ -480,6 +494,8 @@ class Actor:
             "random_phase": int(self.random_phase), "waiting_for_replay": int(self.waiting_for_replay),
             "num_envs": len(self.slots), "blowups": self.blowups, "held_s": self.held_s,
         }
+        if self.gradients is not None:
+            values |= self.gradients.counters()
         if self.camera:  # one frame rendered per env step; the papers count a frame per inner step
             values |= {"frames": self.frames, "frames_per_s": frame_rate}
         if self.resend is not None:
@@ -497,6 +513,8 @@ class Actor:
         if self.episode_logger is not None:
             self.episode_logger.close()
         self.weights.close()
+        if self.gradients is not None:
+            self.gradients.close()
         self.live.close()
         self.worlds.close()
 

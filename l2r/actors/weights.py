@@ -44,6 +44,7 @@ class WeightFollower:
         self.newest_seen = -1  # newest version announced by weights or the learner's beacon
         self.swaps = 0
         self.policy: PolicyNetwork | None = None
+        self.in_use: Weights | None = None  # the message of the policy in use (A3C's actors differentiate it)
         self.frame_stack = 1  # observations stacked into one input of the policy in use
         self._subscriber = session.declare_subscriber(keys.weights, self._on_weights)
         self._beacon = session.declare_subscriber(keys.learner_version, self._on_beacon)
@@ -123,7 +124,7 @@ class WeightFollower:
                                 self._keys.weights)
             return False
         first = self.policy is None
-        self.policy, self.version = policy, weights.version
+        self.policy, self.version, self.in_use = policy, weights.version, weights
         self.frame_stack = frame_stack_of(weights.spec)
         self.swaps += 1
         log.log(logging.INFO if first else logging.DEBUG, "policy version %d in use", weights.version)

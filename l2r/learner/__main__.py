@@ -1,4 +1,4 @@
-"""``l2r-learner``: command line of the learner, SAC, TD3, PPO, A2C, REINFORCE, TRPO or ACKTR (see
+"""``l2r-learner``: command line of the learner, SAC, TD3, PPO, A2C, A3C, REINFORCE, TRPO or ACKTR (see
 ``l2r.learner.daemon``)."""
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
 from l2r.learner.a2c import A2CConfig  # noqa: E402
+from l2r.learner.a3c import A3CConfig  # noqa: E402
 from l2r.learner.acktr import ACKTRConfig  # noqa: E402
 from l2r.learner.algorithms import ON_POLICY  # noqa: E402
 from l2r.learner.checkpoint import CheckpointError  # noqa: E402
@@ -39,13 +40,14 @@ IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
 """DrQ-v2's frame stack and random shift, the defaults for image observations."""
 
 SAC_DEFAULTS, PPO_DEFAULTS, TD3_DEFAULTS = SACConfig(), PPOConfig(), TD3Config()
-PPO_FAMILY = {"ppo": PPO_DEFAULTS, "a2c": A2CConfig(), "reinforce": ReinforceConfig()}
+A3C_DEFAULTS = A3CConfig()
+PPO_FAMILY = {"ppo": PPO_DEFAULTS, "a2c": A2CConfig(), "a3c": A3C_DEFAULTS, "reinforce": ReinforceConfig()}
 """The algorithms that are PPO's update at their own settings, each with its defaults."""
 TRPO_DEFAULTS, ACKTR_DEFAULTS = TRPOConfig(), ACKTRConfig()
 ON_POLICY_DEFAULTS = {**PPO_FAMILY, "trpo": TRPO_DEFAULTS, "acktr": ACKTR_DEFAULTS}
 PROCESS, PARALLEL = "learner process", "data parallel (torch.distributed; NCCL with a GPU per rank, else gloo)"
 BOTH, SAC = "algorithm (every --algo)", "SAC (with --algo sac)"
-PPO = ("on-policy (with --algo ppo, a2c or reinforce; with --algo trpo or acktr where the algorithm has the "
+PPO = ("on-policy (with --algo ppo, a2c, a3c or reinforce; with --algo trpo or acktr where the algorithm has the "
        "setting)")
 NATURAL = "TRPO and ACKTR (natural-gradient steps; with --algo trpo or acktr)"
 OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
@@ -115,10 +117,12 @@ class LearnerSettings(DaemonSettings):
     dist_url: str | None = setting(None, "rendezvous, e.g. tcp://127.0.0.1:29500 (default: env:// with $MASTER_ADDR "
                                    "and $MASTER_PORT)", group=PARALLEL)
 
-    algo: Literal["sac", "td3", "ppo", "a2c", "reinforce", "trpo", "acktr"] = setting(
+    algo: Literal["sac", "td3", "ppo", "a2c", "a3c", "reinforce", "trpo", "acktr"] = setting(
         "sac", "sac: off-policy, from the replay table; td3: off-policy with a deterministic policy, from the replay "
         "table; on-policy, from the replay server's queue table (l2r-replay --queue-capacity): ppo; a2c, synchronous "
-        "advantage actor-critic (PPO's update, one step per batch, RMSprop); reinforce, Monte-Carlo returns and a "
+        "advantage actor-critic (PPO's update, one step per batch, RMSprop); a3c, A2C asynchronously: the actors send "
+        "gradients of their own rollouts instead of experience, applied as they come (no replay); reinforce, "
+        "Monte-Carlo returns and a "
         "value baseline (PPO's update, one step per batch, lambda 1); trpo, trust-region policy optimisation "
         "(conjugate gradients on the KL's Fisher, a line search under --max-kl); acktr, K-FAC natural gradients for "
         "policy and value network in a trust region", group=BOTH)
@@ -188,6 +192,9 @@ class LearnerSettings(DaemonSettings):
                                        + _defaults("value_coef"), group=PPO, ge=0)
     entropy_coef: float = setting(PPO_DEFAULTS.entropy_coef, "weight of the entropy bonus", group=PPO, ge=0)
     max_grad_norm: float = setting(PPO_DEFAULTS.max_grad_norm, "gradient norm clip", group=PPO, gt=0)
+    max_gradient_staleness: int = setting(
+        A3C_DEFAULTS.max_gradient_staleness, "A3C: a gradient computed at weights more than this many versions behind "
+        "the learner's is refused (logged and counted)", group=PPO, ge=0)
     optimizer: Literal[OPTIMIZERS] | None = setting(
         None, "adam, or rmsprop (alpha 0.99, as Stable-Baselines3's A2C) " + _defaults("optimizer"), group=PPO)
     normalize_advantages: bool = setting(False, "advantages standardised per minibatch (PPO's and REINFORCE's "
@@ -214,6 +221,9 @@ class LearnerSettings(DaemonSettings):
                                 "batch", group=NATURAL, ge=1)
     value_minibatch_size: int = setting(TRPO_DEFAULTS.value_minibatch_size, "TRPO: transitions per value-network "
                                         "step", group=NATURAL, ge=1)
+    target_kl: float = setting(ACKTR_DEFAULTS.target_kl, "ACKTR: after each step, the KL it made adapts --lr (its "
+                               "start): divided by 1.5 above twice this, times 1.5 below half of it, as the paper's "
+                               "MuJoCo code does (0: --lr fixed)", group=NATURAL, ge=0)
     momentum: float = setting(ACKTR_DEFAULTS.momentum, "ACKTR: SGD momentum on the scaled natural gradient",
                               group=NATURAL, ge=0, lt=1)
     kfac_damping: float = setting(ACKTR_DEFAULTS.kfac_damping, "ACKTR: added to the Kronecker-factored Fisher "
@@ -270,6 +280,9 @@ class LearnerSettings(DaemonSettings):
                              "over its own steps, and data-parallel ranks all-reduce their gradients eagerly")
         if self.compile.endswith("graphs") and self.device == "cpu":
             raise UsageError(f"--compile {self.compile} captures CUDA graphs: it needs --device cuda or auto")
+        if self.algo == "a3c" and (self.world_size > 1 or self.images):
+            raise UsageError("--algo a3c runs on one learner and vector observations: its gradients come from the "
+                             "actors, not from batches the ranks could share")
         if self.algo in ("trpo", "acktr") and self.world_size > 1:
             raise UsageError(f"--algo {self.algo} runs on one learner: its curvature is not averaged over ranks "
                              "(--world-size 1)")
@@ -317,6 +330,7 @@ class LearnerSettings(DaemonSettings):
             return type(defaults)(
                 **self._on_policy_common(defaults), clip=self.clip, entropy_coef=self.entropy_coef,
                 max_grad_norm=self.max_grad_norm,
+                **({"max_gradient_staleness": self.max_gradient_staleness} if self.algo == "a3c" else {}),
                 **{name: self._given(name, getattr(defaults, name))
                    for name in ("epochs", "minibatches", "value_coef", "optimizer")})
         except ValueError as e:  # a combination the config refuses
@@ -336,7 +350,8 @@ class LearnerSettings(DaemonSettings):
         try:
             return ACKTRConfig(
                 **self._on_policy_common(ACKTR_DEFAULTS), max_kl=self._given("max_kl", ACKTR_DEFAULTS.max_kl),
-                momentum=self.momentum, kfac_damping=self.kfac_damping, kfac_decay=self.kfac_decay,
+                momentum=self.momentum, target_kl=self.target_kl, kfac_damping=self.kfac_damping,
+                kfac_decay=self.kfac_decay,
                 value_fisher_coef=self.value_fisher_coef,
                 value_coef=self._given("value_coef", ACKTR_DEFAULTS.value_coef), entropy_coef=self.entropy_coef)
         except ValueError as e:  # a combination ACKTRConfig refuses

@@ -9,7 +9,9 @@ for K-FAC; the Fisher statistics from log-likelihoods of targets sampled from th
 themselves (actions from the policy; values with unit Gaussian noise: the critic's Gauss-Newton
 matrix) taken into the running factors; the actor-critic loss's gradient preconditioned by the
 damped Kronecker-factored inverse; the step size min(lr, sqrt(2 max_kl / (d' F d))) for the
-natural gradient d of each network (each in its own trust region); one SGD step with momentum.
+natural gradient d of each network (each in its own trust region); one SGD step with momentum;
+then, with a `target_kl`, the step size lr adapted to the KL the step measurably made, as the
+paper's MuJoCo code adapts it (`adapted_step_size`).
 Every Linear layer of both networks gets natural gradients; the statistics and their inverses
 are renewed every update.
 The K-FAC pieces are `l2r.learner.curvature.KFAC`.
@@ -27,7 +29,7 @@ from typing import Mapping
 import torch
 
 from l2r.learner import ppo
-from l2r.learner.curvature import KFAC, trust_region_scale
+from l2r.learner.curvature import KFAC, gaussian_kl, trust_region_scale
 from l2r.learner.ppo import LOG_RATIO_BOUND, Batch, batch_metrics, check_on_policy, estimate
 from l2r.policy import tanh_gaussian_log_prob
 
@@ -41,8 +43,13 @@ class ACKTRConfig:
 
     batch_size: int = 2500
     """Transitions per update. The paper's MuJoCo script: timesteps_per_batch 2500."""
-    lr: float = 0.25
-    """eta_max, the largest step size (SGD with momentum). The paper: 0.25."""
+    lr: float = 0.03
+    """eta_max, the largest step size (SGD with momentum); with `target_kl`, its start. The paper's
+    MuJoCo code: 0.03, adapted (its Atari code: 0.25, fixed)."""
+    target_kl: float = 0.002
+    """After each step, the KL the step made between the policy before and after it, on the batch,
+    adapts lr: divided by 1.5 above twice this, multiplied by 1.5 below half of it, kept within
+    [1e-8, 1]. The paper's MuJoCo code: 0.002. 0: lr fixed."""
     max_kl: float = 0.001
     """delta, the trust region: the quadratic KL a step may reach. The paper: 0.001."""
     momentum: float = 0.9
@@ -86,6 +93,8 @@ class ACKTRConfig:
         check_on_policy(self)
         if self.layer_norm:
             raise ValueError("ACKTR's K-FAC covers Linear layers alone: no layer_norm")
+        if self.target_kl < 0:
+            raise ValueError(f"target_kl must be >= 0 (0: a fixed lr), got {self.target_kl}")
         if self.lr <= 0 or self.max_kl <= 0 or self.kfac_damping <= 0:
             raise ValueError(f"lr, max_kl and kfac_damping must be > 0, got {self.lr}, {self.max_kl}, "
                              f"{self.kfac_damping}")
@@ -98,18 +107,40 @@ class ACKTRConfig:
         return {**asdict(self), "hidden": list(self.hidden)}
 
 
+MIN_STEP_SIZE, MAX_STEP_SIZE, STEP_SIZE_FACTOR = 1e-8, 1.0, 1.5
+"""The paper's MuJoCo code's bounds of the adapted step size, and its factor."""
+
+
 @dataclass
 class TrainState(ppo.TrainState):
-    """PPO's training state (the optimizer SGD with momentum over both networks) and the K-FAC factors."""
+    """PPO's training state (the optimizer SGD with momentum over both networks), the K-FAC factors
+    and the step size lr now (the config's, or where target_kl adapts it, its latest value)."""
 
     curvature: KFAC = field(kw_only=True)
+    step_size: float = field(kw_only=True)
+
+    def set_learning_rates(self, config: ACKTRConfig) -> None:
+        """A resumed run takes the command line's lr, unless it adapts its step size: that is trained state."""
+        if not config.target_kl:
+            self.step_size = config.lr
 
     def state_dict(self) -> dict:
-        return super().state_dict() | {"curvature": self.curvature.state_dict()}
+        return super().state_dict() | {"curvature": self.curvature.state_dict(), "step_size": self.step_size}
 
     def load_state_dict(self, saved: Mapping) -> None:
         super().load_state_dict(saved)
         self.curvature.load_state_dict(saved["curvature"])
+        self.step_size = float(saved.get("step_size", self.step_size))  # (checkpoints from before it: the config's)
+
+
+def adapted_step_size(step_size: float, kl: float, target_kl: float) -> float:
+    """The paper's MuJoCo rule: step_size / 1.5 when the step's measured KL passed 2 * target_kl,
+    * 1.5 when it stayed under target_kl / 2, else as it was; within [1e-8, 1]."""
+    if kl > 2.0 * target_kl:
+        return max(MIN_STEP_SIZE, step_size / STEP_SIZE_FACTOR)
+    if kl < 0.5 * target_kl:
+        return min(MAX_STEP_SIZE, step_size * STEP_SIZE_FACTOR)
+    return step_size
 
 
 def init_state(config: ACKTRConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
@@ -117,7 +148,8 @@ def init_state(config: ACKTRConfig, obs_dim: int, act_dim: int, device: str | to
     """PPO's networks, SGD with momentum over both, and K-FAC over their Linear layers."""
     actor, value = ppo.init_networks(config, obs_dim, act_dim, device, seed)
     optimizer = torch.optim.SGD([*actor.parameters(), *value.parameters()], lr=config.lr, momentum=config.momentum)
-    return TrainState(actor, value, optimizer, curvature=KFAC([actor, value], config.kfac_decay, config.kfac_damping))
+    return TrainState(actor, value, optimizer, curvature=KFAC([actor, value], config.kfac_decay, config.kfac_damping),
+                      step_size=config.lr)
 
 
 def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, torch.Tensor]:
@@ -153,18 +185,28 @@ def update(state: TrainState, batch: Batch, config: ACKTRConfig) -> dict[str, to
     #    own trust region (the paper's MuJoCo code steps policy and value network apart, each with
     #    its own bound; one joint bound let the value network's large gradient starve the policy):
     #    the step is min(lr, sqrt(2 max_kl / d' F d)) d, with d' F d = d' g.
+    lr = state.step_size
     natural = dict(zip(state.curvature.parameters(), state.curvature.natural_gradient()))
     step_sizes, quadratic_kls = [], []
     for network in (state.actor, state.value):
         pairs = [(p, natural[p]) for p in network.parameters()]
         quadratic = sum((d * p.grad).sum() for p, d in pairs).clamp(min=0.0)  # >= 0 but for rounding
-        scale = trust_region_scale(config.lr ** 2 * quadratic, config.max_kl).clamp(max=1.0)
+        scale = trust_region_scale(lr ** 2 * quadratic, config.max_kl).clamp(max=1.0)
         for p, d in pairs:
             p.grad = scale * d
-        step_sizes.append(config.lr * scale.detach())
+        step_sizes.append(lr * scale.detach())
         quadratic_kls.append(0.5 * step_sizes[-1] ** 2 * quadratic.detach())
+    for group in state.optimizer.param_groups:
+        group["lr"] = lr
     state.optimizer.step()
     state.updates += 1
-    return {"policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(), "entropy": entropy.detach(),
+
+    # 7. The KL the step made, measured; with a target, the next step size follows it.
+    with torch.no_grad():
+        kl = gaussian_kl(mean, log_std, *state.actor(batch.obs)).mean()
+    if config.target_kl:
+        state.step_size = adapted_step_size(lr, float(kl), config.target_kl)
+    return {"kl": kl, "lr": torch.tensor(lr), "policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(),
+            "entropy": entropy.detach(),
             "step_size": step_sizes[0], "value_step_size": step_sizes[1], "quadratic_kl": quadratic_kls[0],
             "value_quadratic_kl": quadratic_kls[1]} | batch_metrics(estimates, batch)

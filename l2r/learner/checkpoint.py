@@ -4,13 +4,13 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
 
     format          "l2r-learner-checkpoint"
     format_version  1
-    algo            "sac", "ppo", "td3", "a2c", "reinforce", "trpo" or "acktr", the algorithm that trained it
+    algo            "sac", "ppo", "td3", "a2c", "a3c", "reinforce", "trpo" or "acktr", the algorithm that trained it
                     (absent: "sac", a file from before PPO)
     sac_config      SACConfig as a dict (algorithm settings the state was trained with);
                     None in a policy checkpoint and in a PPO or TD3 checkpoint, so that readers
                     from before PPO take those for a policy checkpoint
     ppo_config      PPOConfig as a dict, in a PPO checkpoint
-    a2c_config, reinforce_config  A2CConfig, ReinforceConfig as a dict, in their checkpoints
+    a2c_config, a3c_config, reinforce_config  A2CConfig, A3CConfig, ReinforceConfig as a dict, in their checkpoints
     trpo_config, acktr_config  TRPOConfig, ACKTRConfig as a dict, in their checkpoints
     td3_config      TD3Config as a dict, in a TD3 checkpoint
     obs_dim, act_dim  obs_dim 0 for observations other than the float32 vector (the policy spec's
@@ -19,7 +19,7 @@ A checkpoint is a `torch.save` of one dict (loadable with `weights_only=True`):
                     for TD3's)
     train_state     the algorithm's TrainState.state_dict(): for SAC actor, critic, target_critic
                     and their Adam states, log_alpha, updates, version, extra counters; for PPO,
-                    A2C, REINFORCE and TRPO actor, value, optimizer (TRPO's the value network's
+                    A2C, A3C, REINFORCE and TRPO actor, value, optimizer (TRPO's the value network's
                     alone), updates, version, extra, and for ACKTR also curvature (its K-FAC
                     factors, l2r.learner.curvature.KFAC.state_dict); for TD3 actor,
                     target_actor, critic, target_critic, actor_opt, critic_opt, updates, version,
@@ -59,6 +59,7 @@ import torch
 from l2r.durable import fsync_directory, write_durably
 from l2r.learner import acktr, ppo, sac, td3, trpo
 from l2r.learner.a2c import A2CConfig
+from l2r.learner.a3c import A3CConfig
 from l2r.learner.acktr import ACKTRConfig
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.reinforce import ReinforceConfig
@@ -76,9 +77,11 @@ UPDATES_DIGITS = 10  # checkpoint-0000012345.pt: names sort in the order of thei
 
 
 # What a checkpoint's "algo" names: the algorithm's config class and its module (init_state,
-# TrainState, update, ...). A2C and REINFORCE are PPO's update and state at their own settings.
+# TrainState, update, ...). A2C, A3C and REINFORCE are PPO's state at their own settings (A3C's update,
+# on gradients, is l2r.learner.a3c.apply).
 ALGORITHMS = {"sac": (SACConfig, sac), "ppo": (PPOConfig, ppo), "td3": (TD3Config, td3),
-              "a2c": (A2CConfig, ppo), "reinforce": (ReinforceConfig, ppo), "trpo": (TRPOConfig, trpo),
+              "a2c": (A2CConfig, ppo), "a3c": (A3CConfig, ppo), "reinforce": (ReinforceConfig, ppo),
+              "trpo": (TRPOConfig, trpo),
               "acktr": (ACKTRConfig, acktr)}
 AlgorithmConfig = SACConfig | PPOConfig | TD3Config | TRPOConfig | ACKTRConfig
 TrainState = sac.TrainState | ppo.TrainState | td3.TrainState | acktr.TrainState

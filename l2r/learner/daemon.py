@@ -10,8 +10,11 @@ REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.re
         on-policy (PPO, A2C, REINFORCE, TRPO, ACKTR; l2r.learner.algorithms.ON_POLICY): one
                   update (PPO's epochs x minibatches, a natural-gradient step) on a batch from the
                   queue table
+    or, for A3C (l2r.learner.a3c), no replay: the actors' gradients in arrival order -> one
+                  optimizer step on each (too stale or ill-fitting ones refused, counted)
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
-           the on-policy algorithms after every batch (their data must come from the newest policy)
+           the on-policy algorithms after every batch (their data must come from the newest policy),
+           A3C after every gradient, with its value network and settings for the actors
         -> every T seconds: checkpoint (rank 0); every few seconds: metrics
 
 SIGTERM and SIGINT stop the loop; the checkpoint is written last.
@@ -34,7 +37,7 @@ import torch
 import zenoh
 
 from l2r.durable import DISK_ERRORS, FailureLog
-from l2r.learner import ppo, sac, td3
+from l2r.learner import a3c, ppo, sac, td3
 from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
@@ -47,8 +50,8 @@ from l2r.learner.steps import GradientSteps, resolve_mode
 from l2r.learner.td3 import TD3Config
 from l2r.policy import check_spec, policy_state
 from l2r.protocol import (
-    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Keys, LearnerVersion, ObservationSpec, ProtocolError, ReplayClient,
-    SampleBatch, Stats, Weights, encode, reuse_large_buffers,
+    STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Gradient, Keys, LearnerVersion, ObservationSpec, ProtocolError, Rejections,
+    ReplayClient, SampleBatch, Stats, Weights, decode, encode, reuse_large_buffers,
 )
 
 log = logging.getLogger("l2r.learner")
@@ -108,9 +111,11 @@ def _finite(state: TrainState) -> bool:
 
 
 class WeightsOutlet:
-    """Publishes versioned policy weights and answers queries for the latest ones."""
+    """Publishes versioned policy weights and answers queries for the latest ones; with `training`
+    (A3C's settings, for its actors' gradients) the value network's weights and those settings too."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys):
+    def __init__(self, session: zenoh.Session, keys: Keys, training: dict | None = None):
+        self._training = training
         self._latest: bytes | None = None
         self._lock = threading.Lock()
         self._query_key = keys.weights_query
@@ -120,7 +125,9 @@ class WeightsOutlet:
 
     def publish(self, state: TrainState) -> None:
         state.version += 1
-        payload = encode(Weights(state.version, policy_state(state.actor), dict(state.actor.spec)))
+        value = None if self._training is None else policy_state(state.value)
+        payload = encode(Weights(state.version, policy_state(state.actor), dict(state.actor.spec), value,
+                                 self._training))
         with self._lock:
             self._latest = payload
         self._weights.put(payload)
@@ -214,27 +221,40 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
         with zenoh.open(conf) as session:
             token = session.liveliness().declare_token(keys.alive("learner", config.rank))
             metrics_out = session.declare_publisher(keys.metrics(config.rank), **STATS_QOS.publisher())
-            outlet = WeightsOutlet(session, keys) if leader else None
-            # The replay table's requests stay as before the queue.
-            table = "queue" if algorithm_of(algo) in ON_POLICY else None
-            # The vector's requests stay version 1, as before the frames form.
-            frame_stack = None if config.observation is None else algo.frame_stack
-            with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
-                              table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
-                              frame_stack=frame_stack) as replay:
-                newest = replay.newest_version(stop)
-                if newest > state.version:  # resumed without a checkpoint, or from an older one
-                    log.info("the run's replay has seen policy version %d: going on above it, not from %d",
-                             newest, state.version)
-                    state.version = newest
-                if outlet:
+            gradients = algorithm_of(algo) == "a3c"
+            outlet = WeightsOutlet(session, keys, algo.to_dict() if gradients else None) if leader else None
+            if gradients:  # no replay: the actors send gradients, taken from before the first weights go out
+                with GradientInbox(session, keys) as inbox:
                     outlet.publish(state)
-                replay.learner_version = state.version
-                _train(config, algo, state, replay, outlet, metrics_out, device, stop)
+                    _learn_from_gradients(config, algo, state, inbox, outlet, metrics_out, stop)
+            else:
+                _learn_from_replay(config, algo, state, session, outlet, metrics_out, device, stop)
             token.undeclare()
     finally:
         if leader:
             _checkpoint(config, algo, state)
+
+
+def _learn_from_replay(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, session: zenoh.Session,
+                       outlet: WeightsOutlet | None, metrics_out: zenoh.Publisher, device: torch.device,
+                       stop: threading.Event) -> None:
+    """The replay client, then training on its batches."""
+    # The replay table's requests stay as before the queue.
+    table = "queue" if algorithm_of(algo) in ON_POLICY else None
+    # The vector's requests stay version 1, as before the frames form.
+    frame_stack = None if config.observation is None else algo.frame_stack
+    with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
+                      table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
+                      frame_stack=frame_stack) as replay:
+        newest = replay.newest_version(stop)
+        if newest > state.version:  # resumed without a checkpoint, or from an older one
+            log.info("the run's replay has seen policy version %d: going on above it, not from %d",
+                     newest, state.version)
+            state.version = newest
+        if outlet:
+            outlet.publish(state)
+        replay.learner_version = state.version
+        _train(config, algo, state, replay, outlet, metrics_out, device, stop)
 
 
 def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.device) -> TrainState:
@@ -413,6 +433,70 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
             last_checkpoint = now
 
 
+class GradientInbox:
+    """A3C's gradients as they arrive from the actors, decoded on Zenoh's thread; malformed ones
+    (wrong types, NaN, another protocol version) are counted in `rejections` and dropped there. A
+    queue without bound: a step is far shorter than an actor's rollout, and stale gradients are
+    refused when taken."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys):
+        self.rejections = Rejections(log)
+        self._queue: queue.SimpleQueue[Gradient] = queue.SimpleQueue()
+        self._subscriber = session.declare_subscriber(keys.all_gradients, self._on_gradient)
+
+    def _on_gradient(self, sample: zenoh.Sample) -> None:
+        try:
+            self._queue.put(decode(sample.payload, Gradient))
+        except ProtocolError as e:
+            self.rejections.add(e, str(sample.key_expr))
+
+    def take(self, timeout: float) -> Gradient | None:
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def __enter__(self) -> GradientInbox:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._subscriber.undeclare()
+
+
+def _learn_from_gradients(config: LearnerConfig, algo: a3c.A3CConfig, state: ppo.TrainState, inbox: GradientInbox,
+                          outlet: WeightsOutlet, metrics_out: zenoh.Publisher, stop: threading.Event) -> None:
+    """A3C: each gradient applied as it comes (`a3c.apply`), weights published after each."""
+    meter = Meter()
+    last_checkpoint = time.monotonic()
+    while not stop.is_set() and not (config.max_updates and state.updates >= config.max_updates):
+        asked = time.monotonic()
+        message = inbox.take(timeout=0.5)
+        meter.waited += time.monotonic() - asked
+        now = time.monotonic()
+        if now - meter.since >= config.metrics_interval:
+            _report(config, algo, state, meter.report(now) | inbox.rejections.counters(), metrics_out)
+        if message is None:
+            continue
+        try:
+            metrics = a3c.apply(state, message, algo)
+        except ProtocolError as e:
+            inbox.rejections.add(e, f"actor {message.actor_id}")
+            if e.reason == "ahead":  # resumed from before the actors' weights, which take only newer versions
+                log.info("actors hold version %d: going on above it, not from %d", message.policy_version,
+                         state.version)
+                state.version = message.policy_version
+                outlet.publish(state)
+            continue
+        meter.add(metrics, 1, message.env_steps, float(metrics["staleness"]))
+        state.extra["samples"] = state.extra.get("samples", 0) + message.env_steps
+        if not _finite(state):
+            raise Diverged(f"weights hold NaN or infinity after {state.updates} updates")
+        outlet.publish(state)
+        if now - last_checkpoint >= config.checkpoint_interval:
+            _checkpoint(config, algo, state)
+            last_checkpoint = now
+
+
 def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Event,
                 timeout: float) -> SampleBatch | None:
     """The next well-shaped batch, or None after `timeout` seconds (short, so stop requests are seen)."""
@@ -461,10 +545,11 @@ LOGGED = {
             ("entropy", "entropy")),
     "td3": (("critic", "critic_loss"), ("actor", "actor_loss"), ("q", "q_mean"), ("std", "exploration_std")),
     "ppo": PPO_LOGGED, "a2c": PPO_LOGGED, "reinforce": PPO_LOGGED,
+    "a3c": (("gradient norm", "gradient_norm"), ("staleness", "staleness"), ("rejected", "rejected")),
     "trpo": (("surrogate", "surrogate"), ("value", "value_loss"), ("entropy", "entropy"), ("kl", "kl"),
              ("step", "step_fraction")),
     "acktr": (("policy", "policy_loss"), ("value", "value_loss"), ("entropy", "entropy"),
-              ("step size", "step_size"), ("kl", "quadratic_kl")),
+              ("step size", "step_size"), ("kl", "kl"), ("lr", "lr")),
 }
 
 

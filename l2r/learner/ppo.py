@@ -322,40 +322,57 @@ def update(state: TrainState, batch: Batch, config: PPOConfig) -> dict[str, torc
     """One PPO update on one queue batch: `epochs` x `minibatches` gradient steps. Returns metrics."""
     # 1-2. Before any step: values, the proximal policy's log-probabilities, advantages and targets.
     estimates = estimate(state, batch, config)
-    n, advantages, targets = len(batch.obs), estimates.advantages, estimates.targets
-    old_log_prob, values = estimates.old_log_prob, estimates.values
+    n = len(batch.obs)
 
     # 3. Epochs of minibatch steps: clipped surrogate, value loss, entropy bonus; one optimizer step each.
     size = n // config.minibatches
-    params = state.parameters()
-    sums = {name: torch.zeros((), device=values.device)
+    sums = {name: torch.zeros((), device=estimates.values.device)
             for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")}
     for _ in range(config.epochs):
-        order = torch.randperm(n, device=values.device)
+        order = torch.randperm(n, device=estimates.values.device)
         for start in range(0, size * config.minibatches, size):
-            mb = order[start:start + size]
-            log_prob, entropy = state.actor.evaluate(batch.obs[mb], batch.action[mb])
-            adv = advantages[mb]
-            if config.normalize_advantages:
-                adv = (adv - adv.mean()) / (adv.std(correction=0) + 1e-8)
-            policy_loss, ratio = clipped_surrogate(log_prob, old_log_prob[mb], adv, config.clip)
-            value_loss = 0.5 * (state.value(state.actor.observation_filter(batch.obs[mb])) - targets[mb]).pow(2).mean()
-            loss = policy_loss - config.entropy_coef * entropy.mean() + config.value_coef * value_loss
+            loss, parts = minibatch_loss(state, batch, estimates, order[start:start + size], config)
             state.optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            average_gradients(params)
-            nn.utils.clip_grad_norm_(params, config.max_grad_norm)
-            state.optimizer.step()
-            state.updates += 1
-            with torch.no_grad():
-                log_ratio = ratio.log()
-                for name, value in (("policy_loss", policy_loss), ("value_loss", value_loss),
-                                    ("entropy", entropy.mean()), ("approx_kl", (ratio - 1.0 - log_ratio).mean()),
-                                    ("clip_fraction", ((ratio - 1.0).abs() > config.clip).float().mean())):
-                    sums[name] += value.detach()
+            gradient_step(state, config)
+            for name, value in parts.items():
+                sums[name] += value
 
     steps = config.epochs * config.minibatches
     return {name: total / steps for name, total in sums.items()} | batch_metrics(estimates, batch)
+
+
+def minibatch_loss(state: TrainState, batch: Batch, estimates: Estimates, rows: torch.Tensor | slice,
+                   config: PPOConfig) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The loss of one gradient step on the batch's `rows`: the clipped surrogate on the advantages
+    (normalised over the rows if the config says so), the value loss (V(s) - target)^2 / 2 and the
+    entropy bonus; and its parts, detached, for the metrics. A3C's actors compute their gradients
+    of this same loss (`l2r.learner.a3c`)."""
+    log_prob, entropy = state.actor.evaluate(batch.obs[rows], batch.action[rows])
+    adv = estimates.advantages[rows]
+    if config.normalize_advantages:
+        adv = (adv - adv.mean()) / (adv.std(correction=0) + 1e-8)
+    policy_loss, ratio = clipped_surrogate(log_prob, estimates.old_log_prob[rows], adv, config.clip)
+    values = state.value(state.actor.observation_filter(batch.obs[rows]))
+    value_loss = 0.5 * (values - estimates.targets[rows]).pow(2).mean()
+    loss = policy_loss - config.entropy_coef * entropy.mean() + config.value_coef * value_loss
+    with torch.no_grad():
+        log_ratio = ratio.log()
+        parts = {"policy_loss": policy_loss.detach(), "value_loss": value_loss.detach(),
+                 "entropy": entropy.mean().detach(), "approx_kl": (ratio - 1.0 - log_ratio).mean(),
+                 "clip_fraction": ((ratio - 1.0).abs() > config.clip).float().mean()}
+    return loss, parts
+
+
+def gradient_step(state: TrainState, config: PPOConfig) -> torch.Tensor:
+    """One optimizer step on the gradients the parameters hold: averaged over data-parallel ranks,
+    their norm clipped to `max_grad_norm` (policy and value together). Returns the norm before the clip."""
+    params = state.parameters()
+    average_gradients(params)
+    norm = nn.utils.clip_grad_norm_(params, config.max_grad_norm)
+    state.optimizer.step()
+    state.updates += 1
+    return norm
 
 
 def broadcast_state(state: TrainState) -> None:

@@ -7,6 +7,7 @@ Read top to bottom, this module is the system's data-flow graph:
     learner --replay/<shard>/priorities-->   replay shard      (priority updates)
     replay  --replay/<shard>/ack-->          actors            (what is stored; actors resend the rest)
     learner --weights-->                     actors            (new policy, versioned)
+    actor   --gradients/<actor>-->           learner           (A3C: gradients instead of experience)
     actor   --weights/latest?-->             learner           (query on join)
     actor   --actor_ids?-->                  replay shard 0    (query at start, for --actor-id auto)
     learner --learner/version-->             everyone          (small version beacon)
@@ -65,6 +66,9 @@ class QoS:
 EXPERIENCE_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
 # Acks are periodic and the next one says it all again; never hold the shard up for a slow actor.
 ACK_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH, express=True)
+# A3C's gradients are its training data, as experience is: never dropped (a stale one is refused
+# by the learner, not by the link).
+GRADIENT_QOS = QoS(zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA)
 # Only the newest weights matter, so a congested link may drop one; a newer one follows.
 WEIGHTS_QOS = QoS(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH)
 # Sample queries sit on the learner's critical path; replies inherit the query's QoS.
@@ -125,6 +129,14 @@ class Keys:
     @property
     def weights_query(self) -> str:
         return f"{self.root}/weights/latest"
+
+    # -- gradients: actor -> learner, A3C alone (GRADIENT_QOS) ------------------------------
+    def gradients(self, actor_id: int) -> str:
+        return f"{self.root}/gradients/{actor_id}"
+
+    @property
+    def all_gradients(self) -> str:
+        return f"{self.root}/gradients/*"
 
     # -- actor ids: actor -> replay shard 0, query/reply, once per actor process -----------
     @property

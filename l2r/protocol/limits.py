@@ -28,6 +28,7 @@ MAX_FRAME_STACK = 16
 INTEGER_LIMITS: dict[str, dict[str, tuple[int, int]]] = {
     "experience": {"actor_id": ID, "env_id": ID, "epoch": COUNT, "seq": COUNT, "policy_version": VERSION},
     "weights": {"version": VERSION},
+    "gradient": {"actor_id": ID, "policy_version": VERSION, "env_steps": COUNT},
     "sample_request": {"batch_size": (1, MAX_BATCH_SIZE), "count": (1, MAX_BATCHES_PER_QUERY),
                        "learner_version": VERSION, "n_step": (1, MAX_N_STEP),
                        "frame_stack": (1, MAX_FRAME_STACK)},

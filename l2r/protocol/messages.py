@@ -28,6 +28,8 @@ PROTOCOL_VERSION = 2
 """The newest version this side speaks; it reads every version from 1 on."""
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_ARRAY_DIMS = 4
+MAX_GRADIENT_VALUES = 2**26
+"""The most values of a gradient (256 MiB of float32, the size of the largest message)."""
 
 # Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
 # msgpack-native), "arrays" (str -> float array), an array of one dtype such as "float32[]",
@@ -139,10 +141,47 @@ class Weights(Message):
     """Policy weights with their version, and the spec an actor needs to build the network."""
 
     KIND: ClassVar[str] = "weights"
-    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "params": "arrays", "spec": "dict"}
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "params": "arrays", "spec": "dict",
+                                        "value_params": "arrays?", "training": "dict?"}
     version: int
     params: dict[str, np.ndarray]
     spec: dict = field(default_factory=dict)
+    value_params: dict[str, np.ndarray] | None = None
+    """A3C: the value network's weights, which its actors need to compute gradients (None: the
+    policy alone, as every other algorithm publishes it)."""
+    training: dict | None = None
+    """A3C: the algorithm's settings (A3CConfig as a dict), the loss the actors differentiate."""
+
+
+@dataclass
+class Gradient(Message):
+    """A3C: the gradient of the actor-critic loss one actor computed on its own rollout, at the
+    weights of ``policy_version``, flattened in the order of the learner's parameters (policy,
+    then value network). ``obs_moments``, where the networks standardise observations, are the
+    rollout's [count, sum, sum of squares] of the filtered observations, for the learner's running
+    statistics (the rollout itself never reaches the learner)."""
+
+    KIND: ClassVar[str] = "gradient"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "int", "policy_version": "int", "env_steps": "int",
+                                        "gradient": "float32[]", "obs_moments": "float64[]?"}
+    actor_id: int
+    policy_version: int
+    env_steps: int
+    """Environment steps of the rollout the gradient was computed on."""
+    gradient: np.ndarray
+    obs_moments: np.ndarray | None = None
+
+    def validate(self) -> None:
+        _ndim(self, gradient=1)
+        if len(self.gradient) > MAX_GRADIENT_VALUES:
+            raise ProtocolError(f"gradient: {len(self.gradient)} values, more than {MAX_GRADIENT_VALUES}", "oversized")
+        _finite(self, "gradient")
+        if self.obs_moments is not None:
+            _ndim(self, obs_moments=1)
+            _finite(self, "obs_moments")
+            if len(self.obs_moments) % 2 != 1 or self.obs_moments[0] < 1:
+                raise ProtocolError(f"gradient: obs_moments of {len(self.obs_moments)} values, expected a count "
+                                    "of at least 1 and two sums of one width", "shape_mismatch")
 
 
 @dataclass

@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch.distributions import Normal
 
-from l2r.learner.acktr import ACKTRConfig, init_state, update
+from l2r.learner.acktr import ACKTRConfig, adapted_step_size, init_state, update
+from l2r.learner.curvature import gaussian_kl
 from l2r.learner.ppo import batch_from_sample, estimate
 from l2r.policy import tanh_gaussian_log_prob
 from tests.learner.test_ppo import sample_batch
@@ -106,3 +107,39 @@ def test_momentum_carries_the_last_step_into_the_next():
 def test_acktr_refuses_layer_norm():
     with pytest.raises(ValueError, match="Linear layers alone"):
         ACKTRConfig(layer_norm=True)
+
+
+def test_the_step_size_follows_the_paper_s_mujoco_rule():
+    # target 0.002: above 0.004 the step shrinks by 1.5, below 0.001 it grows by 1.5, between it stays.
+    assert adapted_step_size(0.03, 0.005, 0.002) == pytest.approx(0.02)
+    assert adapted_step_size(0.03, 0.0009, 0.002) == pytest.approx(0.045)
+    assert adapted_step_size(0.03, 0.004, 0.002) == 0.03 == adapted_step_size(0.03, 0.001, 0.002)
+    assert adapted_step_size(0.9, 0.0, 0.002) == 1.0 and adapted_step_size(1.2e-8, 1.0, 0.002) == 1e-8
+
+
+@pytest.mark.parametrize("target_kl, grows", [(10.0, True), (1e-12, False)])
+def test_an_update_measures_its_kl_and_adapts_the_next_step_size_which_a_checkpoint_keeps(target_kl, grows):
+    config = ACKTRConfig(batch_size=32, hidden=(4,), lr=0.03, target_kl=target_kl)
+    state = init_state(config, OBS, ACT, seed=1)
+    batch = batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT))
+    before = copy.deepcopy(state.actor)
+    metrics = update(state, batch, config)
+    with torch.no_grad():
+        kl = gaussian_kl(*before(batch.obs), *state.actor(batch.obs)).mean()
+    torch.testing.assert_close(metrics["kl"], kl)
+    assert 0 < float(kl) < 2 * target_kl if grows else float(kl) > 2 * target_kl
+    assert state.step_size == pytest.approx(0.045 if grows else 0.02)
+    assert state.optimizer.param_groups[0]["lr"] == 0.03  # the step taken was at the step size before
+    resumed = init_state(config, OBS, ACT)
+    resumed.load_state_dict(state.state_dict())
+    resumed.set_learning_rates(config)
+    assert resumed.step_size == state.step_size
+
+
+def test_without_a_target_the_step_size_is_the_command_line_s_lr():
+    config = ACKTRConfig(batch_size=32, hidden=(4,), lr=0.03, target_kl=0.0)
+    state = init_state(config, OBS, ACT, seed=1)
+    update(state, batch_from_sample(sample_batch(32, obs_dim=OBS, act_dim=ACT)), config)
+    assert state.step_size == 0.03
+    state.set_learning_rates(ACKTRConfig(batch_size=32, hidden=(4,), lr=0.1, target_kl=0.0))
+    assert state.step_size == 0.1

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from l2r.protocol import (
-    ActorId, ActorIdRequest, EpisodeSummary, EvaluationRound, ExperienceChunk, Frame, LearnerVersion, NotReady,
-    PriorityUpdate, ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
+    ActorId, ActorIdRequest, EpisodeSummary, EvaluationRound, ExperienceChunk, Frame, Gradient, LearnerVersion,
+    NotReady, PriorityUpdate, ReplayAck, SampleBatch, SampleRequest, Stats, Weights,
 )
 
 
@@ -68,6 +68,7 @@ def every_message() -> list:
         Frame(1, 0, 3, 17, {"xpos": rng.random((12, 3))}, {"reward": 0.5}),
         ActorIdRequest("actor-7f3a:7"),
         ActorId("actor-7f3a:7", 12),
+        Gradient(3, 5, 5, rng.random(300, np.float32), np.array([5.0, *rng.random(82)])),  # last: rng order
     ]
 
 

@@ -140,6 +140,17 @@ def test_an_l2r_up_job_trains_each_on_policy_algorithm_from_the_queue_table(algo
     assert (learner.algo, learner.algorithm().batch_size) == (algo, batch_size)
 
 
+def test_an_a3c_job_s_actors_send_gradients_of_five_step_rollouts_to_an_a3c_learner():
+    children = planned("--env-id", "Hopper-v5", "--algo", "a3c")
+    learner, actor = learner_settings(children["learner"]), actor_settings(children["actor-0"])
+    config = learner.algorithm()
+    assert (learner.algo, type(config).__name__, config.batch_size, config.max_gradient_staleness) == (
+        "a3c", "A3CConfig", 5, 4)
+    assert (actor.send_gradients, actor.chunk_size) == (True, 5)
+    assert not actor_settings(children["evaluator-0"]).send_gradients
+    assert not actor_settings(planned("--env-id", "Hopper-v5", "--algo", "a2c")["actor-0"]).send_gradients
+
+
 def test_recipe_forces_a_family_but_the_runner_s_body_options_stay_on_the_runner():
     assert reached(planned("--recipe", "standard"), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"]
     on_hopper = reached(planned("--env-id", "Hopper-v5", "--recipe", "runner"), RECIPES[RUNNER, "sac"])
@@ -172,7 +183,8 @@ def test_each_flag_s_help_names_the_recipes_values():
     assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
                                           "runner/a2c 1, standard/a2c 1, runner/reinforce 1, standard/reinforce 1, "
                                           "runner/trpo 1, standard/trpo 1, runner/acktr 1, standard/acktr 1, "
-                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1, photo/ppo 1")
+                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1, photo/ppo 1, "
+                                          "runner/a3c 1, standard/a3c 1")
     assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off, "
                                     "photo/td3 off")
     assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2, pixels/td3 1, photo/td3 2")
