@@ -14,7 +14,7 @@ from tests.system.test_up import finish, l2r_up, rows
 @pytest.mark.slow
 def test_an_a3c_job_trains_on_the_actors_gradients(tmp_path):
     name = f"test-{uuid.uuid4().hex[:6]}"
-    proc = l2r_up(tmp_path / "up.out", "--env-id", "Hopper-v5", "--algo", "a3c", "--env-steps", "1000", "--seconds", "240",
+    proc = l2r_up(tmp_path / "up.out", "--env-id", "Hopper-v5", "--algo", "a3c", "--env-steps", "200", "--seconds", "240",
                   "--name", name,
                   "--runs-dir", str(tmp_path), "--actors", "1", "--evaluators", "0", "--status-interval", "1",
                   "--hidden", "16,16", "--learner-arg=--checkpoint-interval=3")
