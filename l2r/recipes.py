@@ -124,13 +124,13 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=True,
         random_steps=0, envs_per_actor=4, action_repeat=1,
     ),
-    # The ACKTR paper's optimiser (ACKTRConfig: step size up to 0.25 within a trust region of 0.001,
-    # K-FAC damping 0.01 and statistics decay 0.99) and its MuJoCo script's rollout of 2500
-    # transitions with lambda 0.97; PPO's networks, observation options and actors, but for the lag.
-    # Momentum 0, not the paper's 0.9: its code also shrinks the step size whenever the measured KL
-    # exceeds twice a target, which l2r's update does not, and with momentum 0.9 alone the steps
-    # added up to a KL near 1 between consecutive policies against the bound of 0.001: Hopper-v5
-    # ended at 43 after 1M env steps (docs/training.md, "TRPO and ACKTR").
+    # The ACKTR paper's K-FAC (a trust region of 0.001, damping 0.01, statistics decay 0.99) and its
+    # MuJoCo script's rollout of 2500 transitions with lambda 0.97; PPO's networks, observation
+    # options and actors, but for the lag. The step size is the paper's Atari one, 0.25, fixed
+    # (target_kl 0), with momentum 0: with momentum 0.9 the steps added up to a KL near 1 between
+    # consecutive policies against the bound of 0.001 (Hopper-v5: 43 after 1M env steps; with
+    # momentum 0, 375). The paper's MuJoCo step size, adapted to a KL of 0.002 (ACKTRConfig's
+    # default, momentum 0.9), reached 172 at 200k: not yet run to 1M (docs/training.md, "TRPO and ACKTR").
     (RUNNER, "acktr"): dict(
         hidden="64,64", activation="tanh", layer_norm=False, batch_size=2500, lr=0.25, gamma=0.99, gae_lambda=0.97,
         max_kl=0.001, momentum=0.0, target_kl=0.0, kfac_damping=0.01, kfac_decay=0.99, value_coef=1.0,
@@ -202,19 +202,13 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         min_replay=100, samples_per_insert=128.0, hold_actors=True,
         random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0,
     ),
-    # PPO for the photo tasks through their statistics (l2r/PhotoEnhanceStats-v0, l2r/PhotoTuneStats-v0):
-    # CleanRL's continuous-action PPO (standard/ppo) at a quarter of its rollout, 512 transitions
-    # (51 episodes of 10 steps), its minibatches of 64 and 10 epochs kept, so that the ~40 env
-    # steps/s of a loaded 2-core machine make an update every 10-15 s rather than every minute;
-    # photo/td3's discount (RLPixTuner's 0.9) over the 10-step episodes.
-    (PHOTO, "ppo"): dict(
-        hidden="64,64", activation="tanh", layer_norm=False, batch_size=512, epochs=10, minibatches=8, lr=3e-4,
-        gamma=0.9, gae_lambda=0.95, clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=0.5,
-        lag_correction="ratio", optimizer="adam", reward_scale=1.0,
-        relative_x=False, normalize_obs=True,
-        random_steps=0, envs_per_actor=4, action_repeat=1,
-    ),
 }
+# PPO for the photo tasks through their statistics (l2r/PhotoEnhanceStats-v0, l2r/PhotoTuneStats-v0):
+# standard/ppo (CleanRL's continuous-action PPO) at a quarter of its rollout, 512 transitions (51
+# episodes of 10 steps), its minibatches of 64 and 10 epochs kept, so that the ~40 env steps/s of a
+# loaded 2-core machine make an update every 10-15 s rather than every minute; photo/td3's
+# discount (RLPixTuner's 0.9) over the 10-step episodes.
+RECIPES[PHOTO, "ppo"] = {**RECIPES[STANDARD, "ppo"], "batch_size": 512, "minibatches": 8, "gamma": 0.9}
 # A3C: A2C's recipe with its rollout, the 5 steps of one environment per gradient (Stable-Baselines3's
 # n_steps; A3C's t_max), that each actor turns into a gradient at the weights it acted with. A
 # gradient more than 4 versions behind the learner's is refused.
