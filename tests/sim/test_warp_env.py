@@ -129,3 +129,28 @@ def test_reset_options_change_the_difficulty():
     np.testing.assert_array_equal(obs[36:], [1.0, 1.0, *port_env.NO_OBSTACLE])
     with pytest.raises(ValueError, match="difficulty"):
         env.reset(options={"difficulty": 3})
+
+
+def test_graphs_replay_what_the_launches_do(monkeypatch):
+    """The captured steps and resets (the default) give the states launching each kernel from
+    Python gives, bit for bit: through resets of one world at a time (the graph reads which from
+    the same array each time) and a change of difficulty, which switches MuJoCo Warp's contacts
+    on and needs graphs of its own (a sphere under the toes, as above, so that contacts matter)."""
+    course = [(0.158, 0.02, 0.1), (4.0, 0.0, 0.05), (4.5, 0.0, 0.05)]
+    monkeypatch.setattr(warp_env, "draw_episode", lambda rng, difficulty: (course, (1.0, 1.0)))
+    actions = np.random.default_rng(0).uniform(0.0, 1.0, (6, 3, 18))
+    runs = []
+    for graphs in (True, False):
+        worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=3, device="cpu", graphs=graphs)
+        physics, states = worlds.unwrapped._physics, []
+        for difficulty in (0, 1):
+            states.append(worlds.reset(seed=5, options={"difficulty": difficulty})[0])
+            for k, a in enumerate(actions):
+                states.append(worlds.step(a)[0])
+                physics.reset(np.array([k % 3]))
+                states.append(physics.data.qpos.numpy())
+        runs.append(states)
+        worlds.close()
+    for graphed, launched in zip(*runs):
+        assert np.isfinite(graphed).all()
+        np.testing.assert_array_equal(graphed, launched)

@@ -40,13 +40,17 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
     """`num_envs` runners stepped together on a Warp device.
 
     device: a Warp device ("cpu", "cuda", "cuda:1"); None takes Warp's default (a GPU when there
-        is one). The other arguments are `RunEnv`'s (no `randomize`).
+        is one).
+    graphs: replay each physics step's and reset's launches as one captured Warp graph (the
+        default); False launches every kernel from Python each time.
+    The other arguments are `RunEnv`'s (no `randomize`).
     """
 
     metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int = 1, difficulty: int = 0, seed: int | None = None,
-                 left_psoas: str = "glut_max_l", max_steps: int = MAX_STEPS, device: str | None = None):
+                 left_psoas: str = "glut_max_l", max_steps: int = MAX_STEPS, device: str | None = None,
+                 graphs: bool = True):
         check_arguments(difficulty, left_psoas, max_steps)
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -64,7 +68,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         by_name = {mu.name: mu for mu in osim.muscles}
         with wp.ScopedDevice(self.device):
             self._physics = WarpPhysics(m, osim, [by_name[n] for n in body.MUSCLES], num_envs,
-                                        m.keyframe(body.DEFAULT_KEYFRAME).id)
+                                        m.keyframe(body.DEFAULT_KEYFRAME).id, graphs)
         self._parked = self._physics.obstacles.numpy()[0].astype(np.float64)  # (x, y, r) of the unused spheres
 
         self.single_action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
@@ -201,8 +205,8 @@ class RunWarpEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, difficulty: int = 0, seed: int | None = None, left_psoas: str = "glut_max_l",
-                 max_steps: int = MAX_STEPS, device: str | None = None):
-        self._worlds = RunWarpVectorEnv(1, difficulty, seed, left_psoas, max_steps, device)
+                 max_steps: int = MAX_STEPS, device: str | None = None, graphs: bool = True):
+        self._worlds = RunWarpVectorEnv(1, difficulty, seed, left_psoas, max_steps, device, graphs)
         self.muscle_names, self.ligament_names = self._worlds.muscle_names, self._worlds.ligament_names
         self.body_names = self._worlds.body_names
         self.action_space = self._worlds.single_action_space

@@ -278,8 +278,11 @@ class WarpPhysics:
     applied.
     """
 
-    def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int):
+    def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int,
+                 graphs: bool = True):
         self.nworld, self.dt, self._keyframe = nworld, float(m.opt.timestep), keyframe
+        self._device, self._graphs = wp.get_device(), {} if graphs else None
+        self._reset_keys = wp.zeros(nworld, dtype=int)  # per world: the keyframe to reset to, or -1
         d = mujoco.MjData(m)
         mujoco.mj_resetDataKeyframe(m, d, keyframe)
         mujoco.mj_forward(m, d)
@@ -394,8 +397,33 @@ class WarpPhysics:
         keys = np.full(self.nworld, -1 if worlds is not None else self._keyframe, np.int32)
         if worlds is not None:
             keys[np.asarray(worlds)] = self._keyframe
-        reset = wp.array(keys, dtype=int)
-        m, d = self.model, self.data
+        self._reset_keys.assign(keys)
+        self._launch("reset", self._reset)
+
+    def step(self, substeps: int) -> None:
+        """Hold `excitation` over `substeps` physics steps in every world."""
+        self._launch(("step", substeps), lambda: self._advance(substeps))
+
+    def _launch(self, name, work) -> None:
+        """Run `work`'s launches, from the second time on as one Warp graph (a CUDA graph, or
+        Warp's recorded replay on the CPU): a physics step is some 300 launches, each costing the
+        host more than the GPU. The first run loads every kernel the graph will hold. A graph
+        keeps the host's choices made when it was captured, so the model's option flags (contacts
+        on or off) are part of its key; every array it reads or writes keeps its place in memory."""
+        if self._graphs is None:
+            return work()
+        key = (name, int(self.model.opt.disableflags))
+        if key not in self._graphs:
+            self._graphs[key] = None
+            return work()
+        if self._graphs[key] is None:
+            with wp.ScopedCapture(self._device, force_module_load=False) as capture:
+                work()
+            self._graphs[key] = capture.graph
+        wp.capture_launch(self._graphs[key])
+
+    def _reset(self) -> None:
+        m, d, reset = self.model, self.data, self._reset_keys
         mjw.reset_data_keyframe(m, d, reset)
         obstacles = self._obstacle_geoms
         wp.launch(_place_obstacles, self.obstacles.shape, [obstacles, self.obstacles, reset, m.geom_pos, m.geom_size,
@@ -408,8 +436,7 @@ class WarpPhysics:
         wp.launch(_equilibrate, self._muscles.excitation.shape, [self._muscles, reset])
         self._read_state()
 
-    def step(self, substeps: int) -> None:
-        """Hold `excitation` over `substeps` physics steps in every world."""
+    def _advance(self, substeps: int) -> None:
         m, d = self.model, self.data
         for substep in range(substeps):
             self._drive()
