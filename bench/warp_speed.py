@@ -7,11 +7,14 @@ not MuJoCo contacts). Only MuJoCo's rigid-body step is timed here, not the env's
 first_step_s: the first `mujoco_warp.step` on the device, kernel compilation included (cold when
     Warp's kernel cache, ~/.cache/warp, is empty; run with `--clear-cache` to make it so).
 c_steps_per_s: `mujoco.mj_step` on one core, the same model and state.
-warp_N_steps_per_s: physics steps per second summed over N worlds (and per world), on the device.
-env_N_steps_per_s: `l2r/RunWarp-v0` env steps (0.01 s, four physics steps with the muscles,
-    feet, ligaments and knee kernels) per second summed over N worlds, random excitations, at
-    difficulty 0; env_N_difficultyD_steps_per_s: the same at difficulty D (1: three obstacles
-    per world and MuJoCo Warp's contacts on).
+warp_N_steps_per_s: physics steps per second summed over N worlds (and per world), on the device,
+    each step's launches replayed as one captured graph; warp_N_eager_steps_per_s: launched
+    from Python one by one.
+env_N_steps_per_s: `l2r/RunWarp-v0` env steps (0.01 s, `substeps` physics steps with the
+    muscles, feet, ligaments and knee kernels) per second summed over N worlds, random
+    excitations, at difficulty 0, as the env runs by default (captured graphs);
+    env_N_eager_steps_per_s: with graphs=False; env_N_difficultyD_steps_per_s: at difficulty D
+    (1: three obstacles per world and MuJoCo Warp's contacts on).
 port_env_steps_per_s: `l2r/Run-v0` (numba, one core) the same way, for comparison
     (port_env_difficultyD_steps_per_s at difficulty D).
 """
@@ -23,6 +26,7 @@ import json
 import logging
 import platform
 import subprocess
+import sys
 import time
 
 import gymnasium
@@ -54,14 +58,19 @@ def c_rate(m: mujoco.MjModel, d: mujoco.MjData, steps: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def warp_rate(m: mujoco.MjModel, d: mujoco.MjData, worlds: int, steps: int) -> float:
+def warp_rate(m: mujoco.MjModel, d: mujoco.MjData, worlds: int, steps: int, graph: bool) -> float:
     model = mjw.put_model(m)
     data = mjw.put_data(m, d, nworld=worlds)
     mjw.step(model, data)  # warm: every kernel this size uses is loaded
+    step = lambda: mjw.step(model, data)  # noqa: E731
+    if graph:
+        with wp.ScopedCapture(force_module_load=False) as capture:
+            mjw.step(model, data)
+        step = lambda: wp.capture_launch(capture.graph)  # noqa: E731
     wp.synchronize()
     start = time.perf_counter()
     for _ in range(steps):
-        mjw.step(model, data)
+        step()
     wp.synchronize()
     return worlds * steps / (time.perf_counter() - start)
 
@@ -126,13 +135,17 @@ def main() -> None:
         wp.synchronize()
         result["first_step_s"] = round(time.perf_counter() - start, 1)
         for n in args.worlds:
-            rate = warp_rate(m, d, n, args.steps)
-            result[f"warp_{n}_steps_per_s"] = round(rate)
-            result[f"warp_{n}_per_world_steps_per_s"] = round(rate / n, 1)
+            for graph, key in ((True, f"warp_{n}"), (False, f"warp_{n}_eager")):
+                rate = warp_rate(m, d, n, args.steps, graph)
+                result[f"{key}_steps_per_s"] = round(rate)
+                result[f"{key}_per_world_steps_per_s"] = round(rate / n, 1)
+        result["substeps"] = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=1, device=args.device).unwrapped.substeps
         for d in args.difficulties if args.env_steps else ():
             for n in args.worlds:
-                rate = env_rate("l2r/RunWarp-v0", n, args.env_steps, device=args.device, difficulty=d)
-                result[f"env_{n}{_difficulty(d)}_steps_per_s"] = round(rate, 1)
+                for graphs in (True, False) if d == 0 else (True,):
+                    rate = env_rate("l2r/RunWarp-v0", n, args.env_steps, device=args.device, difficulty=d, graphs=graphs)
+                    result[f"env_{n}{_difficulty(d)}{'' if graphs else '_eager'}_steps_per_s"] = round(rate, 1)
+                print(json.dumps(result), file=sys.stderr, flush=True)  # so far, should a long run be cut short
     for d in args.difficulties if args.env_steps else ():
         result[f"port_env{_difficulty(d)}_steps_per_s"] = round(env_rate("l2r/Run-v0", 1, 2000, difficulty=d))
     print(json.dumps(result))
