@@ -10,6 +10,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import pytest
+import warp as wp
 
 import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim import env as port_env
@@ -154,3 +155,21 @@ def test_graphs_replay_what_the_launches_do(monkeypatch):
     for graphed, launched in zip(*runs):
         assert np.isfinite(graphed).all()
         np.testing.assert_array_equal(graphed, launched)
+
+
+def test_a_device_that_cannot_capture_launches_the_kernels(monkeypatch, caplog):
+    """Where capturing a graph fails, the env says so once and steps on launching each kernel."""
+    def refuse(*args, **kwargs):
+        raise RuntimeError("no graphs here")
+
+    monkeypatch.setattr(wp, "ScopedCapture", refuse)
+    actions = np.random.default_rng(2).uniform(0.0, 1.0, (3, 2, 18))
+    runs = []
+    for graphs in (True, False):
+        worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=2, device="cpu", graphs=graphs)
+        worlds.reset(seed=1)
+        runs.append([worlds.step(a)[0] for a in actions])
+        worlds.close()
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert [r.message for r in caplog.records if "could not capture" in r.message] == [
+        "Warp could not capture the step launches on cpu (no graphs here); launching them one by one"]

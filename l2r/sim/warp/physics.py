@@ -14,6 +14,8 @@ knee couplings, the obstacles' places and sizes) are batched in the MuJoCo Warp 
 
 from __future__ import annotations
 
+import logging
+
 import mujoco
 import mujoco_warp as mjw
 import numpy as np
@@ -34,6 +36,7 @@ from l2r.sim.warp import paths as points
 from l2r.sim.warp import thelen as muscles
 
 wp.set_module_options({"enable_backward": False})
+log = logging.getLogger(__name__)
 
 # Model fields the kernels change per world: per physics step, and per episode (the obstacles).
 # The obstacles' bounds for the broad phase, geom_rbound and geom_aabb, stay shared: MuJoCo Warp
@@ -402,23 +405,30 @@ class WarpPhysics:
 
     def step(self, substeps: int) -> None:
         """Hold `excitation` over `substeps` physics steps in every world."""
-        self._launch(("step", substeps), lambda: self._advance(substeps))
+        self._launch("step", lambda: self._advance(substeps), substeps)
 
-    def _launch(self, name, work) -> None:
+    def _launch(self, name: str, work, *choices) -> None:
         """Run `work`'s launches, from the second time on as one Warp graph (a CUDA graph, or
         Warp's recorded replay on the CPU): a physics step is some 300 launches, each costing the
         host more than the GPU. The first run loads every kernel the graph will hold. A graph
-        keeps the host's choices made when it was captured, so the model's option flags (contacts
-        on or off) are part of its key; every array it reads or writes keeps its place in memory."""
+        keeps the host's choices made when it was captured, so those (`choices`, and the model's
+        option flags: contacts on or off) are part of its key; every array it reads or writes
+        keeps its place in memory."""
         if self._graphs is None:
             return work()
-        key = (name, int(self.model.opt.disableflags))
+        key = (name, *choices, int(self.model.opt.disableflags))
         if key not in self._graphs:
             self._graphs[key] = None
             return work()
         if self._graphs[key] is None:
-            with wp.ScopedCapture(self._device, force_module_load=False) as capture:
-                work()
+            try:
+                with wp.ScopedCapture(self._device, force_module_load=False) as capture:
+                    work()  # recorded, not run
+            except Exception as e:  # noqa: BLE001  (a device or driver that cannot capture: slower, not wrong)
+                log.warning("Warp could not capture the %s launches on %s (%s); launching them one by one",
+                            name, self._device, e)
+                self._graphs = None
+                return work()
             self._graphs[key] = capture.graph
         wp.capture_launch(self._graphs[key])
 
