@@ -48,6 +48,8 @@ def load(path: str) -> tuple[str, dict[str, np.ndarray], dict[str, dynamics.Traj
 def record(args: argparse.Namespace) -> dict:
     import warp as wp
 
+    import l2r.sim.warp  # noqa: F401  (Warp logs warnings alone: stdout is the JSON line)
+
     wp.set_device(args.device)  # the one-world env runs on Warp's default device
     sequences = dynamics.excitation_sequences(args.seed)
     ours = {label: dynamics.rollout("l2r/RunWarp-v0", u) for label, u in sequences.items()}
