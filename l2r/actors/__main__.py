@@ -134,13 +134,9 @@ class ActorSettings(DaemonSettings):
                 raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")
             if self.evaluate:
                 raise UsageError("--difficulty-schedule is for training actors: an evaluator keeps --difficulty")
-        if self.native_vector_env:
-            if self.difficulty_schedule is not None:
-                raise UsageError(f"--difficulty-schedule: {self.env_id}'s vector env starts its episodes itself, "
-                                 "without the actor's options; add --vector-env off")
-            if self.observation_noise or self.action_noise:
-                raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
-                                 "vector env; add --vector-env off")
+        if self.native_vector_env and (self.observation_noise or self.action_noise):
+            raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
+                             "vector env; add --vector-env off")
 
     @property
     def native_vector_env(self) -> bool:

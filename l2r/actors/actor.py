@@ -186,8 +186,8 @@ def make_worlds(config: ActorConfig, seeds: list[int]) -> Worlds:
         envs = [functools.partial(make_env, config, seed) for seed in seeds]
         return VectorWorlds(gymnasium.vector.SyncVectorEnv(envs, autoreset_mode=AutoresetMode.DISABLED))
     options = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
-    if config.env_id == WARP_ID:
-        options["device"] = config.device
+    if config.env_id == WARP_ID:  # its worlds on the actor's device, each reset with the actor's seed and options
+        options |= {"device": config.device, "autoreset_mode": AutoresetMode.DISABLED}
     return VectorWorlds(gymnasium.make_vec(config.env_id, num_envs=config.num_envs,
                                            vectorization_mode="vector_entry_point", **options), config.action_repeat)
 
@@ -361,6 +361,7 @@ class Actor:
             log.info("warm-up over after %d random steps; acting with the policy", self.steps)
         actions, log_probs = self.actions()
         now = time.time()
+        ended = []  # the worlds whose episodes ended in this step, each with its last step
         for i, (slot, action, (raw, reward, terminated, truncated, info)) in enumerate(
                 zip(self.slots, actions, self.worlds.step(actions))):
             obs = self.observe(raw)
@@ -378,16 +379,24 @@ class Actor:
             if slot.recorder is not None:
                 slot.recorder.log_step(obs, action, reward, info)
             self.live.publish(i, slot.episode, slot.length, reward, info)
-            start_obs = None
             if terminated or truncated:
                 self.end_episode(i, slot, info, terminated, truncated)
-                start_obs = slot.obs
-                self.stacks.reset(i, start_obs)
+                ended.append((i, action, reward, terminated, truncated, obs, log_probs[i]))
             else:
                 slot.obs = obs
                 self.stacks.push(i, obs)
+                if not self.config.evaluate:
+                    self.builders[i].add(action, reward, terminated, truncated, obs, None, now, log_probs[i])
+        # The next episodes, in one call: a vector env resets its finished worlds together.
+        difficulty, options = episode_difficulty(self.config, self.steps)
+        worlds = [last[0] for last in ended]
+        starts = self.worlds.reset_worlds(worlds, [self.slots[i].seed for i in worlds], options)
+        for (i, action, reward, terminated, truncated, obs, log_prob), (first, info) in zip(ended, starts):
+            slot = self.slots[i]
+            self.begin_episode(i, slot, difficulty, first, info)
+            self.stacks.reset(i, slot.obs)
             if not self.config.evaluate:
-                self.builders[i].add(action, reward, terminated, truncated, obs, start_obs, now, log_probs[i])
+                self.builders[i].add(action, reward, terminated, truncated, obs, slot.obs, now, log_prob)
         self.steps += len(self.slots)
         self.flush()
 
@@ -404,7 +413,8 @@ class Actor:
             "policy_version": self.weights.version, "obstacles": getattr(env.unwrapped, "obstacles", [])})
 
     def end_episode(self, i: int, slot: EnvSlot, info: dict, terminated: bool, truncated: bool) -> None:
-        """Publish the summary of env i's episode, whose last step's info is `info`, and start the next."""
+        """Publish the summary of env i's episode, whose last step's info is `info`, and pick the
+        next one's seed."""
         summary = EpisodeSummary(
             actor_id=self.config.actor_id, env_id=i, episode_return=slot.ret,
             distance=float(info.get("distance", 0.0)) - slot.start_x, length=slot.length,
@@ -419,8 +429,10 @@ class Actor:
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
         slot.ret, slot.length = 0.0, 0
-        slot.difficulty, options = episode_difficulty(self.config, self.steps)
-        obs, info = self.worlds.reset_world(i, slot.seed, options)
+
+    def begin_episode(self, i: int, slot: EnvSlot, difficulty: int, obs, info: dict) -> None:
+        """Env i's next episode has begun at `obs` (its first observation) and `info`."""
+        slot.difficulty = difficulty
         slot.obs = self.observe(obs)
         slot.start_x = slot.x = float(info.get("distance", 0.0))
         self.begin_record(i, slot)

@@ -4,18 +4,21 @@
 gymnasium VectorEnv whose N worlds one `step(actions)` call advances (`l2r/RunWarp-v0` on a Warp
 device). The actor sees the same per-world steps from both: each world's observation, reward,
 terminated, truncated and info, the observation of a world whose episode ended being that
-episode's last; `reset_world` then gives the first observation of its next episode.
+episode's last; `reset_worlds` then gives the first observations of the finished worlds' next
+episodes, all in one call.
 
 What `VectorWorlds` needs of a vector env (`metadata["autoreset_mode"]`):
 - `AutoresetMode.DISABLED`: worlds are reset only when asked, by gymnasium's masked reset,
-  `reset(seed=[one per world], options={"reset_mask": mask, ...})`. The actor resets each
-  finished world with its own episode seed and options (the difficulty), as it resets a single env.
+  `reset(seed=[one per world], options={"reset_mask": mask, ...})`. The actor resets the
+  finished worlds, each with its own episode seed, and the options (the difficulty), as it resets
+  single envs (`l2r/RunWarp-v0` under an actor).
   With an action repeated, such an env must take steps of a world whose episode has ended (the
   actor discards them); gymnasium's SyncVectorEnv does not, so its envs repeat actions themselves.
-- `AutoresetMode.SAME_STEP` (`l2r/RunWarp-v0`): the step that ends an episode begins the next
-  one; its info holds the last state in `final_obs` and `final_info` (masked by `_final_obs`)
-  and the new episode's first state in its other entries. The env draws its episodes itself
-  from the seed of its first reset: the actor's per-episode seeds and options do not reach it.
+- `AutoresetMode.SAME_STEP` (`l2r/RunWarp-v0` as gymnasium makes it): the step that ends an
+  episode begins the next one; its info holds the last state in `final_obs` and `final_info`
+  (masked by `_final_obs`) and the new episode's first state in its other entries. The env draws
+  its episodes itself from the seed of its first reset: the actor's per-episode seeds and
+  options do not reach it.
 """
 
 from __future__ import annotations
@@ -41,9 +44,9 @@ class Worlds(Protocol):
     def step(self, actions: np.ndarray) -> list[Step]:
         """Advance every world by one action (a row of ``actions`` each)."""
 
-    def reset_world(self, i: int, seed: int, options: dict | None) -> tuple[Any, dict]:
-        """Start world i's next episode once its last one ended (or the actor ended it); its first
-        (observation, info)."""
+    def reset_worlds(self, worlds: list[int], seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
+        """Start the next episode of each world named (its last one ended, or the actor ended it),
+        world worlds[k] from seeds[k]; each one's first (observation, info)."""
 
     def unwrapped(self, i: int) -> Any:
         """World i's own env, where there is one (the episode logger reads its obstacles); else None."""
@@ -64,8 +67,8 @@ class EnvList:
     def step(self, actions: np.ndarray) -> list[Step]:
         return [env.step(action) for env, action in zip(self.envs, actions)]
 
-    def reset_world(self, i: int, seed: int, options: dict | None) -> tuple[Any, dict]:
-        return self.envs[i].reset(seed=seed, options=options)
+    def reset_worlds(self, worlds: list[int], seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
+        return [self.envs[i].reset(seed=seed, options=options) for i, seed in zip(worlds, seeds)]
 
     def unwrapped(self, i: int) -> Any:
         return self.envs[i].unwrapped
@@ -128,18 +131,21 @@ class VectorWorlds:
     def _counted(self, info: dict, inner_steps: int) -> dict:
         return {**info, "inner_steps": int(inner_steps)} if self.repeat > 1 else info
 
-    def reset_world(self, i: int, seed: int, options: dict | None) -> tuple[Any, dict]:
+    def reset_worlds(self, worlds: list[int], seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
+        if not worlds:
+            return []
         if self.same_step:
-            # SAME_STEP: the env began world i's next episode itself. (Where the actor ended an
+            # SAME_STEP: the env began each world's next episode itself. (Where the actor ended an
             # episode the env did not, a blow-up, the world can only go on from where it is.)
             obs, info = self._latest
-            return world_of(obs, i), world_info(info, i)
-        mask = np.zeros(self.num_worlds, bool)
-        mask[i] = True
-        seeds: list[int | None] = [None] * self.num_worlds
-        seeds[i] = seed
-        obs, info = self.env.reset(seed=seeds, options={**(options or {}), "reset_mask": mask})
-        return world_of(obs, i), world_info(info, i)
+        else:
+            mask = np.zeros(self.num_worlds, bool)
+            mask[worlds] = True
+            per_world: list[int | None] = [None] * self.num_worlds
+            for i, seed in zip(worlds, seeds):
+                per_world[i] = seed
+            obs, info = self.env.reset(seed=per_world, options={**(options or {}), "reset_mask": mask})
+        return [(world_of(obs, i), world_info(info, i)) for i in worlds]
 
     def unwrapped(self, i: int) -> Any:
         envs = getattr(self.env, "envs", None)  # a SyncVectorEnv's single envs

@@ -173,3 +173,25 @@ def test_a_device_that_cannot_capture_launches_the_kernels(monkeypatch, caplog):
     np.testing.assert_array_equal(runs[0], runs[1])
     assert [r.message for r in caplog.records if "could not capture" in r.message] == [
         "Warp could not capture the step launches on cpu (no graphs here); launching them one by one"]
+
+
+def test_disabled_autoreset_resets_the_worlds_asked_with_their_seeds_and_difficulties():
+    """With autoreset_mode DISABLED a finished world goes on until a masked reset names it; that
+    reset starts it from the pose at rest with the episode `l2r/Run-v0` draws from its seed and
+    difficulty, and leaves the other worlds as they were."""
+    worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=3, max_steps=2, device="cpu", autoreset_mode="Disabled")
+    port = gymnasium.make("l2r/Run-v0").unwrapped
+    first, _ = worlds.reset(seed=[10, 11, 12])
+    for _ in range(3):
+        obs, _, _, truncated, info = worlds.step(np.full((3, 18), 0.5))
+    assert truncated.all() and "final_obs" not in info
+    assert np.abs(obs[:, :36] - first[:, :36]).max() > 1e-3  # stepped on, not reset
+    mask = np.array([False, True, False])
+    again, info = worlds.reset(seed=[None, 42, None], options={"reset_mask": mask, "difficulty": 2})
+    np.testing.assert_array_equal(again[[0, 2]], obs[[0, 2]])
+    np.testing.assert_allclose(again[1, :36], first[1, :36], atol=1e-6)  # the pose at rest
+    np.testing.assert_allclose(again[1, 36:], port.reset(seed=42, options={"difficulty": 2})[0][36:], atol=1e-6)
+    np.testing.assert_array_equal(worlds.unwrapped.difficulties, [0, 2, 0])
+    assert worlds.step(np.full((3, 18), 0.5))[3].tolist() == [True, False, True]
+    with pytest.raises(ValueError, match="reset_mask"):
+        worlds.reset(options={"reset_mask": np.array([1, 0, 1])})

@@ -3,8 +3,10 @@
 The observation, reward and done rules are `l2r/Run-v0`'s (`l2r.sim.env`), computed from the
 same model and sensors; the physics is `WarpPhysics` (float32). `gymnasium.make_vec(ID,
 num_envs=N)` gives `RunWarpVectorEnv`, which resets a finished world in the same step (its
-observation is the new episode's first; `info["final_obs"]` holds the last); `gymnasium.make(ID)`
-gives `RunWarpEnv`, one world with the single-env API.
+observation is the new episode's first; `info["final_obs"]` holds the last), or, with
+`autoreset_mode=DISABLED`, only when asked through gymnasium's masked reset, each world with the
+seed and difficulty it is given (as an actor resets its single envs); `gymnasium.make(ID)` gives
+`RunWarpEnv`, one world with the single-env API.
 
 Difficulties 1 and 2 draw each world's obstacles and psoas strengths as `l2r/Run-v0` does, from
 a generator per world seeded as gymnasium seeds a vector env's worlds (world w: seed + w), so a
@@ -43,18 +45,27 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         is one).
     graphs: replay each physics step's and reset's launches as one captured Warp graph (the
         default); False launches every kernel from Python each time.
+    autoreset_mode: SAME_STEP (the default) begins a finished world's next episode in the step
+        that ends it; DISABLED leaves it until `reset(seed=[...], options={"reset_mask": mask})`
+        (a finished world goes on stepping meanwhile; what it does then means nothing).
     The other arguments are `RunEnv`'s (no `randomize`).
     """
 
     metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
+    AUTORESET_MODES = (gym.vector.AutoresetMode.SAME_STEP, gym.vector.AutoresetMode.DISABLED)
 
     def __init__(self, num_envs: int = 1, difficulty: int = 0, seed: int | None = None,
                  left_psoas: str = "glut_max_l", max_steps: int = MAX_STEPS, device: str | None = None,
-                 graphs: bool = True):
+                 graphs: bool = True, autoreset_mode: gym.vector.AutoresetMode | str = gym.vector.AutoresetMode.SAME_STEP):
         check_arguments(difficulty, left_psoas, max_steps)
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
-        self.num_envs, self.difficulty, self.max_steps, self._seed = num_envs, difficulty, max_steps, seed
+        mode = gym.vector.AutoresetMode(autoreset_mode)
+        if mode not in self.AUTORESET_MODES:
+            raise ValueError(f"autoreset_mode must be one of {', '.join(m.value for m in self.AUTORESET_MODES)}; got {mode.value}")
+        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        self.num_envs, self.max_steps, self._seed = num_envs, max_steps, seed
+        self.difficulties = np.full(num_envs, difficulty)  # each world's, for its episodes' draws
         self.left_psoas = left_psoas
         self.device = wp.get_device(device)
         m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
@@ -88,33 +99,49 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         """Each world's max isometric forces (N) this episode, psoas strengths applied, (world, muscle)."""
         return self._physics.params.numpy()[:, :, thelen.MAX_FORCE].astype(np.float64)
 
-    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        """Every world from the default pose at rest, with a new obstacle course and psoas
-        strengths. seed: an int seeds world w with seed + w, a list one seed per world; None
-        (after the constructor's seed) goes on with each world's generator.
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        """Start a new episode in every world (or those `options["reset_mask"]` marks): the
+        default pose at rest, with a new obstacle course and psoas strengths. seed: an int seeds
+        world w with seed + w, a list one seed per world (None: that world goes on with its
+        generator); None (after the constructor's seed) goes on with each world's generator.
 
-        options: {"difficulty": 0|1|2} changes every world's difficulty from this episode on.
+        options: {"difficulty": 0|1|2} changes the difficulty of the worlds reset from this
+        episode on; {"reset_mask": bool array of num_envs} resets only the worlds it marks (the
+        others go on as they are). The observation and info are every world's.
         """
+        worlds = np.arange(self.num_envs)
+        if options and options.get("reset_mask") is not None:
+            mask = np.asarray(options["reset_mask"])
+            if mask.shape != (self.num_envs,) or mask.dtype != bool:
+                raise ValueError(f"reset_mask must be a bool array of shape ({self.num_envs},); got {mask.dtype} {mask.shape}")
+            if not self._rngs:
+                raise ValueError("a masked reset needs a first reset of every world")
+            worlds = np.flatnonzero(mask)
         if seed is None:
             seed, self._seed = self._seed, None
         seeds = seed if isinstance(seed, list) else [None if seed is None else seed + w for w in range(self.num_envs)]
         if len(seeds) != self.num_envs:
             raise ValueError(f"reset(seed=...) takes one seed per world ({self.num_envs}); got {len(seeds)}")
-        super().reset(seed=seeds[0])
-        if seed is not None or not self._rngs:
+        if len(worlds) == self.num_envs:
+            super().reset(seed=seeds[0])
+        if not self._rngs:
             self._rngs = [gym.utils.seeding.np_random(s)[0] for s in seeds]
+        else:
+            for w in worlds:
+                if seeds[w] is not None:
+                    self._rngs[w] = gym.utils.seeding.np_random(seeds[w])[0]
         if options and "difficulty" in options:
             check_difficulty(options["difficulty"])
-            self.difficulty = options["difficulty"]
+            self.difficulties[worlds] = options["difficulty"]
         # Contacts only where there are obstacles: collision detection could find nothing else.
         opt = self._physics.model.opt
-        opt.disableflags = opt.disableflags | NO_CONTACTS if self.difficulty == 0 else opt.disableflags & ~NO_CONTACTS
-        self._draw_episodes(range(self.num_envs))
+        opt.disableflags = opt.disableflags & ~NO_CONTACTS if self.difficulties.any() else opt.disableflags | NO_CONTACTS
+        self._draw_episodes(worlds)
         with wp.ScopedDevice(self.device):
-            self._physics.reset()
-        self._steps[:] = 0
+            self._physics.reset(None if len(worlds) == self.num_envs else worlds)
+        self._steps[worlds] = 0
         qpos = self._physics.data.qpos.numpy()
-        self._x = qpos[:, self._x_adr].astype(np.float64)
+        self._x[worlds] = qpos[worlds, self._x_adr]
         return self._observe(), self._info(qpos)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -141,7 +168,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         info["diverged"] = diverged
         truncated = self._steps >= self.max_steps
         done = terminated | truncated
-        if done.any():
+        if done.any() and self.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP:
             info["final_obs"], info["final_info"] = obs.copy(), dict(info)
             info["_final_obs"] = info["_final_info"] = done  # which worlds' entries hold a last state
             worlds = np.flatnonzero(done)
@@ -162,7 +189,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         its world's generator as `RunEnv` draws them, into the physics' per-world arrays (which
         the worlds take when reset)."""
         for w in worlds:
-            course, self.psoas[w] = draw_episode(self._rngs[w], self.difficulty)
+            course, self.psoas[w] = draw_episode(self._rngs[w], int(self.difficulties[w]))
             self.obstacles[w] = np.nan
             self.obstacles[w, :len(course)] = np.reshape(course, (-1, 3))
         physics = self._physics
