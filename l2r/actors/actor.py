@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
 import logging
 import threading
 import time
@@ -161,10 +162,14 @@ def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
 
 
 def registers_vector_env(env_id: str) -> bool:
-    """Whether ``env_id`` registers a vector entry point: a VectorEnv of its own (l2r/RunWarp-v0)."""
+    """Whether ``env_id`` registers a vector entry point: a VectorEnv of its own (l2r/RunWarp-v0;
+    "module:Name-v0" imports the module that registers it, as gymnasium.make does)."""
+    module, _, name = env_id.rpartition(":")
     try:
-        return gymnasium.spec(env_id).vector_entry_point is not None
-    except gymnasium.error.Error:  # an unknown id: make_env says so
+        if module:
+            importlib.import_module(module)
+        return gymnasium.spec(name).vector_entry_point is not None
+    except (gymnasium.error.Error, ImportError):  # an unknown id or module: make_env says so
         return False
 
 

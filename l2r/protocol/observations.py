@@ -228,6 +228,10 @@ class ObservationSpec:
         """One observation as an environment returns it, as this spec's fields: a Box's array is
         the field "state", a Dict's entries are their fields, floating-point values of float32
         fields become float32. ProtocolError when it does not fit the spec."""
+        if isinstance(observation, np.ndarray) and len(self.fields) == 1:  # a vector as the spec has it: as it is
+            spec = self.fields.get(VECTOR_FIELD)
+            if spec is not None and observation.dtype == spec.dtype and observation.shape == spec.shape:
+                return {VECTOR_FIELD: observation}
         values = observation if isinstance(observation, Mapping) else {VECTOR_FIELD: observation}
         fields = {}
         for name, value in values.items():

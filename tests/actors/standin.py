@@ -62,3 +62,40 @@ class Faller(StandIn):
 
 
 gymnasium.register("Faller-v0", entry_point=Faller)
+
+
+class InstantWorlds(gymnasium.vector.VectorEnv):
+    """Worlds with `l2r/RunWarp-v0`'s shapes and info entries and no physics, reset only when
+    asked (autoreset DISABLED): what an actor's own loop costs per world (bench/actor_step.py)."""
+
+    metadata = {"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED}
+
+    def __init__(self, num_envs: int = 1, **kwargs):
+        self.num_envs = num_envs
+        self.single_observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (41,), np.float32)
+        self.single_action_space = gymnasium.spaces.Box(0.0, 1.0, (18,), np.float32)
+        self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, num_envs)
+        self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, num_envs)
+        self._t = np.zeros(num_envs, np.int64)
+        self._rng = np.random.default_rng(0)
+
+    def _info(self) -> dict:
+        n = self.num_envs
+        shapes = {"body_pos": (14, 3), "body_quat": (14, 4), "muscle_activation": (18,), "muscle_length": (18,),
+                  "muscle_force": (18,), "fiber_length": (18,), "ligament_force": (8,), "contact_force": (4, 3)}
+        return {"distance": self._t * 0.01, **{name: np.zeros((n, *shape)) for name, shape in shapes.items()},
+                "diverged": np.zeros(n, bool)}
+
+    def reset(self, *, seed=None, options=None):
+        mask = (options or {}).get("reset_mask")
+        self._t[slice(None) if mask is None else mask] = 0
+        return self._rng.random((self.num_envs, 41), dtype=np.float32), self._info()
+
+    def step(self, actions):
+        self._t += 1
+        fell = self._rng.random(self.num_envs) < 0.01  # episodes of about 100 steps
+        return (self._rng.random((self.num_envs, 41), dtype=np.float32), np.full(self.num_envs, 0.01), fell,
+                self._t >= 1000, self._info())
+
+
+gymnasium.register("InstantWorlds-v0", vector_entry_point=InstantWorlds)

@@ -18,7 +18,7 @@ import zenoh
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from l2r.actors.__main__ import parse_settings
-from l2r.actors.actor import Actor, ActorConfig, main
+from l2r.actors.actor import Actor, ActorConfig, main, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.worlds import EnvList, VectorWorlds
 from l2r.config import StartupFailure, UsageError
@@ -79,6 +79,12 @@ def test_a_vector_env_steps_its_worlds_as_the_single_envs_step(mode):
         ended = [i for i, (_, _, terminated, truncated, _) in enumerate(steps) if terminated or truncated]
         assert ([o[0] for o, _ in single.reset_worlds(ended, ended, None)]
                 == [o[0] for o, _ in vector.reset_worlds(ended, ended, None)])
+
+
+def test_a_vector_env_registered_by_a_module_is_found_as_gymnasium_make_finds_it():
+    assert registers_vector_env("tests.actors.standin:InstantWorlds-v0")
+    assert not registers_vector_env("tests.actors.standin:StandIn-v0")  # a single env
+    assert not registers_vector_env("tests.actors.nowhere:InstantWorlds-v0")
 
 
 def test_an_unfit_autoreset_mode_is_refused():
