@@ -548,7 +548,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     else:
         tables = [["--capacity", str(capacity)] for capacity in shard_capacities(replay_capacity(args), shards)]
         in_flight = []
-    # Each shard waits for its part of --min-replay, so the learner starts when the job holds it all.
+    # Each shard waits for its share of --min-replay, so that together they wait for about as much as one would.
     shard_recipe = recipe if shards == 1 else recipe | {"min_replay": -(-recipe["min_replay"] // shards)}
     replay_task, learner_task = task_flags(args.env_id) if family_of(args.env_id) != RUNNER else ([], [])
     children = [Child(replay_name(shard, shards), tier=0, progress=("replay", str(shard), "inserted"),
