@@ -3,6 +3,7 @@ and a short job of two shards end to end: both take inserts and serve the learne
 restores both."""
 
 import json
+import os
 import re
 import signal
 import uuid
@@ -18,7 +19,7 @@ from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.replay.storage import StorageConfig, storage_bytes
 from l2r.up import parse_args, plan_children, recipe_of
 from tests.conftest import wait_for
-from tests.system.test_up import SMALL, finish, l2r_up, rows
+from tests.system.test_up import SMALL, finish, l2r_up, pid_of, rows, up_log
 
 
 def planned(*argv: str) -> tuple:
@@ -85,33 +86,53 @@ def restored(run_dir: Path, shard: int) -> list[int]:
     return logged(run_dir, shard, r"restored (\d+) transitions from")
 
 
+def shard_rows(run_dir: Path, shard: str) -> list[dict]:
+    return [r for r in rows(run_dir / "metrics" / "replay.csv") if r["shard"] == shard]
+
+
+def serves(row: dict) -> bool:
+    """Whether a shard's stats say it took experience and answered the learner."""
+    return int(row["inserted"]) > 0 and int(row["sampled_batches"]) > 0
+
+
 @pytest.mark.slow
-def test_a_job_of_two_shards_fills_and_samples_both_and_resumes_both(tmp_path):
+def test_a_job_of_two_shards_fills_and_samples_both_restarts_one_and_resumes_both(tmp_path):
     name = f"test-{uuid.uuid4().hex[:6]}"
     # Both actors at the learner's priority and the learner held to the actors' pace, so that on two
     # loaded cores neither actor starves while the other fills its shard.
-    first = l2r_up(tmp_path / "first.out", "--env-steps", "1000", "--seconds", "300", "--name", name,
-                   "--runs-dir", str(tmp_path), "--actors", "2", "--envs-per-actor", "2", "--evaluators", "0",
-                   "--replay-shards", "2", "--actor-nice", "0", "--samples-per-insert", "32",
-                   "--replay-arg=--stats-interval=1", *SMALL)
-    out = finish(first, tmp_path / "first.out", 300)
+    first = l2r_up(tmp_path / "first.out", "--seconds", "600", "--name", name, "--runs-dir", str(tmp_path),
+                   "--actors", "2", "--envs-per-actor", "2", "--evaluators", "0", "--replay-shards", "2",
+                   "--actor-nice", "0", "--samples-per-insert", "32", "--replay-arg=--stats-interval=1", *SMALL)
+    try:
+        run_dir = wait_for(lambda: next(tmp_path.glob(f"{name}-*"), None), timeout=60)
+        assert run_dir, "no run directory"
+        assert wait_for(lambda: all(any(map(serves, shard_rows(run_dir, k))) for k in "01"), timeout=180), \
+            "a shard took no experience or served no batch"
+        os.kill(pid_of(run_dir, "replay-1"), signal.SIGKILL)
+        assert wait_for(lambda: "replay-1 killed by SIGKILL" in up_log(run_dir), timeout=10)
+        before = len(shard_rows(run_dir, "1"))
+        # The restarted shard counts from 0 again: its actor's experience and the learner come back to it.
+        assert wait_for(lambda: any(map(serves, shard_rows(run_dir, "1")[before + 1:])), timeout=120), \
+            "the restarted shard took no experience or served no batch"
+        first.send_signal(signal.SIGTERM)
+    finally:
+        out = finish(first, tmp_path / "first.out", 120)
     assert first.returncode == 0, out
-    run_dir = next(tmp_path.glob(f"{name}-*"))
-    replay = rows(run_dir / "metrics" / "replay.csv")
-    last = {shard: [r for r in replay if r["shard"] == shard][-1] for shard in ("0", "1")}
-    for shard, row in last.items():  # each shard took its actor's experience and served the learner
-        assert int(row["inserted"]) > 0 and int(row["sampled_batches"]) > 0, (shard, row)
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["updates"] > 0 and summary["replay_size"] == sum(int(r["size"]) for r in last.values()), summary
+    assert summary["restarts_by_process"] == {"replay-1": 1}, summary
+    last = [shard_rows(run_dir, k)[-1] for k in "01"]
+    assert summary["updates"] > 0 and summary["replay_size"] == sum(int(r["size"]) for r in last), summary
     assert {p.name for p in (run_dir / "replay").glob("*.npz")} == {"replay-shard0.npz", "replay-shard1.npz"}
     kept = [logged(run_dir, k, r"snapshot: (\d+) transitions")[-1] for k in (0, 1)]
+    restores = [len(restored(run_dir, k)) for k in (0, 1)]
 
     # Each shard restores its own snapshot; the job is stopped once both have.
     second = l2r_up(tmp_path / "second.out", "--resume", str(run_dir), "--env-steps", "1000000")
     try:
-        assert wait_for(lambda: all(restored(run_dir, k) for k in (0, 1)), timeout=120), "a shard restored nothing"
+        assert wait_for(lambda: all(len(restored(run_dir, k)) > restores[k] for k in (0, 1)), timeout=120), \
+            "a shard restored nothing"
         second.send_signal(signal.SIGTERM)
     finally:
         out = finish(second, tmp_path / "second.out", 120)
     assert second.returncode == 0, out
-    assert [restored(run_dir, k) for k in (0, 1)] == [[kept[0]], [kept[1]]], kept
+    assert [restored(run_dir, k)[-1] for k in (0, 1)] == kept
