@@ -1,6 +1,6 @@
 """`l2r up --replay-shards N`: the processes it plans (fast, none started), the resumes it refuses,
-and a short job of two shards end to end: both take inserts and serve the learner, and a resume
-restores both."""
+and a short job of two shards end to end: both take inserts and serve the learner, one killed is
+restarted and serves again, and a resume restores both."""
 
 import json
 import os
