@@ -8,7 +8,8 @@ transitions (64 each, the actors' default) as fast as the shards take them (cong
 BLOCK, as actors send), or in bursts at a set rate (`--burst 512 --rate 16500`: an actor stepping
 512 worlds at once, whose chunks all fill on the same step); one learner-like client samples
 batches (640: the GPU recipe's) with four requests in flight, as fast as they come, and trains
-nothing. Each publisher also times how long its chunks wait for the shard's acknowledgement: an
+nothing, or (`--learner "--hidden 64,64 ..."`) a real `l2r-learner` with those flags samples and
+trains on the CPU. Each publisher also times how long its chunks wait for the shard's acknowledgement: an
 actor resends a chunk unacknowledged after 3 s (l2r-actor --resend-delay).
 
 The shards, the publishers and the sampler share the machine's cores: on a machine with few of
@@ -84,13 +85,21 @@ def publish(actor_id: int, shards: int, endpoints: list[str], run: str, rate: fl
     ack_waits.put(waits)
 
 
-def inserted(session: zenoh.Session, keys: Keys, shards: int) -> list[float]:
-    """Each shard's count of inserted transitions, asked of it now."""
+def counters(session: zenoh.Session, keys: Keys, shards: int) -> np.ndarray:
+    """Each shard's counts of inserted transitions and sampled batches, asked of it now."""
     counts = []
     for shard in range(shards):
         replies = [r for r in session.get(keys.stats("replay", shard), timeout=10) if r.ok is not None]
-        counts.append(decode(replies[0].ok.payload, Stats).values["inserted"])
-    return counts
+        values = decode(replies[0].ok.payload, Stats).values
+        counts.append((values["inserted"], values["sampled_batches"]))
+    return np.array(counts, float)
+
+
+def sample(session: zenoh.Session, run: str, batch_size: int, done: threading.Event) -> None:
+    """A learner-like client: batches as fast as they come until `done`, trained on by nothing."""
+    with ReplayClient(session, run, batch_size=batch_size, in_flight=4) as client:
+        while not done.is_set():
+            client.sample(timeout=60)
 
 
 def phase(shards: int, args: argparse.Namespace) -> dict:
@@ -107,6 +116,7 @@ def phase(shards: int, args: argparse.Namespace) -> dict:
                    for k, endpoint in enumerate(endpoints)]
         senders = [ctx.Process(target=publish, args=(i, shards, endpoints, run, args.rate, args.burst, stop, ack_waits))
                    for i in range(args.publishers)]
+        learner, sampler, done = None, None, threading.Event()
         try:
             with zenoh.open(session_config(connect=endpoints)) as session:
                 for k in range(shards):
@@ -114,17 +124,28 @@ def phase(shards: int, args: argparse.Namespace) -> dict:
                         raise SystemExit(f"replay shard {k} did not come up")
                 for sender in senders:
                     sender.start()
-                with ReplayClient(session, run, batch_size=args.batch_size, in_flight=4) as client:
-                    client.sample(timeout=60)
-                    end_of_warmup = time.perf_counter() + args.warmup
-                    while time.perf_counter() < end_of_warmup:
-                        client.sample(timeout=60)
-                    before, start, batches = inserted(session, keys, shards), time.perf_counter(), 0
-                    while time.perf_counter() - start < args.seconds:
-                        client.sample(timeout=60)
-                        batches += 1
-                    elapsed, after = time.perf_counter() - start, inserted(session, keys, shards)
+                if args.learner is None:
+                    sampler = threading.Thread(target=sample, args=(session, run, args.batch_size, done))
+                    sampler.start()
+                else:
+                    learner = subprocess.Popen([sys.executable, "-m", "l2r.learner", "--run", run, "--log-level",
+                                                "WARNING", *[flag for e in endpoints for flag in ("--connect", e)],
+                                                "--batch-size", str(args.batch_size), *args.learner.split()])
+                deadline = time.monotonic() + 120  # a learner's start (torch) takes seconds on a loaded box
+                while not counters(session, keys, shards)[:, 1].sum() and time.monotonic() < deadline:
+                    time.sleep(0.5)
+                time.sleep(args.warmup)
+                before, start = counters(session, keys, shards), time.perf_counter()
+                time.sleep(args.seconds)
+                elapsed, after = time.perf_counter() - start, counters(session, keys, shards)
+                done.set()
+                if sampler is not None:
+                    sampler.join(60)
         finally:
+            done.set()
+            if learner is not None:
+                learner.terminate()
+                learner.wait(60)
             stop.set()
             waits = np.concatenate([ack_waits.get(timeout=60) for sender in senders if sender.pid] + [[]])
             for sender in senders:
@@ -132,9 +153,9 @@ def phase(shards: int, args: argparse.Namespace) -> dict:
             for server in servers:
                 server.terminate()
                 server.wait(60)
-    per_shard = [(b - a) / elapsed for a, b in zip(before, after)]
-    return {"shards": shards, "inserts_per_s": round(sum(per_shard)),
-            "inserts_per_s_by_shard": [round(x) for x in per_shard], "batches_per_s": round(batches / elapsed, 1),
+    inserts, batches = ((after - before) / elapsed).T
+    return {"shards": shards, "inserts_per_s": round(inserts.sum()),
+            "inserts_per_s_by_shard": [round(x) for x in inserts], "batches_per_s": round(batches.sum(), 1),
             "ack_wait_s_median": round(float(np.median(waits)), 3), "ack_wait_s_max": round(float(waits.max()), 3),
             "chunks_waiting_over_3_s": int((waits > 3.0).sum())}
 
@@ -150,6 +171,10 @@ def main() -> None:
     parser.add_argument("--burst", type=int, default=1, help="chunks each publisher sends back to back")
     parser.add_argument("--rate", type=float, default=0.0,
                         help="transitions/s of each publisher, in bursts (0: as fast as the shard takes them)")
+    parser.add_argument("--learner", metavar="FLAGS",
+                        help="sample with a real l2r-learner given these flags (besides --run, --connect and "
+                             "--batch-size), e.g. \"--hidden 64,64 --update-repeat 3\", instead of a client that "
+                             "trains nothing")
     args = parser.parse_args()
     phases = [phase(int(n), args) for n in args.shards.split(",")]
     try:
@@ -158,7 +183,7 @@ def main() -> None:
         cpu = "unknown"
     print(json.dumps({"cpu": cpu, "cores": mp.cpu_count(), "publishers": args.publishers, "capacity": args.capacity,
                       "batch_size": args.batch_size, "transitions_per_chunk": STEPS, "burst": args.burst,
-                      "rate": args.rate, "phases": phases}))
+                      "rate": args.rate, "learner": args.learner, "phases": phases}))
 
 
 if __name__ == "__main__":
