@@ -9,8 +9,8 @@ BLOCK, as actors send), or in bursts at a set rate (`--burst 512 --rate 16500`: 
 512 worlds at once, whose chunks all fill on the same step); one learner-like client samples
 batches (640: the GPU recipe's) with four requests in flight, as fast as they come, and trains
 nothing, or (`--learner "--hidden 64,64 ..."`) a real `l2r-learner` with those flags samples and
-trains on the CPU. Each publisher also times how long its chunks wait for the shard's acknowledgement: an
-actor resends a chunk unacknowledged after 3 s (l2r-actor --resend-delay).
+trains on the CPU. Each publisher also times how long its chunks wait for the shard's
+acknowledgement: an actor resends a chunk unacknowledged after 3 s (l2r-actor --resend-delay).
 
 The shards, the publishers and the sampler share the machine's cores: on a machine with few of
 them, more shards compete for the same cores, and the figure that says what shards are worth is
@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,18 +35,9 @@ import zenoh
 
 from l2r.protocol import EXPERIENCE_QOS, Keys, ReplayClient, Stats, decode, encode, session_config, wait_alive
 from l2r.protocol.messages import ExperienceChunk, ReplayAck
+from l2r.up import free_ports, loopback
 
 OBS, ACT, STEPS = 41, 18, 64
-
-
-def free_endpoints(count: int) -> list[str]:
-    sockets = [socket.socket() for _ in range(count)]
-    for s in sockets:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in sockets]
-    for s in sockets:
-        s.close()
-    return [f"tcp/127.0.0.1:{port}" for port in ports]
 
 
 def publish(actor_id: int, shards: int, endpoints: list[str], run: str, rate: float, burst: int, stop: mp.Event,
@@ -106,7 +96,7 @@ def phase(shards: int, args: argparse.Namespace) -> dict:
     """Inserts/s summed over `shards` shards and batches/s drawn, over `args.seconds` after
     `args.warmup`, and how long chunks waited for their acknowledgement over the whole phase."""
     run, ctx = f"bench-{uuid.uuid4().hex[:8]}", mp.get_context("spawn")
-    keys, endpoints = Keys(run), free_endpoints(shards)
+    keys, endpoints = Keys(run), [loopback(port) for port in free_ports(shards)]
     stop, ack_waits = ctx.Event(), ctx.Queue()
     with tempfile.TemporaryDirectory() as directory:
         servers = [subprocess.Popen([sys.executable, "-m", "l2r.replay", "--run", run, "--shard", str(k),

@@ -210,8 +210,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
                          "(l2r/RunWarp-v0: the worlds and the policy's batched call on the GPU with cuda)")
     le.add_argument("--learner-threads", type=int, default=0,
-                    help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one per "
-                         "replay shard, at least 1 (oversubscribed threads wait on each other and slow every update)")
+                    help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and "
+                         "one per replay shard, at least 1 (oversubscribed threads wait on each other and slow every "
+                         "update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
                          "deterministic policy); ppo, a2c, reinforce, trpo and acktr on-policy from the "
