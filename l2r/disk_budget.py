@@ -2,10 +2,11 @@
 
 The estimate is the most each part can grow to, from the run's flags (docs/training.md, "Disk use"):
 
-    replay        3 x the replay table's bytes (l2r.replay.storage.storage_bytes) for --capacity
-                  transitions, or --env-steps if fewer, or what a run of --seconds can make at
-                  MAX_ENV_STEPS_PER_S per actor if fewer still: the snapshot, the next one written
-                  beside it before the rename, and the write-ahead log between them
+    replay        for each replay shard, 3 x its table's bytes (l2r.replay.storage.storage_bytes)
+                  for its --capacity transitions, or --env-steps if fewer, or what a run of
+                  --seconds can make at MAX_ENV_STEPS_PER_S per actor that feeds it if fewer
+                  still: the snapshot, the next one written beside it before the rename, and the
+                  write-ahead log between them
     episodes      each actor's and evaluator's log budget (l2r-actor --log-budget-mb, 256 MB
                   unless an --actor-arg sets it), or what it can write in --seconds at
                   MAX_EPISODE_BYTES_PER_S if less: none with --no-episode-logs or on a task whose
@@ -35,6 +36,9 @@ from pathlib import Path
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.durable import MB
 from l2r.learner.checkpoint import checkpoint_path
+from l2r.protocol.keys import shard_of
+from l2r.replay.__main__ import ReplaySettings
+from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.replay.storage import StorageConfig, storage_bytes
 from l2r.spaces import task_spaces
 from l2r.supervise import Child
@@ -64,17 +68,14 @@ def checkpoint_bytes(obs_dim: int, act_dim: int, hidden: str) -> int:
     return 4 * 4 * (actor + critics)
 
 
-def estimate(args: argparse.Namespace, recipe: dict, capacity: int, side_fraction: float,
-             children: list[Child]) -> dict[str, int]:
-    """Bytes the run may write, by part (see the module docstring)."""
-    observation, act_dim = task_spaces(args.env_id)
+def estimate(args: argparse.Namespace, recipe: dict, children: list[Child]) -> dict[str, int]:
+    """Bytes the run may write, by part (see the module docstring), from the processes' command lines."""
     actors = [actor_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.actors"]
-    transitions = min(capacity, args.env_steps) if args.env_steps else capacity
-    if args.seconds:  # a run of a few minutes cannot fill a large table
-        training = sum(1 for s in actors if not s.evaluate)
-        transitions = min(transitions, int(args.seconds * MAX_ENV_STEPS_PER_S * max(training, 1)))
-    replay = 3 * storage_bytes(StorageConfig(capacity=transitions, act_dim=act_dim, side_fraction=side_fraction,
-                                             observation=observation)) if transitions else 0
+    training = [s for s in actors if not s.evaluate]
+    replay = 0
+    for shard in (replay_settings(c.argv[3:]) for c in children if c.argv[2] == "l2r.replay"):
+        feeding = sum(1 for s in training if shard_of(s.actor_id, s.num_shards) == shard.shard)
+        replay += 3 * _table_bytes(shard, feeding, args)
     budgets = [int(s.log_budget_mb * 2**20) for s in actors if s.episode_log_dir is not None]
     if args.seconds:
         budgets = [min(budget, int(args.seconds * MAX_EPISODE_BYTES_PER_S)) for budget in budgets]
@@ -82,6 +83,17 @@ def estimate(args: argparse.Namespace, recipe: dict, capacity: int, side_fractio
     checkpoints = (args.keep_checkpoints + 2) * task_checkpoint_bytes(args.env_id, recipe["hidden"])
     metrics = int(METRICS_BYTES_PER_HOUR * (args.seconds or 3600) / 3600)
     return {"replay": replay, "episode logs": episodes, "checkpoints": checkpoints, "metrics": metrics}
+
+
+def _table_bytes(shard: ReplaySettings, actors: int, args: argparse.Namespace) -> int:
+    """The bytes of a replay shard's table once it holds what `actors` can send it in the run's budget."""
+    transitions = min(shard.capacity, args.env_steps) if args.env_steps else shard.capacity
+    if args.seconds:  # a run of a few minutes cannot fill a large table
+        transitions = min(transitions, int(args.seconds * MAX_ENV_STEPS_PER_S * actors))
+    if not transitions:  # no replay table (the queue alone, which is not snapshotted)
+        return 0
+    return storage_bytes(StorageConfig(transitions, shard.obs_dim, shard.act_dim, shard.side_fraction,
+                                       observation=shard.observation_spec()))
 
 
 def already_written(run_dir: Path | None) -> int:

@@ -268,7 +268,8 @@ SETTINGS: dict[str, str] = {
     "normalize_obs": "networks see observations standardised by running statistics",
     "mirror": "the learner swaps the legs of a random half of each batch (symmetry augmentation; SAC, TD3, the "
               "runner alone)",
-    "min_replay": "transitions stored before the learner starts (SAC, TD3)",
+    "min_replay": "transitions stored before the learner starts (SAC, TD3; of several --replay-shards, each waits "
+                  "for its share)",
     "samples_per_insert": "replay rate limit: sampled transitions per inserted one (0: no limit; SAC, TD3)",
     "hold_actors": "with --samples-per-insert, the replay server holds the actors back while they are ahead of the "
                    "learner, so the ratio holds both ways (SAC, TD3)",

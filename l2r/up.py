@@ -1,13 +1,14 @@
 """`l2r up`: a whole training job on this host.
 
-Starts one replay server, one learner and N actors (plus an evaluator) as separate processes
-that talk over loopback Zenoh: the replay server and the learner listen on free 127.0.0.1
-ports, everyone else connects to both, multicast scouting is off, and no router is needed.
+Starts a replay server (or --replay-shards of them), one learner and N actors (plus an
+evaluator) as separate processes that talk over loopback Zenoh: the replay shards and the learner
+listen on free 127.0.0.1 ports, everyone else connects to all of them, multicast scouting is off,
+and no router is needed.
 `l2r.supervise` restarts what exits and gives up on what keeps failing, `l2r.run_metrics`
 writes what the daemons publish to metrics files, `l2r.best_policy` keeps the best evaluated
 policy, `l2r.live_status` shows it all. The job stops when its budget is spent, on Ctrl-C /
 SIGTERM, or when it gives up on a process: actors first, then the learner (which checkpoints),
-then the replay server (which snapshots).
+then the replay shards (which snapshot).
 
 The run directory `runs/<name>-<timestamp>/` keeps:
     launch.json           the run's flags (reused by --resume), the recipe they resolve to, Zenoh run
@@ -60,7 +61,7 @@ from l2r.live_status import StatusDisplay
 from l2r.protocol import Keys, session_config
 from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values
 from l2r.replay.queue import QueueConfig
-from l2r.replay.storage import StorageConfig
+from l2r.replay.snapshot import snapshot_path
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.sim.randomize import Randomization
@@ -93,11 +94,17 @@ def loopback(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def free_ports(count: int) -> list[int]:
+    """`count` different TCP ports free on 127.0.0.1 right now (held together while they are
+    drawn, so that none is drawn twice)."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
 
 
 def _recipe_flag(name: str, text: str) -> dict:
@@ -203,18 +210,25 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
                          "(l2r/RunWarp-v0: the worlds and the policy's batched call on the GPU with cuda)")
     le.add_argument("--learner-threads", type=int, default=0,
-                    help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and one for "
-                         "replay, at least 1 (oversubscribed threads wait on each other and slow every update)")
+                    help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and "
+                         "one per replay shard, at least 1 (oversubscribed threads wait on each other and slow every "
+                         "update)")
     le.add_argument("--algo", choices=sorted({algo for _, algo in RECIPES}), default="sac",
                     help="the learner's algorithm: sac learns off-policy from the replay table, td3 too (with a "
                          "deterministic policy); ppo, a2c, reinforce, trpo and acktr on-policy from the "
                          "replay server's queue table, each transition once and none older than --queue-max-lag "
                          "policy versions; a3c from gradients the actors compute on their own rollouts "
                          "(--batch-size steps each) and send instead of experience")
+    le.add_argument("--replay-shards", type=int, default=1, metavar="N",
+                    help="replay server processes (SAC, TD3; at most --actors): actor i feeds shard i mod N and the "
+                         "learner samples the shards in turn; --capacity and --min-replay are the job's, split over "
+                         "the shards. More than 1 helps a fast learner (a GPU) whose one replay process cannot take "
+                         "the actors' inserts while it serves the batches (docs/training.md, \"Replay shards\"); a "
+                         "--resume keeps the run's number")
     le.add_argument("--capacity", type=int,
-                    help=f"replay capacity in transitions (SAC, TD3); unset: {VECTOR_CAPACITY:,}, and {IMAGE_CAPACITY:,} "
-                         f"for camera tasks (2.4 GB of 84 x 84 frames; the shard logs its bytes at start), "
-                         f"{PHOTO_CAPACITY:,} for photo tasks")
+                    help=f"replay capacity in transitions of the whole job, split over the --replay-shards (SAC, TD3); "
+                         f"unset: {VECTOR_CAPACITY:,}, and {IMAGE_CAPACITY:,} for camera tasks (2.4 GB of 84 x 84 "
+                         f"frames; each shard logs its bytes at start), {PHOTO_CAPACITY:,} for photo tasks")
     le.add_argument("--queue-capacity", type=int,
                     help="transitions the queue table holds before it holds the actors back (on-policy algorithms; "
                          "unset: two batches)")
@@ -273,12 +287,22 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, dict | None]:
         if _stored(getattr(args, dest)) != old:
             print(f"l2r up: warning: --{dest.replace('_', '-')} {getattr(args, dest)} replaces {old} from "
                   f"{args.resume / 'launch.json'}", file=sys.stderr)
-    snapshot_capacity = replay_snapshot_capacity(args.resume / "replay")
-    if snapshot_capacity not in (None, replay_capacity(args)):
-        print(f"l2r up: warning: the replay snapshot in {args.resume / 'replay'} holds {snapshot_capacity:,} "
-              f"transitions' capacity; the replay server cannot restore it with --capacity {replay_capacity(args):,} and the "
-              f"job will give up (move replay/ away to start with an empty replay)", file=sys.stderr)
-    return _checked(parser, args), launch
+    args = _checked(parser, args)
+    replay_dir = args.resume / "replay"
+    shards_before = stored.get("replay_shards", 1)
+    if args.replay_shards != shards_before and any(replay_dir.glob("replay-shard*")):
+        # Actor i's experience lives in shard i mod N: another N would leave a shard's data unread.
+        parser.error(f"--replay-shards {args.replay_shards}: the run's replay in {replay_dir} is kept by "
+                     f"{shards_before} shard{'s' if shards_before > 1 else ''}; resume with --replay-shards "
+                     f"{shards_before}, or move replay/ away to start with an empty replay")
+    for shard, capacity in enumerate(shard_capacities(replay_capacity(args), args.replay_shards)):
+        snapshot_capacity = replay_snapshot_capacity(replay_dir, shard)
+        if snapshot_capacity not in (None, capacity):
+            print(f"l2r up: warning: the replay snapshot {snapshot_path(replay_dir, shard)} holds "
+                  f"{snapshot_capacity:,} transitions' capacity; the replay server cannot restore it with --capacity "
+                  f"{replay_capacity(args):,}{f' ({capacity:,} a shard)' if args.replay_shards > 1 else ''} and the "
+                  f"job will give up (move replay/ away to start with an empty replay)", file=sys.stderr)
+    return args, launch
 
 
 def _launch(parser: argparse.ArgumentParser, given: argparse.Namespace) -> tuple[dict, dict]:
@@ -354,11 +378,11 @@ def _file_value(action: argparse.Action, value):
     return value
 
 
-def replay_snapshot_capacity(directory: Path) -> int | None:
-    """The capacity the replay snapshot in `directory` was taken with (the fourth of the storage's
-    counters, see l2r.replay.storage), or None without a readable one."""
+def replay_snapshot_capacity(directory: Path, shard: int) -> int | None:
+    """The capacity the snapshot of replay shard `shard` in `directory` was taken with (the fourth
+    of the storage's counters, see l2r.replay.storage), or None without a readable one."""
     try:
-        with np.load(directory / "replay-shard0.npz", allow_pickle=False) as snapshot:
+        with np.load(snapshot_path(directory, shard), allow_pickle=False) as snapshot:
             return int(snapshot["counters"][3])
     except (OSError, KeyError, IndexError, ValueError, zipfile.BadZipFile):
         return None
@@ -386,6 +410,12 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--hidden takes widths such as 256,256 (got {recipe['hidden']!r}), --update-repeat at least 1")
     if not 0 <= args.opensim_actors <= args.actors:
         parser.error(f"--opensim-actors must be between 0 and --actors ({args.actors}), got {args.opensim_actors}")
+    if not 1 <= args.replay_shards <= args.actors:
+        parser.error(f"--replay-shards must be between 1 and --actors ({args.actors}), got {args.replay_shards}: "
+                     f"actor i feeds shard i mod N, so a shard beyond the actors would stay empty")
+    if args.replay_shards > 1 and args.algo in ON_POLICY:
+        parser.error(f"--replay-shards is for the replay table of sac and td3; --algo {args.algo} takes its "
+                     f"batches from one replay server's queue")
     _check_robustness(parser, args)
     return args
 
@@ -442,9 +472,20 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
 
 
 def replay_capacity(args: argparse.Namespace) -> int:
-    """--capacity, else the default for the task's observations."""
+    """--capacity, else the default for the task's observations: the job's, all shards together."""
     capacities = {PIXELS: IMAGE_CAPACITY, PHOTO: PHOTO_CAPACITY}
     return args.capacity or capacities.get(family_of(args.env_id), VECTOR_CAPACITY)
+
+
+def shard_capacities(total: int, shards: int) -> list[int]:
+    """A job's `total` of transitions split over its replay shards, the first ones a transition
+    more where it does not divide."""
+    return [total // shards + (shard < total % shards) for shard in range(shards)]
+
+
+def replay_name(shard: int, shards: int) -> str:
+    """The process name of a replay shard: `replay` for a job's only one, else `replay-<shard>`."""
+    return "replay" if shards == 1 else f"replay-{shard}"
 
 
 def task_flags(env_id: str) -> tuple[list[str], list[str]]:
@@ -460,7 +501,8 @@ def task_flags(env_id: str) -> tuple[list[str], list[str]]:
 
 
 def learner_threads(args: argparse.Namespace) -> int:
-    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args)) - 1)
+    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args))
+                                       - args.replay_shards)
 
 
 def recipe_of(args: argparse.Namespace) -> Recipe:
@@ -489,33 +531,41 @@ def layer_norm_flag(recipe: dict, learner_arg: list[str]) -> list[str]:
     return ["--layer-norm" if recipe["layer_norm"] else "--no-layer-norm"]
 
 
-def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port: int, learner_port: int) -> list[Child]:
-    """The processes of the job, in start order (stopped in reverse)."""
-    replay_ep, learner_ep = loopback(replay_port), loopback(learner_port)
+def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_ports: list[int],
+                  learner_port: int) -> list[Child]:
+    """The processes of the job, in start order (stopped in reverse): one replay shard on each of
+    `replay_ports`, the learner on `learner_port`, the actors and evaluators."""
+    learner_ep = loopback(learner_port)
+    to_replay = [flag for port in replay_ports for flag in ("--connect", loopback(port))]
     # Everyone also listens on an ephemeral loopback port, so Zenoh's gossip meshes the peers.
     common = ["--run", run, "--log-level", args.log_level]
     py = [sys.executable, "-m"]
     recipe = recipe_of(args).values
+    shards = len(replay_ports)
     if args.algo in ON_POLICY:  # the queue table alone; a learner asking for one batch at a time, the freshest
-        tables = ["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * recipe["batch_size"]),
-                  "--queue-max-lag", str(args.queue_max_lag)]
+        tables = [["--capacity", "0", "--queue-capacity", str(args.queue_capacity or 2 * recipe["batch_size"]),
+                   "--queue-max-lag", str(args.queue_max_lag)]]
         in_flight = ["--in-flight", "1"]
     else:
-        tables, in_flight = ["--capacity", str(replay_capacity(args))], []
+        tables = [["--capacity", str(capacity)] for capacity in shard_capacities(replay_capacity(args), shards)]
+        in_flight = []
+    # Each shard waits for its share of --min-replay, so that together they wait for about as much as one would.
+    shard_recipe = recipe if shards == 1 else recipe | {"min_replay": -(-recipe["min_replay"] // shards)}
     replay_task, learner_task = task_flags(args.env_id) if family_of(args.env_id) != RUNNER else ([], [])
-    children = [Child("replay", tier=0, progress=("replay", "0", "inserted"),
-                      argv=py + ["l2r.replay", *common, "--listen", replay_ep, *tables,
-                                 *daemon_flags(recipe, REPLAY_FLAGS), *replay_task,
-                                 "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])]
+    children = [Child(replay_name(shard, shards), tier=0, progress=("replay", str(shard), "inserted"),
+                      argv=py + ["l2r.replay", *common, *shard_flags(shard, shards), "--listen", loopback(port),
+                                 *tables[shard], *daemon_flags(shard_recipe, REPLAY_FLAGS), *replay_task,
+                                 "--snapshot-dir", str(run_dir / "replay"), *args.replay_arg])
+                for shard, port in enumerate(replay_ports)]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
-                          argv=py + ["l2r.learner", *common, "--listen", learner_ep, "--connect", replay_ep,
+                          argv=py + ["l2r.learner", *common, "--listen", learner_ep, *to_replay,
                                      "--device", args.device, "--algo", args.algo, *in_flight, *learner_task,
                                      *daemon_flags(recipe, LEARNER_FLAGS), *layer_norm_flag(recipe, args.learner_arg),
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(recipe["action_repeat"]),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
                                      "--run-dir", str(run_dir), *args.learner_arg]))
-    peers = ["--connect", replay_ep, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
+    peers = [*to_replay, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--env-id", args.env_id, "--num-envs", str(recipe["envs_per_actor"]),
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
               "--seed", str(args.seed), *(["--device", args.device] if registers_vector_env(args.env_id) else []),
@@ -530,6 +580,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
+                                         *([] if shards == 1 else ["--num-shards", str(shards)]),
                                          "--random-steps", str(recipe["random_steps"]), *gradient_flags(args, recipe),
                                          *robustness_flags(args, opensim=bool(opensim)), *logs, *args.actor_arg,
                                          *opensim]))
@@ -546,6 +597,11 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
                                          *eval_env]))
     return children
+
+
+def shard_flags(shard: int, shards: int) -> list[str]:
+    """A replay server's flags for its place among the job's shards (none for a job's only one)."""
+    return [] if shards == 1 else ["--shard", str(shard), "--num-shards", str(shards)]
 
 
 def gradient_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
@@ -682,10 +738,8 @@ def fits_on_disk(args: argparse.Namespace) -> bool:
     """Whether what the run may write fits in the free space of its disk; one line if not (a
     warning with --force, which then goes on)."""
     where = args.resume or args.runs_dir
-    children = plan_children(args, "estimate", where, 0, 0)
-    capacity = 0 if args.algo in ON_POLICY else replay_capacity(args)  # the queue table is not snapshotted
-    side = IMAGE_SIDE_FRACTION if family_of(args.env_id) == PIXELS else StorageConfig.side_fraction
-    parts = disk_budget.estimate(args, recipe_of(args).values, capacity, side, children)
+    children = plan_children(args, "estimate", where, [0] * args.replay_shards, 0)
+    parts = disk_budget.estimate(args, recipe_of(args).values, children)
     needed = sum(parts.values()) - disk_budget.already_written(args.resume)
     free = free_bytes(where)
     if needed <= free:
@@ -709,8 +763,9 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, console], force=True)
     run = run_dir.name
-    replay_port, learner_port = free_port(), free_port()
-    write_launch(run_dir, args, argv, launch, {"replay_port": replay_port, "learner_port": learner_port})
+    *replay_ports, learner_port = free_ports(args.replay_shards + 1)
+    write_launch(run_dir, args, argv, launch, {"replay_port": replay_ports[0], "learner_port": learner_port}
+                 | ({"replay_ports": replay_ports} if args.replay_shards > 1 else {}))
     recipe = recipe_of(args)
     log.info("%s", recipe.describe())
     if recipe.unused:
@@ -727,8 +782,9 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
 
-    children = plan_children(args, run, run_dir, replay_port, learner_port)
-    conf = session_config(connect=[loopback(replay_port), loopback(learner_port)], listen=["tcp/127.0.0.1:0"])
+    children = plan_children(args, run, run_dir, replay_ports, learner_port)
+    conf = session_config(connect=[loopback(port) for port in [*replay_ports, learner_port]],
+                          listen=["tcp/127.0.0.1:0"])
     print(f"l2r up: run directory {run_dir}  (Zenoh run {run!r}; Ctrl-C stops cleanly)", file=sys.stderr)
     code, spent = 0, None
     checkpoint_estimate = disk_budget.task_checkpoint_bytes(args.env_id, recipe.values["hidden"])

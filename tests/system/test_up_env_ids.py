@@ -17,7 +17,7 @@ from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_ac
 def env_ids(*argv: str) -> dict[str, str]:
     """The env id each actor and evaluator of a planned job would run."""
     args, _ = parse_args(["--actors", "2", *argv])
-    children = plan_children(args, "run", Path("runs/x"), 7447, 7448)
+    children = plan_children(args, "run", Path("runs/x"), [7447], 7448)
     ids = {}
     for child in children:
         if child.argv[2] == "l2r.actors":
@@ -59,7 +59,7 @@ def test_opensim_actors_are_the_last_of_the_actors():
 
 def test_the_job_knows_which_simulator_each_actor_id_steps():
     args = build_parser().parse_args(["--actors", "2", "--opensim-actors", "1", "--eval-env-id", "l2r/RunOpenSim-v0"])
-    assert simulator_of_each_actor(plan_children(args, "run", Path("runs/x"), 7447, 7448)) == {
+    assert simulator_of_each_actor(plan_children(args, "run", Path("runs/x"), [7447], 7448)) == {
         0: "l2r/Run-v0", 1: "l2r/RunOpenSim-v0", 2: "l2r/RunOpenSim-v0"}
 
 
@@ -80,7 +80,7 @@ def test_resume_takes_the_stored_env_ids_and_a_repeated_flag_given_again_replace
 def learner_config(*argv: str):
     """The SAC settings the learner of a planned job would train with."""
     args, _ = parse_args(list(argv))
-    learner = next(c for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) if c.name == "learner")
+    learner = next(c for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) if c.name == "learner")
     return learner_settings(learner.argv[3:]).sac()
 
 
@@ -95,7 +95,7 @@ def test_the_learner_trains_with_up_s_recipe_and_a_learner_arg_wins():
 
 def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_a_time():
     args, _ = parse_args(["--algo", "ppo"])
-    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
     replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
     assert (replay.capacity, replay.queue_capacity, replay.queue_max_lag) == (0, 2 * 2048, 3)
     config = learner.algorithm()  # the learner's own checks pass: no SAC-only option reaches it
@@ -103,7 +103,7 @@ def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_
     assert config.relative_x and config.normalize_obs
     assert actor_settings(children["actor-0"]).random_steps == 0
     args, _ = parse_args(["--algo", "ppo", "--batch-size", "512", "--random-steps", "100"])
-    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
     assert replay_settings(children["replay"]).queue_capacity == 1024
     assert learner_settings(children["learner"]).algorithm().batch_size == 512
     assert actor_settings(children["actor-0"]).random_steps == 100
@@ -112,7 +112,7 @@ def test_a_ppo_job_feeds_a_queue_table_and_its_learner_takes_one_fresh_batch_at_
 def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_options_off():
     # The runner's recipe, which turns them on, and the flags themselves: off all the same.
     args, _ = parse_args(["--env-id", "Hopper-v5", "--recipe", "runner", "--relative-x", "--mirror"])
-    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
     replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
     assert (replay.obs_dim, replay.act_dim, learner.obs_dim, learner.act_dim) == (11, 3, 11, 3)
     config = learner.algorithm()
@@ -125,7 +125,7 @@ def test_another_task_than_the_runner_sets_its_widths_and_turns_the_runner_s_opt
 def test_a_camera_task_plans_its_observation_spec_and_the_pixels_recipe():
     assert family_of("l2r/dmc-cartpole-swingup-v0") == PIXELS and family_of("l2r/RunOpenSim-v0") == RUNNER
     args, _ = parse_args(["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3"])
-    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
     replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
     assert replay.observation == learner.observation == "{pixels: uint8[3, 84, 84]}"
     assert (replay.act_dim, learner.act_dim, replay.capacity, replay.side_fraction) == (1, 1, 100_000, 0.0625)
@@ -150,7 +150,7 @@ def test_the_robustness_levers_reach_the_training_actors_alone():
     args, _ = parse_args(["--actors", "2", "--opensim-actors", "1", "--randomize", "mass=0.1,delay=0.5",
                           "--observation-noise", "0.01", "--action-noise", "0.02",
                           "--difficulty-schedule", "0:0,1000:2"])
-    children = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)
+    children = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
                 if c.argv[2] == "l2r.actors"}
     port, opensim, evaluator = children["actor-0"], children["actor-1"], children["evaluator-0"]
     for actor in (port, opensim):
@@ -165,7 +165,7 @@ def test_the_robustness_levers_reach_the_training_actors_alone():
     # Off, the actors' command lines are those of before the levers.
     args, _ = parse_args([])
     assert not {"--randomize", "--observation-noise", "--action-noise", "--difficulty-schedule"} & {
-        flag for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) for flag in c.argv}
+        flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) for flag in c.argv}
 
 
 @pytest.mark.parametrize("argv", [
@@ -181,10 +181,10 @@ def test_bad_robustness_levers_are_refused_in_one_line(argv, capsys):
 
 def test_actors_of_a_vector_env_step_their_worlds_on_the_job_s_device():
     args, _ = parse_args(["--env-id", "l2r/RunWarp-v0", "--envs-per-actor", "256", "--device", "cuda"])
-    settings = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)
+    settings = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
                 if c.argv[2] == "l2r.actors"}
     assert settings["actor-0"].device == "cuda" and settings["actor-0"].num_envs == 256
     assert settings["actor-0"].native_vector_env and not settings["evaluator-0"].native_vector_env
     args, _ = parse_args(["--device", "cuda"])  # single envs: the actors' policy stays on the CPU
     assert all(actor_settings(c.argv[3:]).device == "cpu"
-               for c in plan_children(args, "run", Path("runs/x"), 7447, 7448) if c.argv[2] == "l2r.actors")
+               for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) if c.argv[2] == "l2r.actors")

@@ -76,7 +76,7 @@ def old_launch(env_id: str, algo: str) -> dict:
 def planned(*argv: str) -> dict[str, list[str]]:
     """Each process's arguments in the job `l2r up ARGV` plans."""
     args, _ = parse_args(list(argv))
-    return {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), 7447, 7448)}
+    return {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
 
 
 def assert_same_settings(now: dict[str, list[str]], before: dict[str, str]) -> None:
