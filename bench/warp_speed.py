@@ -81,6 +81,8 @@ def env_rate(env_id: str, worlds: int, steps: int, **kwargs) -> float:
     if worlds == 1 and "device" not in kwargs:
         env = gymnasium.make(env_id, **kwargs).unwrapped
         env.reset(seed=0)
+        env.step(actions[-1][0])  # warm: numba's kernels compiled (or loaded from its cache) before timing
+        env.reset(seed=0)
         start = time.perf_counter()
         for a in actions[:steps]:
             if any(env.step(a[0])[2:4]):
