@@ -81,6 +81,12 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             self._physics = WarpPhysics(m, osim, [by_name[n] for n in body.MUSCLES], num_envs,
                                         m.keyframe(body.DEFAULT_KEYFRAME).id, graphs)
         self._parked = self._physics.obstacles.numpy()[0].astype(np.float64)  # (x, y, r) of the unused spheres
+        physics, data = self._physics, self._physics.data
+        self._state = HostState(self.device, {
+            "qpos": data.qpos, "sensordata": data.sensordata, "xpos": data.xpos, "xquat": data.xquat,
+            "acc_sensordata": physics.acc_sensordata, "ground_force": physics.ground_force,
+            "activation": physics.activation, "muscle_length": physics.muscle_length,
+            "muscle_force": physics.muscle_force, "fiber": physics.fiber, "ligament_force": physics.ligament_force})
 
         self.single_action_space = gym.spaces.Box(0.0, 1.0, shape=(NUM_MUSCLES,), dtype=np.float32)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_SIZE,), dtype=np.float32)
@@ -140,9 +146,9 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         with wp.ScopedDevice(self.device):
             self._physics.reset(None if len(worlds) == self.num_envs else worlds)
         self._steps[worlds] = 0
-        qpos = self._physics.data.qpos.numpy()
-        self._x[worlds] = qpos[worlds, self._x_adr]
-        return self._observe(), self._info(qpos)
+        state = self._state.fetch()
+        self._x[worlds] = state["qpos"][worlds, self._x_adr]
+        return self._observe(state), self._info(state)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Advance every world 0.01 s; excitations are clipped to [0, 1]; NaN, inf or a shape
@@ -157,13 +163,13 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             physics.excitation.assign(a.clip(0.0, 1.0))
             physics.step(self.substeps)
         self._steps += 1
-        qpos = physics.data.qpos.numpy()
-        x_before, self._x = self._x, qpos[:, self._x_adr].astype(np.float64)
-        ligaments = physics.ligament_force.numpy().astype(np.float64)
+        state = self._state.fetch()
+        x_before, self._x = self._x, state["qpos"][:, self._x_adr].astype(np.float64)
+        obs, info = self._observe(state), self._info(state)
+        ligaments = info["ligament_force"]
         reward = (self._x - x_before) - np.sqrt((ligaments * ligaments).sum(axis=1)) * LIGAMENT_PENALTY
-        obs, info = self._observe(), self._info(qpos)
         diverged = ~np.isfinite(obs).all(axis=1)
-        terminated = (qpos[:, self._y_adr] < FALL_HEIGHT) | diverged
+        terminated = (state["qpos"][:, self._y_adr] < FALL_HEIGHT) | diverged
         reward[diverged] = 0.0
         info["diverged"] = diverged
         truncated = self._steps >= self.max_steps
@@ -176,10 +182,10 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             with wp.ScopedDevice(self.device):
                 physics.reset(worlds)
             self._steps[worlds] = 0
-            qpos = physics.data.qpos.numpy()
-            self._x[worlds] = qpos[worlds, self._x_adr]
-            obs[worlds] = self._observe()[worlds]
-            for name, value in self._info(qpos).items():  # a reset world's info is its new episode's, as its obs
+            state = self._state.fetch()
+            self._x[worlds] = state["qpos"][worlds, self._x_adr]
+            obs[worlds] = self._observe(state)[worlds]
+            for name, value in self._info(state).items():  # a reset world's info is its new episode's, as its obs
                 value[~done] = info[name][~done]
                 info[name] = value
         return obs, reward, terminated, truncated, info
@@ -198,31 +204,42 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         strength[:, self._psoas] = self.psoas
         physics.strength.assign(strength.astype(np.float32))
 
-    def _observe(self) -> np.ndarray:
+    def _observe(self, state: dict[str, np.ndarray]) -> np.ndarray:
         obs = np.empty((self.num_envs, OBS_SIZE), dtype=np.float32)
-        obs[:, :36] = self._physics.data.sensordata.numpy()[:, self._obs_gather]
+        obs[:, :36] = state["sensordata"][:, self._obs_gather]
         obs[:, 36:38] = self.psoas
         obs[:, 38:] = next_obstacles(self.obstacles, self._x)
         return obs
 
-    def _info(self, qpos: np.ndarray) -> dict[str, Any]:
-        physics = self._physics
-        data = physics.data
+    def _info(self, state: dict[str, np.ndarray]) -> dict[str, Any]:
         # The sensors report the force each sphere exerts on the obstacles; the force on it is the opposite.
-        contact = -physics.acc_sensordata.numpy()[:, self._obstacle_contact].astype(np.float64)
+        contact = -state["acc_sensordata"][:, self._obstacle_contact].astype(np.float64)
         contact = contact.reshape(self.num_envs, len(body.CONTACT_SPHERES), 3)
-        contact[:, :, :2] += physics.ground_force.numpy()
-        return {
-            "distance": qpos[:, self._x_adr].astype(np.float64),
-            "body_pos": data.xpos.numpy().astype(np.float64),
-            "body_quat": data.xquat.numpy().astype(np.float64),
-            "muscle_activation": physics.activation.numpy().astype(np.float64),
-            "muscle_length": physics.muscle_length.numpy().astype(np.float64),
-            "muscle_force": physics.muscle_force.numpy().astype(np.float64),
-            "fiber_length": physics.fiber.numpy().astype(np.float64),
-            "ligament_force": physics.ligament_force.numpy().astype(np.float64),
-            "contact_force": contact,
-        }
+        contact[:, :, :2] += state["ground_force"]
+        return {"distance": state["qpos"][:, self._x_adr].astype(np.float64),
+                **{name: state[field].astype(np.float64) for name, field in INFO_FIELDS.items()},
+                "contact_force": contact}
+
+
+class HostState:
+    """The device arrays the env reads after a step or reset, brought to the host together: on a
+    GPU each is copied into pinned host memory and the host waits once for all of them, where
+    reading each with `.numpy()` waited once per array, a dozen waits a step (each one a turn of
+    the GPU to take, when other processes share it). On the CPU the arrays are read in place.
+    What `fetch` returns is valid until the next fetch."""
+
+    def __init__(self, device: wp.Device, arrays: dict[str, wp.array]):
+        self.device, self.arrays = device, arrays
+        self.pinned = {name: wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
+                       for name, a in arrays.items()} if device.is_cuda else None
+
+    def fetch(self) -> dict[str, np.ndarray]:
+        if self.pinned is None:
+            return {name: a.numpy() for name, a in self.arrays.items()}
+        for name, a in self.arrays.items():
+            wp.copy(self.pinned[name], a)
+        wp.synchronize_device(self.device)
+        return {name: host.numpy() for name, host in self.pinned.items()}
 
 
 class RunWarpEnv(gym.Env):
@@ -258,6 +275,12 @@ class RunWarpEnv(gym.Env):
         if done:  # the vector env has already begun the next episode: report the last state
             obs, info = info["final_obs"], info["final_info"]
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), _world(info, 0)
+
+
+# info entries read from one state array each (HostState's names)
+INFO_FIELDS = {"body_pos": "xpos", "body_quat": "xquat", "muscle_activation": "activation",
+               "muscle_length": "muscle_length", "muscle_force": "muscle_force", "fiber_length": "fiber",
+               "ligament_force": "ligament_force"}
 
 
 def next_obstacles(obstacles: np.ndarray, pelvis_x: np.ndarray) -> np.ndarray:
