@@ -102,6 +102,7 @@ class EpisodeLogger:
     ):
         self.directory = Path(directory)
         self.write_failures = FailureLog(log, "episode logs")
+        self._failed_before: set[tuple[type, str]] = set()  # other failures' causes, logged once each
         self.directory.mkdir(parents=True, exist_ok=True)
         self.run, self.actor_id, self.policy = run, int(actor_id), policy
         self.disk_budget_bytes, self.min_free_bytes = int(disk_budget_bytes), int(min_free_bytes)
@@ -226,8 +227,10 @@ class EpisodeLogger:
             except Exception as e:
                 if isinstance(e, OSError) and e.errno in DISK_ERRORS:  # one line per cause, not per episode
                     self.write_failures.failed(e, recorder.path, "episodes are dropped until one is written")
-                else:
-                    log.exception("episode log %s: write failed; the episode is dropped", recorder.path.name)
+                elif (type(e), str(e)) not in self._failed_before:  # a traceback per cause, then a count
+                    self._failed_before.add((type(e), str(e)))
+                    log.exception("episode log %s: write failed; the episode is dropped (later episodes failing "
+                                  "alike are counted in write_errors, not logged)", recorder.path.name)
                 self.stats["write_errors"] += 1
                 recorder.dropped = True  # its later items are discarded quietly
                 _discard(open_files.pop(recorder, None))

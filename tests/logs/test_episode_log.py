@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import mcap.writer
 import numpy as np
 import pytest
 import rerun as rr
@@ -248,6 +249,21 @@ def test_a_full_disk_drops_episodes_with_one_line_and_logging_goes_on_once_there
     logger.close()
     assert logger.stats["episodes_written"] == 1 and kinds(disk.path) == ["train"]
     assert any("episode logs: writing again" in r.getMessage() for r in caplog.records)
+
+
+def test_a_failure_other_than_the_disk_is_logged_with_its_traceback_once_then_counted(tmp_path, caplog, monkeypatch):
+    """A writer that fails the same way for every episode (here mcap without its zstandard
+    package, as on a machine where it was left out) logs one traceback, not one per episode."""
+    monkeypatch.setattr(mcap.writer, "zstandard", None)
+    env = RunEnv(difficulty=DIFFICULTY)
+    logger = small_logger(tmp_path, policy=LogPolicy(every=1))
+    for seed in range(3):
+        log_episode(logger, env, seed, steps=20)
+    assert wait_for(lambda: logger.stats["write_errors"] == 3), logger.stats
+    logger.close()
+    tracebacks = [r for r in caplog.records if r.exc_info]
+    assert len(tracebacks) == 1 and "zstandard" in str(tracebacks[0].exc_info[1]), tracebacks
+    assert not list(tmp_path.glob("*.mcap"))
 
 
 def test_below_its_floor_of_free_space_an_actor_begins_no_logged_episode_and_says_so_once(small_disk, caplog):
