@@ -168,7 +168,12 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--evaluators", type=int, default=1,
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
-    a.add_argument("--eval-episodes", type=int, default=2, help="episodes per evaluation round")
+    a.add_argument("--eval-episodes", type=int, default=2,
+                   help="episodes per evaluation round, on seeds --seed, --seed + 1, ... (the same every round)")
+    a.add_argument("--eval-difficulty", type=int, choices=(0, 1, 2),
+                   help="the evaluators' difficulty, the runner's (default: --difficulty): with --eval-difficulty 2 "
+                        "and --eval-episodes 20, best.pt is the policy that ran furthest over seeds 0-19 of the "
+                        "obstacle course, whatever the training actors run (--difficulty-schedule)")
     a.add_argument("--eval-interval", type=float, default=20.0, help="least seconds between evaluation rounds")
     a.add_argument("--eval-env-id", metavar="ENV_ID", action="append", default=[],
                    help="gymnasium id of the evaluators' environment, e.g. l2r/RunOpenSim-v0 to measure the policy "
@@ -192,7 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--difficulty-schedule", metavar="STEP:DIFFICULTY,...",
                     help="train on a course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training episode "
                          "starts at the difficulty of the last pair whose step the actor's own env steps have reached, "
-                         "in place of --difficulty (the evaluators keep --difficulty). Unset: --difficulty throughout")
+                         "in place of --difficulty (the evaluators keep --difficulty, or --eval-difficulty). Unset: --difficulty "
+                         "throughout")
     rb.add_argument("--randomize", metavar="NAME=FRACTION,...",
                     help="draw a new body each episode on the l2r/Run-v0 actors (not the --opensim-actors): each "
                          "named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
@@ -429,6 +435,8 @@ def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace)
             DifficultySchedule.parse(args.difficulty_schedule)
             if family_of(args.env_id) != RUNNER:
                 parser.error(f"--difficulty-schedule is the runner's, not {args.env_id}'s")
+        if args.eval_difficulty is not None and family_of(args.env_id) != RUNNER:
+            parser.error(f"--eval-difficulty is the runner's, not {args.env_id}'s")
     except ValueError as e:
         parser.error(str(e))
     if not (args.observation_noise >= 0 and args.action_noise >= 0):
@@ -595,7 +603,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          "--num-envs", str(min(args.eval_episodes, recipe["envs_per_actor"])),
                                          "--eval-episodes", str(args.eval_episodes),
                                          "--eval-interval", str(args.eval_interval), *logs, *args.actor_arg,
-                                         *eval_env]))
+                                         *eval_env, *([] if args.eval_difficulty is None else
+                                                      ["--difficulty", str(args.eval_difficulty)])]))
     return children
 
 

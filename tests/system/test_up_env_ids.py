@@ -29,6 +29,21 @@ def test_everyone_runs_the_default_env_unless_told():
     assert env_ids() == {"actor-0": "l2r/Run-v0", "actor-1": "l2r/Run-v0", "evaluator-0": "l2r/Run-v0"}
 
 
+def difficulties(*argv: str) -> dict[str, int]:
+    """The difficulty each actor and evaluator of a planned job would start its episodes at."""
+    args, _ = parse_args(["--actors", "2", *argv])
+    return {c.name: actor_settings(c.argv[3:]).difficulty for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
+            if c.argv[2] == "l2r.actors"}
+
+
+def test_eval_difficulty_sets_the_evaluators_alone():
+    assert difficulties("--difficulty", "1") == {"actor-0": 1, "actor-1": 1, "evaluator-0": 1}
+    assert difficulties("--eval-difficulty", "2", "--difficulty-schedule", "0:0,1000:2") == {
+        "actor-0": 0, "actor-1": 0, "evaluator-0": 2}
+    with pytest.raises(SystemExit):
+        parse_args(["--env-id", "Hopper-v5", "--eval-difficulty", "2"])
+
+
 def test_actor_arg_sets_every_actors_env():
     assert set(env_ids("--actor-arg=--env-id=l2r/RunOpenSim-v0").values()) == {"l2r/RunOpenSim-v0"}
 
