@@ -50,11 +50,17 @@ def test_each_image_has_a_pooled_global_path_beside_a_local_grid_and_the_statist
         torch.testing.assert_close(embedding[:, 260 * i:260 * i + 4], view.global_path(scaled))
         torch.testing.assert_close(embedding[:, 260 * i + 4:260 * (i + 1)], view.local_path(scaled))
     # The local grid keeps where things are: an image changed in its top-left corner alone moves the
-    # first cell's values, not the last's; the global path sees the whole image at a quarter of its pixels.
+    # first cell's values, not the last's.
     corner = {**obs, "pixels": obs["pixels"].clone()}
     corner["pixels"][:, :, :4, :4] = 255 - corner["pixels"][:, :, :4, :4]
     local = (encoder(corner) - embedding)[:, 264:520].reshape(5, 4, 8, 8)
     assert local[:, :, 0, 0].abs().sum() > 0 and local[:, :, 7, 7].abs().sum() == 0
+    # The global path sees the image averaged over 2 x 2 blocks, the local path every pixel: rows
+    # swapped within each block change the local values alone.
+    swapped = {**obs, "pixels": obs["pixels"].unflatten(2, (32, 2)).flip(3).flatten(2, 3)}
+    change = encoder(swapped) - embedding
+    torch.testing.assert_close(change[:, 260:264], torch.zeros(5, 4))
+    assert change[:, 264:520].abs().amax() > 1e-3
     assert PixelEncoder(ObservationSpec.parse("pixels: uint8[3, 84, 84]"), 3, kind=DUAL).conv_dim == 32 * 65
 
 
