@@ -87,7 +87,8 @@ class LearnerSettings(DaemonSettings):
     observation: str | None = setting(
         None, "the observation the networks take, as l2r-replay's --observation: fields 'name: dtype[shape]' "
         "separated by commas, e.g. 'pixels: uint8[3, 84, 84]'; image fields (uint8[C, H, W]) train with --algo td3 "
-        "through DrQ-v2's encoder, sampled as stacks of --frame-stack frames. Default: 'state: float32[<obs-dim>]'",
+        "through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack frames. Default: "
+        "'state: float32[<obs-dim>]'",
         group=PROCESS, metavar="SPEC")
     env_id: str | None = setting(None, "take the observation (as --observation) and --act-dim from the spaces of this "
                                  "gymnasium environment, e.g. l2r/dmc-cartpole-swingup-v0 (it is made once, and "
@@ -184,11 +185,11 @@ class LearnerSettings(DaemonSettings):
                                       "0 for the vector, which takes no other)", group=TD3, ge=0)
     encoder: Literal[tuple(IMAGE_VIEWS)] = setting(
         DRQ, "image observations: the convolutional encoder of each image field, shared by actor and critics: drq, "
-        "DrQ-v2's four 3x3 convolutions of 32 channels (the first of stride 2), flattened; dual, RLPixTuner's dual "
-        f"path, a global path (the image averaged down to {GLOBAL_SIDE} x {GLOBAL_SIDE}, strided convolutions, "
-        f"averaged to one value per channel: its tone and colour) beside a local path (convolutions from full "
-        f"resolution, averaged into a grid of {LOCAL_GRID} x {LOCAL_GRID} cells: where its detail is); images of at least "
-        f"{MIN_IMAGE_SIDES[DUAL]} x {MIN_IMAGE_SIDES[DUAL]}", group=TD3)
+        "DrQ-v2's four 3x3 convolutions of 32 channels (the first of stride 2), flattened; dual, RLPixTuner's "
+        f"dual path, a global path (the image averaged down to {GLOBAL_SIDE} x {GLOBAL_SIDE}, strided "
+        "convolutions, averaged to one value per channel: its tone and colour) beside a local path (convolutions "
+        f"from full resolution, averaged into a grid of {LOCAL_GRID} x {LOCAL_GRID} cells: where its detail is); "
+        f"images of at least {MIN_IMAGE_SIDES[DUAL]} x {MIN_IMAGE_SIDES[DUAL]}", group=TD3)
 
     epochs: int | None = setting(None, "passes over each batch " + _defaults("epochs"), group=PPO, ge=1)
     minibatches: int | None = setting(None, "minibatches per pass, one gradient step each " + _defaults("minibatches"),
@@ -276,7 +277,8 @@ class LearnerSettings(DaemonSettings):
         if self.images and self.compile not in ("auto", "off"):
             raise UsageError(f"--compile {self.compile}: the update of image observations runs eagerly")
         if not self.images and ((self.frame_stack or 1) > 1 or self.augment_pad or self.encoder != DRQ):
-            raise UsageError(f"--frame-stack, --augment-pad and --encoder are for image observations, not {observation}")
+            raise UsageError(f"--frame-stack, --augment-pad and --encoder are for image observations, not "
+                             f"{observation}")
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
