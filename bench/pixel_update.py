@@ -1,5 +1,6 @@
 """DrQ-v2's update in l2r's learner (TD3 on 3 stacked 84 x 84 frames, `l2r up`'s pixels recipe):
-updates per second on a device, fed the way the learner daemon is fed.
+updates per second on a device, fed the way the learner daemon is fed. `--encoder dual` times the
+same update through RLPixTuner's dual-path encoder instead of DrQ-v2's.
 
 A batch arrives in the replay's frames form: each distinct uint8 frame once (here 6 per transition,
 what a stack of 3 and n-step 3 touch when no frames are shared), the obs and next-obs stacks as
@@ -28,6 +29,7 @@ import time
 import numpy as np
 import torch
 
+from l2r.encoders import DRQ, IMAGE_VIEWS
 from l2r.learner.sac import batch_from_frames
 from l2r.learner.steps import GradientSteps
 from l2r.learner.td3 import TD3Config, init_state, update
@@ -37,13 +39,14 @@ ACT_DIM, STACK, FRAMES_PER_TRANSITION = 6, 3, 6  # cheetah-run's 6 actions; obs 
 UPDATES_TO_500K_FRAMES = 500_000 // 2 // 2
 
 
-def drqv2_config(batch_size: int) -> TD3Config:
-    """The learner's TD3 as `l2r up --env-id l2r/dmc-...` configures it (l2r.recipes, PIXELS)."""
+def drqv2_config(batch_size: int, encoder: str) -> TD3Config:
+    """The learner's TD3 as `l2r up --env-id l2r/dmc-...` configures it (l2r.recipes, PIXELS), with
+    this `--encoder`."""
     return TD3Config(hidden=(1024, 1024), activation="relu", layer_norm=False, batch_size=batch_size,
                      actor_lr=1e-4, critic_lr=1e-4, tau=0.01, reward_scale=1.0, update_repeat=1, n_step=3,
                      policy_delay=1, target_noise=None, noise_clip=0.3, exploration_std_start=1.0,
                      exploration_std_end=0.1, exploration_std_updates=50_000, precision="float32",
-                     frame_stack=STACK, augment_pad=4)
+                     frame_stack=STACK, augment_pad=4, encoder=encoder)
 
 
 class FramesBatches:
@@ -90,12 +93,15 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=256, help="transitions per batch (default: %(default)s)")
     p.add_argument("--updates", type=int, default=50, help="updates per timing round (default: %(default)s)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds; the median counts (default: %(default)s)")
+    p.add_argument("--encoder", choices=tuple(IMAGE_VIEWS), default=DRQ,
+                   help="the learner's --encoder: DrQ-v2's convolutions, or RLPixTuner's dual path "
+                        "(default: %(default)s)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads (default: all)")
     args = p.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch sees no CUDA device")
     torch.set_num_threads(args.threads)
-    config = drqv2_config(args.batch_size)
+    config = drqv2_config(args.batch_size, args.encoder)
     observation = ObservationSpec.parse(f"pixels: uint8[3, {args.size}, {args.size}]")
     state = init_state(config, observation, ACT_DIM, args.device, seed=0)
     steps = GradientSteps(update, config, "off", args.device, policy_delay=config.policy_delay)
@@ -115,7 +121,8 @@ def main() -> None:
     for _ in range(args.rounds):
         rates["fed"].append(rate(fed, args.updates, args.device))
         rates["resident"].append(rate(on_device, args.updates, args.device))
-    result = {"bench": "pixel_update", "device": args.device, "torch": torch.__version__, "size": args.size,
+    result = {"bench": "pixel_update", "device": args.device, "torch": torch.__version__, "encoder": args.encoder,
+              "size": args.size,
               "frame_stack": STACK, "batch_size": args.batch_size, "hidden": list(config.hidden),
               "threads": args.threads, "cpu": platform.processor() or platform.machine(),
               "batch_frame_bytes": int(batches.frames[0].nbytes)}

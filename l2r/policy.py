@@ -18,6 +18,9 @@ observations has no "obs_dim"; its spec says what it takes instead (l2r.encoders
     {"observation": [{"name": "pixels", "dtype": "uint8", "shape": [3, 84, 84]}], "frame_stack": 3,
      "encoder": {"channels": 32, "features": 50}, "act_dim": 6, ...}
 
+Its "encoder" has a "kind" where it is not DrQ-v2's: {"kind": "dual", "channels": 32, "features": 50}
+(RLPixTuner's dual-path encoder); without one, it is DrQ-v2's, as every spec from before kinds.
+
 The network's first layer sees the observation through an `ObservationFilter` (x coordinates
 measured from the pelvis, running standardisation), part of the network's state: the filter's
 statistics travel with the weights and the checkpoint, so an actor and `l2r eval` feed the
@@ -66,7 +69,7 @@ def check_spec(spec: Mapping) -> dict:
 
     A spec of the float32 vector `state` with no frame stack comes back in the form it has always
     had ("obs_dim", no "observation"); any other observation comes with "observation" (its wire
-    form), "frame_stack" and "encoder" (`encoder_sizes`)."""
+    form), "frame_stack" and "encoder" (`check_encoder`)."""
     if not isinstance(spec, Mapping):
         raise ValueError(f"policy spec must be a mapping, got {type(spec).__name__}")
     required = [k for k in SPEC_KEYS if k != "obs_dim" or "observation" not in spec]
@@ -98,8 +101,9 @@ def check_spec(spec: Mapping) -> dict:
     if options["relative_x"] or options["normalize_obs"]:
         raise ValueError(f"policy spec 'relative_x' and 'normalize_obs' are for the float32 vector alone, not "
                          f"observation {observation} stacked {frame_stack}")
-    return {"observation": observation.to_wire(), "frame_stack": frame_stack,
-            "encoder": encoder_sizes(spec.get("encoder", {})), **common}
+    encoder = check_encoder(spec.get("encoder", {}))
+    encoders.check_observation(observation, encoder.get("kind", encoders.DRQ))
+    return {"observation": observation.to_wire(), "frame_stack": frame_stack, "encoder": encoder, **common}
 
 
 def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
@@ -115,21 +119,23 @@ def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
         raise ValueError(f"policy spec 'frame_stack' must be an int from 1 to {MAX_FRAME_STACK}, got {frame_stack!r}")
     if frame_stack > 1 and observation.vector_width is not None:
         raise ValueError("policy spec 'frame_stack': frame stacks are for image observations, not the float32 vector")
-    encoders.check_observation(observation)
     return observation, frame_stack
 
 
-def encoder_sizes(sizes: Mapping) -> dict:
-    """The image encoder's sizes of a spec ("encoder"), each at DrQ-v2's value when not given:
+def check_encoder(entry: Mapping) -> dict:
+    """The image encoder of a spec ("encoder"), each size at DrQ-v2's value when not given: "kind"
+    (`encoders.IMAGE_VIEWS`; left out for DrQ-v2's, so its specs stay as they always were),
     "channels" of every convolution, "features" out of each network's projection."""
-    if not isinstance(sizes, Mapping) or set(sizes) - {"channels", "features"}:
-        raise ValueError(f"policy spec 'encoder' must be a map of channels and features, got {sizes!r:.80}")
-    checked = {"channels": sizes.get("channels", encoders.CHANNELS),
-               "features": sizes.get("features", encoders.FEATURES)}
-    for key, value in checked.items():
+    if not isinstance(entry, Mapping) or set(entry) - {"kind", "channels", "features"}:
+        raise ValueError(f"policy spec 'encoder' must be a map of kind, channels and features, got {entry!r:.80}")
+    kind = entry.get("kind", encoders.DRQ)
+    if not isinstance(kind, str) or kind not in encoders.IMAGE_VIEWS:
+        raise ValueError(f"policy spec encoder 'kind' must be one of {sorted(encoders.IMAGE_VIEWS)}, got {kind!r:.80}")
+    sizes = {"channels": entry.get("channels", encoders.CHANNELS), "features": entry.get("features", encoders.FEATURES)}
+    for key, value in sizes.items():
         if type(value) is not int or not 0 < value <= 4096:
             raise ValueError(f"policy spec encoder {key!r} must be an int from 1 to 4096, got {value!r}")
-    return checked
+    return sizes if kind == encoders.DRQ else {"kind": kind, **sizes}
 
 
 def mlp_trunk(in_dim: int, hidden: Sequence[int], activation: str, layer_norm: bool) -> nn.Sequential:
@@ -237,9 +243,10 @@ class PolicyNetwork(nn.Module):
         self.observation, self.frame_stack = _observation_of(self.spec)
         if "encoder" in self.spec:
             self.image_fields = encoders.image_fields(self.observation)
-            self.encoder = encoders.PixelEncoder(self.observation, self.frame_stack, self.spec["encoder"]["channels"])
-            self.projection = encoders.Projection(self.encoder.conv_dim, self.encoder.vector_dim,
-                                                  self.spec["encoder"]["features"])
+            encoder = self.spec["encoder"]
+            self.encoder = encoders.PixelEncoder(self.observation, self.frame_stack, encoder["channels"],
+                                                 encoder.get("kind", encoders.DRQ))
+            self.projection = encoders.Projection(self.encoder.conv_dim, self.encoder.vector_dim, encoder["features"])
             features = self.projection.out_dim
         else:
             self.image_fields, self.encoder, self.projection = [], None, None

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
+from l2r.encoders import IMAGE_VIEWS
 from l2r.families import PHOTO, PIXELS, RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS
 from l2r.policy import ACTIVATIONS
@@ -182,7 +183,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=2_000, samples_per_insert=128.0, hold_actors=True,
         # action_repeat 1: the camera task itself holds each action for DrQ-v2's 2 suite steps.
-        random_steps=2_000, envs_per_actor=1, action_repeat=1,
+        random_steps=2_000, envs_per_actor=1, action_repeat=1, encoder="drq",
     ),
     # The pixels recipe made RLPixTuner's where its training script (bash/train.sh, envs/run_sb3.py)
     # says: the discount 0.9, tau 0.007 (its EMA rate 0.993), the exploration std 0.02, the
@@ -200,7 +201,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         exploration_std_start=0.02, exploration_std_end=0.02, exploration_std_updates=250_000,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=100, samples_per_insert=128.0, hold_actors=True,
-        random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0,
+        random_steps=100, envs_per_actor=1, action_repeat=1, frame_stack=1, augment_pad=0, encoder="drq",
     ),
 }
 # PPO for the photo tasks through their statistics (l2r/PhotoEnhanceStats-v0, l2r/PhotoTuneStats-v0):
@@ -279,10 +280,12 @@ SETTINGS: dict[str, str] = {
                      "task (stored in checkpoints for `l2r eval`)",
     "frame_stack": "image observations: frames stacked into each observation (TD3; unset: the learner's 3)",
     "augment_pad": "image observations: pixels of DrQ's random shift (TD3; 0: none; unset: the learner's 4)",
+    "encoder": "image observations: the encoder of each image field, drq (DrQ-v2's convolutions) or dual "
+               "(RLPixTuner's global and local paths, images of 32 x 32 or more; l2r-learner --help) (TD3)",
 }
 # Settings whose values are one of a few names.
 CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS,
-                                       "optimizer": OPTIMIZERS}
+                                       "optimizer": OPTIMIZERS, "encoder": tuple(IMAGE_VIEWS)}
 
 # The replay server's settings, under their l2r-replay flags.
 REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per-insert",

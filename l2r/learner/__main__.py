@@ -19,6 +19,7 @@ from pydantic import field_validator  # noqa: E402
 from l2r.config import (  # noqa: E402
     CommandParser, FilePath, StartupFailure, UsageError, load, run_command, setting, settings_parser,
 )
+from l2r.encoders import DRQ, DUAL, GLOBAL_SIDE, IMAGE_VIEWS, LOCAL_GRID, MIN_IMAGE_SIDES  # noqa: E402
 from l2r.learner.a2c import A2CConfig  # noqa: E402
 from l2r.learner.a3c import A3CConfig  # noqa: E402
 from l2r.learner.acktr import ACKTRConfig  # noqa: E402
@@ -86,7 +87,8 @@ class LearnerSettings(DaemonSettings):
     observation: str | None = setting(
         None, "the observation the networks take, as l2r-replay's --observation: fields 'name: dtype[shape]' "
         "separated by commas, e.g. 'pixels: uint8[3, 84, 84]'; image fields (uint8[C, H, W]) train with --algo td3 "
-        "through DrQ-v2's encoder, sampled as stacks of --frame-stack frames. Default: 'state: float32[<obs-dim>]'",
+        "through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack frames. Default: "
+        "'state: float32[<obs-dim>]'",
         group=PROCESS, metavar="SPEC")
     env_id: str | None = setting(None, "take the observation (as --observation) and --act-dim from the spaces of this "
                                  "gymnasium environment, e.g. l2r/dmc-cartpole-swingup-v0 (it is made once, and "
@@ -181,6 +183,13 @@ class LearnerSettings(DaemonSettings):
                                       "padded by this many pixels that repeat its edge, then cropped back to its "
                                       f"size at a random offset; 0: none (default: {IMAGE_AUGMENT_PAD} for images, "
                                       "0 for the vector, which takes no other)", group=TD3, ge=0)
+    encoder: Literal[tuple(IMAGE_VIEWS)] = setting(
+        DRQ, "image observations: the convolutional encoder of each image field, shared by actor and critics: drq, "
+        "DrQ-v2's four 3x3 convolutions of 32 channels (the first of stride 2), flattened; dual, RLPixTuner's "
+        f"dual path, a global path (the image averaged down to {GLOBAL_SIDE} x {GLOBAL_SIDE}, strided "
+        "convolutions, averaged to one value per channel: its tone and colour) beside a local path (convolutions "
+        f"from full resolution, averaged into a grid of {LOCAL_GRID} x {LOCAL_GRID} cells: where its detail is); "
+        f"images of at least {MIN_IMAGE_SIDES[DUAL]} x {MIN_IMAGE_SIDES[DUAL]}", group=TD3)
 
     epochs: int | None = setting(None, "passes over each batch " + _defaults("epochs"), group=PPO, ge=1)
     minibatches: int | None = setting(None, "minibatches per pass, one gradient step each " + _defaults("minibatches"),
@@ -267,8 +276,9 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
         if self.images and self.compile not in ("auto", "off"):
             raise UsageError(f"--compile {self.compile}: the update of image observations runs eagerly")
-        if not self.images and ((self.frame_stack or 1) > 1 or self.augment_pad):
-            raise UsageError(f"--frame-stack and --augment-pad are for image observations, not {observation}")
+        if not self.images and ((self.frame_stack or 1) > 1 or self.augment_pad or self.encoder != DRQ):
+            raise UsageError(f"--frame-stack, --augment-pad and --encoder are for image observations, not "
+                             f"{observation}")
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
@@ -367,7 +377,8 @@ class LearnerSettings(DaemonSettings):
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
                 exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,
                 frame_stack=self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),
-                augment_pad=(IMAGE_AUGMENT_PAD if self.images else 0) if self.augment_pad is None else self.augment_pad)
+                augment_pad=(IMAGE_AUGMENT_PAD if self.images else 0) if self.augment_pad is None else self.augment_pad,
+                encoder=self.encoder)
         except ValueError as e:  # a combination TD3Config refuses
             raise UsageError(str(e)) from None
 

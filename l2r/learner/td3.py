@@ -98,8 +98,11 @@ class TD3Config:
     augment_pad: int = 0
     """Image observations: DrQ's random shift, each image of each update padded by this many pixels
     that repeat its edge and cropped back at a random offset (DrQ-v2: 4); 0: none."""
+    encoder: str = encoders.DRQ
+    """Image observations: the encoder, 'drq' (DrQ-v2's four convolutions, flattened) or 'dual'
+    (RLPixTuner's global and local paths; l2r.encoders.DualPath)."""
     encoder_channels: int = encoders.CHANNELS
-    """Image observations: channels of each of the encoder's four convolutions."""
+    """Image observations: channels of each of the encoder's convolutions."""
     encoder_features: int = encoders.FEATURES
     """Image observations: features out of the actor's and the critics' projections of the encoder's output."""
 
@@ -108,6 +111,8 @@ class TD3Config:
         check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
             raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
+        if self.encoder not in encoders.IMAGE_VIEWS:
+            raise ValueError(f"encoder must be one of {sorted(encoders.IMAGE_VIEWS)}, got {self.encoder!r}")
         if not 1 <= self.frame_stack <= MAX_FRAME_STACK or self.augment_pad < 0:
             raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK} and augment_pad >= 0, got "
                              f"{self.frame_stack} and {self.augment_pad}")
@@ -190,9 +195,9 @@ def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: i
     sac.check_mirror(config, observation.vector_width, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
-    encoder_sizes = {"channels": config.encoder_channels, "features": config.encoder_features}
+    encoder = {"kind": config.encoder, "channels": config.encoder_channels, "features": config.encoder_features}
     actor = DeterministicPolicy(policy_spec(config, observation, act_dim, DETERMINISTIC, config.frame_stack,
-                                            encoder_sizes)).to(device)
+                                            encoder)).to(device)
     if config.augment_pad and actor.encoder is None:
         raise ValueError(f"augment_pad shifts images, and observation {observation} has none")
     actor.exploration_std.fill_(exploration_std(config, 0))

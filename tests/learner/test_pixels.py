@@ -33,14 +33,14 @@ def pixel_config(**overrides) -> TD3Config:
     return TD3Config(**(base | overrides))
 
 
-def frames_batch(observation: ObservationSpec = PIXELS, n: int = 8, seed: int = 0):
+def frames_batch(observation: ObservationSpec = PIXELS, n: int = 8, seed: int = 0, act_dim: int = ACT):
     """A batch in the frames form, as a replay shard sends it: 2n distinct frames, stacks of K."""
     rng = np.random.default_rng(seed)
     frames = {name: (rng.integers(0, 256, (2 * n, *f.shape), dtype=np.uint8) if f.dtype == np.uint8
                      else rng.normal(size=(2 * n, *f.shape)).astype(np.float32))
               for name, f in observation.fields.items()}
     rows = rng.integers(0, 2 * n, (2, n, K))
-    return batch_from_frames(frames, rows[0], rows[1], rng.random((n, ACT), dtype=np.float32),
+    return batch_from_frames(frames, rows[0], rows[1], rng.random((n, act_dim), dtype=np.float32),
                              rng.normal(size=n).astype(np.float32), np.zeros(n, bool))
 
 

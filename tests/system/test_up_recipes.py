@@ -171,6 +171,12 @@ def test_a_flag_replaces_one_value_and_launch_json_says_where_each_came_from(tmp
     assert "from flags: layer_norm on, reward_scale 5, hold_actors off, envs_per_actor 2" in recipe_of(args).describe()
 
 
+def test_the_photo_tuner_takes_the_dual_path_encoder_from_a_flag():
+    tuner = RECIPES[PHOTO, "td3"]
+    assert reached(planned("--env-id", "l2r/PhotoTune-v0", "--algo", "td3", "--encoder", "dual"), tuner) == \
+        tuner | {"encoder": "dual"}
+
+
 def test_every_setting_of_the_recipes_is_described_and_of_one_type():
     in_recipes = {name for table in RECIPES.values() for name in table}
     assert in_recipes == set(SETTINGS)
