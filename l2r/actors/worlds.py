@@ -103,7 +103,7 @@ class VectorWorlds:
     def reset(self, seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
         obs, info = self.env.reset(seed=list(seeds), options=options)
         self._latest = obs, info
-        return [(world_of(obs, i), world_info(info, i)) for i in range(self.num_worlds)]
+        return [(world_of(obs, i), WorldInfo(info, i)) for i in range(self.num_worlds)]
 
     def step(self, actions: np.ndarray) -> list[Step]:
         n = self.num_worlds
@@ -129,7 +129,7 @@ class VectorWorlds:
         return steps
 
     def _counted(self, info: dict, i: int, inner_steps: int) -> WorldInfo:
-        return world_info(info, i, {"inner_steps": int(inner_steps)} if self.repeat > 1 else None)
+        return WorldInfo(info, i, {"inner_steps": int(inner_steps)} if self.repeat > 1 else None)
 
     def reset_worlds(self, worlds: list[int], seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
         if not worlds:
@@ -145,7 +145,7 @@ class VectorWorlds:
             for i, seed in zip(worlds, seeds):
                 per_world[i] = seed
             obs, info = self.env.reset(seed=per_world, options={**(options or {}), "reset_mask": mask})
-        return [(world_of(obs, i), world_info(info, i)) for i in worlds]
+        return [(world_of(obs, i), WorldInfo(info, i)) for i in worlds]
 
     def unwrapped(self, i: int) -> Any:
         envs = getattr(self.env, "envs", None)  # a SyncVectorEnv's single envs
@@ -192,7 +192,3 @@ class WorldInfo(Mapping):
     def __len__(self) -> int:
         return sum(1 for _ in self)
 
-
-def world_info(info: dict, i: int, extra: dict | None = None) -> WorldInfo:
-    """World i's entries of a vector env's info (`WorldInfo`)."""
-    return WorldInfo(info, i, extra)
