@@ -410,7 +410,7 @@ class Actor:
             slot.recorder = self.episode_logger.begin_episode({
                 "env_id": self.config.env_id, "seed": slot.seed, "difficulty": slot.difficulty, "evaluation": False,
                 "policy_version": -1 if self.acting_randomly else self.weights.version,
-                "obstacles": getattr(self.worlds.unwrapped(i), "obstacles", [])})
+                "obstacles": self.worlds.obstacles(i)})
 
     def record_evaluation(self, env: gymnasium.Env, seed: int):
         return self.episode_logger.begin_episode({

@@ -49,8 +49,8 @@ class Worlds(Protocol):
         """Start the next episode of each world named (its last one ended, or the actor ended it),
         world worlds[k] from seeds[k]; each one's first (observation, info)."""
 
-    def unwrapped(self, i: int) -> Any:
-        """World i's own env, where there is one (the episode logger reads its obstacles); else None."""
+    def obstacles(self, i: int) -> list[tuple[float, float, float]]:
+        """World i's obstacles this episode, (x, y, radius) each (the episode logger draws them)."""
 
     def close(self) -> None: ...
 
@@ -71,8 +71,8 @@ class EnvList:
     def reset_worlds(self, worlds: list[int], seeds: list[int], options: dict | None) -> list[tuple[Any, dict]]:
         return [self.envs[i].reset(seed=seed, options=options) for i, seed in zip(worlds, seeds)]
 
-    def unwrapped(self, i: int) -> Any:
-        return self.envs[i].unwrapped
+    def obstacles(self, i: int) -> list[tuple[float, float, float]]:
+        return list(getattr(self.envs[i].unwrapped, "obstacles", []))
 
     def close(self) -> None:
         for env in self.envs:
@@ -147,9 +147,12 @@ class VectorWorlds:
             obs, info = self.env.reset(seed=per_world, options={**(options or {}), "reset_mask": mask})
         return [(world_of(obs, i), WorldInfo(info, i)) for i in worlds]
 
-    def unwrapped(self, i: int) -> Any:
+    def obstacles(self, i: int) -> list[tuple[float, float, float]]:
         envs = getattr(self.env, "envs", None)  # a SyncVectorEnv's single envs
-        return envs[i].unwrapped if envs is not None else None
+        if envs is not None:
+            return list(getattr(envs[i].unwrapped, "obstacles", []))
+        world_obstacles = getattr(self.env.unwrapped, "world_obstacles", None)  # an env's own (l2r/RunWarp-v0)
+        return [] if world_obstacles is None else world_obstacles(i)
 
     def close(self) -> None:
         self.env.close()

@@ -18,7 +18,7 @@ import zenoh
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from l2r.actors.__main__ import parse_settings
-from l2r.actors.actor import Actor, ActorConfig, main, registers_vector_env
+from l2r.actors.actor import Actor, ActorConfig, main, make_worlds, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.worlds import EnvList, VectorWorlds
 from l2r.config import StartupFailure, UsageError
@@ -131,6 +131,17 @@ def test_an_actor_seeds_each_runwarp_world_s_episodes_as_it_seeds_single_envs():
     chunks, episodes = sent(dataclasses.replace(config, vector_env=None), 100)
     assert {e.difficulty for e in episodes} == {0, 2} and len({e.seed for e in episodes}) == len(episodes)
     assert sent(dataclasses.replace(config, vector_env=False), 100) == (chunks, episodes)
+
+
+def test_runwarp_worlds_tell_the_episode_logger_their_obstacles_as_single_envs_do():
+    config = ActorConfig(env_id="l2r/RunWarp-v0", num_envs=2, difficulty=2, device="cpu")
+    courses = []
+    for vector_env in (None, False):
+        worlds = make_worlds(dataclasses.replace(config, vector_env=vector_env), [7, 8])
+        worlds.reset([7, 8], None)
+        courses.append([worlds.obstacles(i) for i in range(2)])
+        worlds.close()
+    assert courses[0] == courses[1] and all(len(course) == 3 for course in courses[0])
 
 
 @pytest.mark.slow

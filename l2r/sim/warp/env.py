@@ -100,6 +100,10 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self.obstacles = np.full((num_envs, NUM_OBSTACLES, 3), np.nan)
         self.psoas = np.ones((num_envs, 2))
 
+    def world_obstacles(self, w: int) -> list[tuple[float, float, float]]:
+        """World w's obstacles this episode, (x, y, radius) sorted by x, as `RunEnv.obstacles`."""
+        return [(x, y, r) for x, y, r in self.obstacles[w].tolist() if not np.isnan(x)]
+
     @property
     def max_isometric_force(self) -> np.ndarray:
         """Each world's max isometric forces (N) this episode, psoas strengths applied, (world, muscle)."""
@@ -256,6 +260,11 @@ class RunWarpEnv(gym.Env):
         self.action_space = self._worlds.single_action_space
         self.observation_space = self._worlds.single_observation_space
         self._running = False
+
+    @property
+    def obstacles(self) -> list[tuple[float, float, float]]:
+        """This episode's obstacles, (x, y, radius) sorted by x, as `RunEnv.obstacles`."""
+        return self._worlds.world_obstacles(0)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
