@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -33,6 +35,9 @@ from l2r.learner.td3 import TD3Config, init_state, update
 from l2r.photo.pipeline import actions_from_params
 from l2r.policy import DeterministicPolicy
 from l2r.spaces import task_spaces
+
+sys.path.insert(0, str(Path(__file__).parent))
+from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
 
 TASK = "l2r/PhotoTune-v0"
 
@@ -119,7 +124,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     observation, act_dim = task_spaces(TASK)
     started = time.perf_counter()
-    result = {"bench": "photo_encoders", "torch": torch.__version__, "threads": args.threads,
+    result = {"bench": "photo_encoders", "cpu": cpu_model(), "cpu_flags": cpu_flags(), "torch": torch.__version__, "threads": args.threads,
               "batch_size": args.batch_size, "proxy_steps": args.steps, "proxy_batch": args.proxy_batch}
     rates = update_rates(observation, act_dim, args.batch_size, args.updates, args.rounds)
     train = first_observations("train", args.train, 0)

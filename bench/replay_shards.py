@@ -29,6 +29,7 @@ import threading
 import time
 import uuid
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -36,6 +37,9 @@ import zenoh
 from l2r.protocol import EXPERIENCE_QOS, Keys, ReplayClient, Stats, decode, encode, session_config, wait_alive
 from l2r.protocol.messages import ExperienceChunk, ReplayAck
 from l2r.up import free_ports, loopback
+
+sys.path.insert(0, str(Path(__file__).parent))
+from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
 
 OBS, ACT, STEPS = 41, 18, 64
 
@@ -167,11 +171,7 @@ def main() -> None:
                              "trains nothing")
     args = parser.parse_args()
     phases = [phase(int(n), args) for n in args.shards.split(",")]
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        cpu = "unknown"
-    print(json.dumps({"cpu": cpu, "cores": mp.cpu_count(), "publishers": args.publishers, "capacity": args.capacity,
+    print(json.dumps({"cpu": cpu_model(), "cpu_flags": cpu_flags(), "cores": mp.cpu_count(), "publishers": args.publishers, "capacity": args.capacity,
                       "batch_size": args.batch_size, "transitions_per_chunk": STEPS, "burst": args.burst,
                       "rate": args.rate, "learner": args.learner, "phases": phases}))
 

@@ -24,10 +24,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import platform
-import subprocess
 import sys
 import time
+from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -38,6 +37,9 @@ import warp as wp
 import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim import model as body
 from l2r.sim.env import NO_CONTACTS, with_sensors
+
+sys.path.insert(0, str(Path(__file__).parent))
+from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
 
 
 def runner_at_rest() -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -102,13 +104,6 @@ def _difficulty(d: int) -> str:
     return f"_difficulty{d}" if d else ""
 
 
-def cpu_model() -> str:
-    for line in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines():
-        if line.startswith("Model name:"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu", help="Warp device: cpu, cuda or cuda:N")
@@ -127,7 +122,7 @@ def main() -> None:
     if args.clear_cache:
         wp.clear_kernel_cache()
     m, d = runner_at_rest()
-    result = {"bench": "warp_speed", "device": args.device, "cpu": cpu_model(), "warp": wp.__version__,
+    result = {"bench": "warp_speed", "device": args.device, "cpu": cpu_model(), "cpu_flags": cpu_flags(), "warp": wp.__version__,
               "mujoco_warp": mjw.__version__, "mujoco": mujoco.__version__}
     result["c_steps_per_s"] = round(c_rate(m, d, 2000))
     with wp.ScopedDevice(args.device):
