@@ -22,11 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
+from env_speed import cpu_flags, cpu_model
 from standard_tasks import run_job, sb3_job, summary
 
 # The standard recipe as l2r up flags and learner settings; each variant replaces some of them.
@@ -58,14 +58,6 @@ def flags(up: dict, learner: dict, seed: int) -> list[str]:
         else:
             args.append(f"--learner-arg=--{name}={value}")
     return args
-
-
-def cpu_model() -> str:
-    try:
-        line = next(x for x in Path("/proc/cpuinfo").read_text().splitlines() if x.startswith("model name"))
-        return line.split(":", 1)[1].strip()
-    except (OSError, StopIteration):
-        return platform.processor()
 
 
 def main() -> None:
@@ -100,7 +92,7 @@ def main() -> None:
             if args.results:
                 with args.results.open("a") as f:
                     f.write(json.dumps(job) + "\n")
-    print(json.dumps({"bench": "sac_ablation", "task": args.task, "cpu": cpu_model(), "host_cpus": os.cpu_count(),
+    print(json.dumps({"bench": "sac_ablation", "task": args.task, "cpu": cpu_model(), "cpu_flags": cpu_flags(), "host_cpus": os.cpu_count(),
                       "seconds": round(time.time() - started, 1), "jobs": jobs}))
 
 
