@@ -52,6 +52,7 @@ class BestPolicy:
         self._lock = threading.Lock()
         self._weights: OrderedDict[int, Weights] = OrderedDict()
         self._updates: dict[int, int] = {}  # updates at each version, from the learner's beacon
+        self._evicted_through = 0  # the newest version whose weights left the cache
         self._rounds: dict[tuple[int, int], dict[int, float]] = {}  # (evaluator, version) -> seed -> score
         self._evaluating: dict[int, int] = {}  # evaluator -> the version of its round under way, kept cached
         self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
@@ -94,15 +95,19 @@ class BestPolicy:
             for version in evicted:
                 del self._weights[version]
             if evicted:  # also the beacons of older versions, whose weights may have been dropped on the way
+                self._evicted_through = evicted[-1]
                 self._updates = {version: updates for version, updates in self._updates.items()
-                                 if version > evicted[-1] or version in evaluating}
+                                 if version > self._evicted_through or version in evaluating}
 
     def _on_version(self, sample: zenoh.Sample) -> None:
         beacon = watched(sample, LearnerVersion)
         if beacon is None:
             return
         with self._lock:
-            self._updates[beacon.version] = beacon.updates
+            # Beacons and weights come on separate keys, in no set order: a beacon heard after its
+            # version's weights left the cache would otherwise be kept for ever.
+            if beacon.version > self._evicted_through or beacon.version in self._evaluating.values():
+                self._updates[beacon.version] = beacon.updates
 
     def _on_round(self, sample: zenoh.Sample) -> None:
         round_ = watched(sample, EvaluationRound)

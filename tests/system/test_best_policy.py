@@ -142,3 +142,13 @@ def test_the_announcement_of_an_evaluator_that_does_not_judge_keeps_nothing(tmp_
 def test_beacons_of_versions_whose_weights_were_dropped_on_the_way_are_not_kept_for_ever(job):
     job.publish(3 * CACHED_VERSIONS, dropping=CACHED_VERSIONS)
     assert wait_for(lambda: len(job.best._updates) <= CACHED_VERSIONS + 1, 10), len(job.best._updates)
+
+
+def test_beacons_heard_after_their_versions_weights_left_the_cache_are_not_kept(job):
+    job.publish(2 * CACHED_VERSIONS)  # the weights of the first CACHED_VERSIONS come and go
+    for version in range(1, CACHED_VERSIONS + 1):  # their beacons, late: another key, no set order
+        job._beacon.put(encode(LearnerVersion(version, updates=10 * version)))
+    marker = job.version + 1  # heard after the late ones, which share its key
+    job._beacon.put(encode(LearnerVersion(marker, updates=10 * marker)))
+    assert wait_for(lambda: marker in job.best._updates, 10)
+    assert len(job.best._updates) <= CACHED_VERSIONS + 1, len(job.best._updates)
