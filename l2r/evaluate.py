@@ -18,7 +18,7 @@ from l2r.actors.actor import (
 )
 from l2r.actors.frame_stack import frame_stack_of
 from l2r.config import CommandParser
-from l2r.families import RUNNER, family_of, score_of
+from l2r.families import PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
 from l2r.protocol import ObservationSpec, ProtocolError
 from l2r.sim.wrappers import ActionRepeat
@@ -96,12 +96,15 @@ def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: i
     """The results of ``episodes`` deterministic episodes, all stepped as one batch
     as an evaluator of `l2r up` steps them; progress on stderr every ``progress_every`` seconds (0: none)."""
     progress = Progress(episodes, progress_every)
-    envs = [Counted(make_task(env_id, difficulty), progress) for _ in range(episodes)]
+    trained = (ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"])
+    frames = trained[0].fields.get("pixels")
+    # A camera task renders frames of the size the policy was trained on (l2r up --image-size).
+    image_size = frames.shape[-1] if family_of(env_id) == PIXELS and frames is not None else None
+    envs = [Counted(make_task(env_id, difficulty, image_size=image_size), progress) for _ in range(episodes)]
     if action_repeat > 1:
         envs = [ActionRepeat(env, action_repeat) for env in envs]
     try:
         task = (observation_spec(envs[0], env_id), int(np.prod(envs[0].action_space.shape)))
-        trained = (ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"])
         if task != trained:
             raise WrongTask(f"the policy takes observations {trained[0]} and gives {trained[1]} actions, "
                             f"{env_id} gives {task[0]} and takes {task[1]}: --env-id names the task it trained on")

@@ -14,19 +14,20 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from l2r.families import PIXELS, family_of
 from l2r.protocol.observations import ObservationSpec
 
 
 @functools.cache  # l2r up asks several times at start (checks, daemon flags, disk estimate); each makes the env
-def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
-    """The observation spec and action width of a gymnasium task (l2r's own ids included);
-    ValueError, saying why, for one l2r cannot train on."""
+def task_spaces(env_id: str, image_size: int | None = None) -> tuple[ObservationSpec, int]:
+    """The observation spec and action width of a gymnasium task (l2r's own ids included), a
+    camera task's at `image_size` (None: its own); ValueError, saying why, for one l2r cannot train on."""
     import l2r.control  # noqa: F401  (registers the camera tasks' ids)
     import l2r.photo  # noqa: F401  (registers the photo tasks')
     import l2r.sim  # noqa: F401  (registers the runner's)
 
     try:
-        env = gymnasium.make(env_id)
+        env = gymnasium.make(env_id, **image_size_option(env_id, image_size))
     except gymnasium.error.Error as e:
         raise ValueError(str(e)) from None
     try:
@@ -35,6 +36,16 @@ def task_spaces(env_id: str) -> tuple[ObservationSpec, int]:
         return ObservationSpec.from_space(env.observation_space), int(math.prod(env.action_space.shape))
     finally:
         env.close()
+
+
+def image_size_option(env_id: str, image_size: int | None) -> dict[str, int]:
+    """The keyword that makes a camera task render frames of `image_size` pixels a side (none for
+    None); ValueError for another task, which has no frames to size."""
+    if image_size is None:
+        return {}
+    if family_of(env_id) != PIXELS:
+        raise ValueError(f"an image size is for the camera tasks (l2r/dmc-...), not {env_id}")
+    return {"image_size": image_size}
 
 
 def checked_action(task: str, action: Any, shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarray:

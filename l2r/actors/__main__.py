@@ -13,7 +13,7 @@ from l2r.actors.actor import ActorConfig, main, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
-from l2r.families import RUNNER, family_of
+from l2r.families import PIXELS, RUNNER, family_of
 from l2r.protocol import DaemonSettings, configure_logging
 from l2r.sim import PORT_ID
 from l2r.sim.randomize import Randomization
@@ -45,6 +45,10 @@ class ActorSettings(DaemonSettings):
                           "pip install 'l2r[opensim]'), another task such as Hopper-v5, or a camera task "
                           "l2r/dmc-<domain>-<task>-v0, whose uint8 frames its replay shard must store "
                           "(l2r-replay --observation 'pixels: uint8[3, 84, 84]')", group=ACTING)
+    image_size: int | None = setting(
+        None, "a camera task's frames, pixels a side (default: the task's own, 84 as DrQ-v2's): smaller frames render "
+        "and train faster on a CPU; its replay shard and learner take the observation they make (l2r up hands "
+        "them over)", group=ACTING, ge=1, metavar="PIXELS")
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
     difficulty_schedule: str | None = setting(
@@ -134,6 +138,8 @@ class ActorSettings(DaemonSettings):
                 raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")
             if self.evaluate:
                 raise UsageError("--difficulty-schedule is for training actors: an evaluator keeps --difficulty")
+        if self.image_size is not None and family_of(self.env_id) != PIXELS:
+            raise UsageError(f"--image-size is for the camera tasks (l2r/dmc-...), not {self.env_id}")
         if self.native_vector_env and (self.observation_noise or self.action_noise):
             raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
                              "vector env; add --vector-env off")
@@ -153,7 +159,7 @@ class ActorSettings(DaemonSettings):
         return ActorConfig(
             run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,
             vector_env={"auto": None, "on": True, "off": False}[self.vector_env],
-            device=self.device,
+            device=self.device, image_size=self.image_size,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
             difficulty_schedule=None if self.difficulty_schedule is None else
             DifficultySchedule.parse(self.difficulty_schedule),

@@ -49,6 +49,7 @@ from l2r.protocol import (
 from l2r.sim import PORT_ID, WARP_ID  # (importing l2r.sim registers l2r/Run-v0 and l2r/RunWarp-v0)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
+from l2r.spaces import image_size_option
 
 log = logging.getLogger("l2r.actor")
 
@@ -84,6 +85,8 @@ class ActorConfig:
     env_id: str = "l2r/Run-v0"
     """Gymnasium id of the environment: any env with Box actions and a Box, or Dict of Box,
     observation space (`ObservationSpec.from_space`)."""
+    image_size: int | None = None
+    """A camera task's frames, pixels a side (None: the task's own, 84)."""
     difficulty: int = 0
     difficulty_schedule: DifficultySchedule | None = None
     """Training episodes start at the schedule's difficulty for the actor's env steps (the runner;
@@ -135,16 +138,16 @@ class ActorConfig:
 
 
 def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
-              randomize: Randomization | None = None) -> gymnasium.Env:
+              randomize: Randomization | None = None, image_size: int | None = None) -> gymnasium.Env:
     """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo port's alone),
-    or any other gymnasium env with Box actions, rescaled so that it takes the policy's [0, 1]
-    excitations (Hopper-v5's [-1, 1], say)."""
+    or any other gymnasium env with Box actions (a camera task's frames `image_size` pixels a side,
+    None: its own), rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
     if randomize and env_id != PORT_ID:
         raise ValueError(f"randomisation is {PORT_ID}'s, not {env_id}'s")
     if family_of(env_id) == RUNNER:
         options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
         return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
-    env = gymnasium.make(env_id)
+    env = gymnasium.make(env_id, **image_size_option(env_id, image_size))
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
         env = RescaleAction(env, 0.0, 1.0)
     return env
@@ -153,7 +156,7 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
 def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
     """The actor's task (`make_task`) with the noise configured, each action repeated as configured
     (the action noise drawn anew for each repeat)."""
-    env = make_task(config.env_id, config.difficulty, seed, config.randomize)
+    env = make_task(config.env_id, config.difficulty, seed, config.randomize, config.image_size)
     if config.action_noise:
         env = ActionNoise(env, config.action_noise)
     if config.observation_noise:
