@@ -7,11 +7,14 @@ from gymnasium.wrappers import RescaleAction
 
 from l2r.actors.actor import ActorConfig, make_env, observation_spec
 from l2r.evaluate import WrongTask, evaluate
+from l2r.learner.td3 import TD3Config, init_state
 from l2r.policy import build_policy
 from l2r.protocol import ObservationSpec
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 from tests.actors.camera import CAMERA, RENDERER
+
+DMC_CARTPOLE = "l2r/dmc-cartpole-swingup-v0"
 
 
 def test_another_task_takes_the_policy_s_excitations_rescaled_to_its_action_bounds():
@@ -37,6 +40,25 @@ def test_a_camera_task_is_known_by_its_id_and_declares_its_frames():
         assert (env.action_space.low.tolist(), env.action_space.high.tolist()) == ([0.0], [1.0])
     finally:
         env.close()
+
+
+@pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
+def test_a_camera_task_renders_frames_of_the_size_asked_and_l2r_eval_the_size_its_policy_was_trained_on():
+    env = make_env(ActorConfig(env_id=DMC_CARTPOLE, action_repeat=1, image_size=20), seed=0)
+    try:
+        assert observation_spec(env, DMC_CARTPOLE) == ObservationSpec.parse("pixels: uint8[3, 20, 20]")
+        frame = env.reset(seed=0)[0]["pixels"]
+        assert frame.shape == (3, 20, 20) and frame.std() > 0  # a rendered picture, not a blank
+    finally:
+        env.close()
+    # A policy of 16-pixel frames and 2 actions: l2r eval renders its frames' size (the actions
+    # tell it from the task, refused before an episode is stepped).
+    observation = ObservationSpec.parse("pixels: uint8[3, 16, 16]")
+    policy = init_state(TD3Config(hidden=(8,), frame_stack=1), observation, 2, seed=0).actor
+    with pytest.raises(WrongTask, match=r"l2r/dmc-cartpole-swingup-v0 gives \{pixels: uint8\[3, 16, 16\]\} and takes 1"):
+        evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id=DMC_CARTPOLE)
+    with pytest.raises(ValueError, match="an image size is for the camera tasks"):
+        make_env(ActorConfig(env_id="Hopper-v5", image_size=20), seed=0)
 
 
 @pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")

@@ -150,10 +150,21 @@ def test_a_camera_task_plans_its_observation_spec_and_the_pixels_recipe():
     assert actor_settings(children["actor-0"]).action_repeat == 1
 
 
+def test_a_camera_task_s_frame_size_reaches_every_daemon():
+    args, _ = parse_args(["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3", "--image-size", "48"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
+    replay, learner = replay_settings(children["replay"]), learner_settings(children["learner"])
+    assert replay.observation == learner.observation == "{pixels: uint8[3, 48, 48]}"
+    assert [actor_settings(children[name]).actor().image_size for name in ("actor-0", "evaluator-0")] == [48, 48]
+
+
 def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
     for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0"], "images train with --algo td3 (DrQ-v2), not sac"),
                       (["--env-id", "Nope-v0"], "doesn't exist"),
-                      (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo")):
+                      (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo"),
+                      (["--env-id", "Hopper-v5", "--image-size", "48"], "--image-size is for the camera tasks"),
+                      (["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3", "--image-size", "12"],
+                       "the drq encoder takes uint8[C, H, W] images of at least 15 x 15")):
         with pytest.raises(SystemExit) as exit_:
             parse_args(argv)
         assert exit_.value.code == 2
