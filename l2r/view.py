@@ -11,7 +11,8 @@ forces. A camera task's episodes show the frames the policy saw, one image view 
 field, beside their reward. Interrupted ``.mcap.part`` files play up to where they stop.
 
 ``--live`` declares a viewer liveliness token, which tells actors to publish low-rate frames
-of the episodes they are running, and draws those frames as they come.
+of the episodes they are running, and draws those frames as they come: the runner's body, or a
+camera task's frames, one image view per camera field and environment.
 
 For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode files into a
 ``.rrd`` file (``l2r up`` uses it for the best evaluation episode, found by
@@ -48,7 +49,7 @@ GAP_SECONDS = 0.5  # pause on the timeline between two episodes
 GROUND_ROTATION = rr.Quaternion(xyzw=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # +90 deg about x
 CAMERA = f"{GROUND}/camera"  # follows the pelvis along the track; the 3D view looks through it
 CAMERA_HEIGHT, CAMERA_DISTANCE = 1.0, 4.0  # m above the ground, and beside the track
-IMAGES = "images"  # a camera task's frames: images/<observation field>
+IMAGES = "images"  # a camera task's frames: images/<observation field>, live images/<field>/actor<a>_env<e>
 
 
 # ------------------------------------------------------------------------------ recordings
@@ -57,7 +58,8 @@ IMAGES = "images"  # a camera task's frames: images/<observation field>
 def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
     """The layout: the runner in 3D (seen from its side through CAMERA, which moves with it, when
     ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots;
-    or with ``images`` (a camera task's fields) its frames, the episodes and the reward."""
+    or with ``images`` (the entities under IMAGES: a camera task's fields, or live, each field of
+    each environment, ``pixels/actor0_env1``) its frames, the episodes and the reward."""
     reward = rrb.TimeSeriesView(name="reward", origin="/plots/reward")
     if images:
         scenes = [rrb.Spatial2DView(name=name, origin=f"/{IMAGES}/{name}") for name in images]
@@ -74,8 +76,8 @@ def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
         ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(*scenes, rrb.TextLogView(name="episodes", origin="/episodes"),
-                         row_shares=[5] * len(scenes) + [1]),
+            # (a grid: a live camera run may have dozens of environments to show)
+            rrb.Vertical(rrb.Grid(*scenes), rrb.TextLogView(name="episodes", origin="/episodes"), row_shares=[5, 1]),
             rrb.Vertical(*plots),
             column_shares=[3, 2],
         ),

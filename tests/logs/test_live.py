@@ -92,8 +92,8 @@ def test_live_viewer_draws_a_camera_task_s_frames_as_images_and_rejects_bad_ones
             bad = [with_image(good, {"dtype": "<f4", "shape": [1, 3, side, side], "data": bytes(12 * side * side)}),
                    with_image(good, {"dtype": "|u1", "shape": [1, 3, 1200, 1200], "data": bytes(3 * 1200 * 1200)}),
                    with_image(good, {"dtype": "|u1", "shape": [1, 3, side, side], "data": b"\x00" * 10})]
-            for payload in bad:  # from another env of the same actor, before any good frame
-                session.put(Keys(run).frames(5, 1), payload)
+            for payload in bad:  # from another env of the same actor; blocking, so that none is dropped on the way
+                session.put(Keys(run).frames(5, 1), payload, congestion_control=zenoh.CongestionControl.BLOCK)
             sent = {}
             for step in range(1, 16):
                 obs, reward, *_, info = env.step(env.action_space.sample())
