@@ -17,8 +17,9 @@ import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks)
 from l2r.episodes.live import LiveFrames, frame
+from l2r.photo import TUNE_ID
 from l2r.protocol.keys import Keys
-from l2r.protocol.messages import encode
+from l2r.protocol.messages import Frame, decode, encode
 from l2r.protocol.session import session_config
 from l2r.sim.env import RunEnv
 from tests.actors.camera import RENDERER
@@ -131,7 +132,21 @@ def test_live_viewer_draws_a_camera_task_s_frames_as_images_and_rejects_bad_ones
                                   c.to_record_batch().column("Scalars:scalars").to_pylist())}  # fmt: skip
     assert rewards and all(np.float64(sent[step][1]) == value for step, value in rewards.items())
     assert not any(c.entity_path.startswith("/plots/distance") for c in chunks)  # the cartpole has no distance
-    views = [c.to_record_batch() for store in reader.blueprints() for c in reader.store(store=store).stream().to_chunks()]
-    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin") for row in v.column(n).to_pylist()
-               for o in row or ()}  # fmt: skip
+    views = [c.to_record_batch() for store in reader.blueprints()  # every layout the file holds
+             for c in reader.store(store=store).stream().to_chunks()]  # fmt: skip
+    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin")
+               for row in v.column(n).to_pylist() for o in row or ()}  # fmt: skip
     assert "/images/pixels/actor5_env0" in origins  # a view of its own, beside the reward
+
+
+def test_a_photo_task_s_frame_carries_its_photo_and_goal_as_the_env_returned_them():
+    env = gymnasium.make(TUNE_ID)
+    env.reset(seed=0)
+    obs, reward, *_, info = env.step(env.action_space.sample())
+    env.close()
+    sent = decode(encode(frame(2, 3, 0, 1, obs, reward, info)), Frame)
+    assert sent.images.keys() == {"pixels", "goal"}  # the float state is no image
+    for name, image in sent.images.items():
+        assert image.dtype == np.uint8 and image.shape == (1, *obs[name].shape)
+        np.testing.assert_array_equal(image[0], obs[name])
+    assert sent.values == {"reward": reward}
