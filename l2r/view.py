@@ -11,7 +11,8 @@ forces. A camera task's episodes show the frames the policy saw, one image view 
 field, beside their reward. Interrupted ``.mcap.part`` files play up to where they stop.
 
 ``--live`` declares a viewer liveliness token, which tells actors to publish low-rate frames
-of the episodes they are running, and draws those frames as they come.
+of the episodes they are running, and draws those frames as they come: the runner's body, or a
+camera task's frames, one image view per camera field and environment.
 
 For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode files into a
 ``.rrd`` file (``l2r up`` uses it for the best evaluation episode, found by
@@ -20,6 +21,7 @@ For other modules: ``write_recording(mcap_paths, rrd_path)`` converts episode fi
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
@@ -47,7 +49,7 @@ GAP_SECONDS = 0.5  # pause on the timeline between two episodes
 GROUND_ROTATION = rr.Quaternion(xyzw=[np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # +90 deg about x
 CAMERA = f"{GROUND}/camera"  # follows the pelvis along the track; the 3D view looks through it
 CAMERA_HEIGHT, CAMERA_DISTANCE = 1.0, 4.0  # m above the ground, and beside the track
-IMAGES = "images"  # a camera task's frames: images/<observation field>
+IMAGES = "images"  # a camera task's frames: images/<observation field>, live images/<field>/actor<a>_env<e>
 
 
 # ------------------------------------------------------------------------------ recordings
@@ -56,7 +58,8 @@ IMAGES = "images"  # a camera task's frames: images/<observation field>
 def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
     """The layout: the runner in 3D (seen from its side through CAMERA, which moves with it, when
     ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots;
-    or with ``images`` (a camera task's fields) its frames, the episodes and the reward."""
+    or with ``images`` (the entities under IMAGES: a camera task's fields, or live, each field of
+    each environment, ``pixels/actor0_env1``) its frames, the episodes and the reward."""
     reward = rrb.TimeSeriesView(name="reward", origin="/plots/reward")
     if images:
         scenes = [rrb.Spatial2DView(name=name, origin=f"/{IMAGES}/{name}") for name in images]
@@ -73,8 +76,8 @@ def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
         ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(*scenes, rrb.TextLogView(name="episodes", origin="/episodes"),
-                         row_shares=[5] * len(scenes) + [1]),
+            # (a grid: a live camera run may have dozens of environments to show)
+            rrb.Vertical(rrb.Grid(*scenes), rrb.TextLogView(name="episodes", origin="/episodes"), row_shares=[5, 1]),
             rrb.Vertical(*plots),
             column_shares=[3, 2],
         ),
@@ -233,34 +236,44 @@ def write_recording(mcap_paths: Sequence[str | Path], rrd_path: str | Path) -> P
 
 def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) -> int:
     """Draw the frames actors publish while this viewer's liveliness token exists: one runner
-    per actor environment, under ``world/ground/actor<a>/env<e>``."""
+    per actor environment, under ``world/ground/actor<a>/env<e>``, or of a camera task one image
+    per camera field and environment, under ``images/<field>/actor<a>_env<e>``."""
     import zenoh
 
     from l2r.protocol.keys import Keys
     from l2r.protocol.messages import Frame, ProtocolError, decode
+    from l2r.protocol.session import Rejections
     from l2r.sim.model import load_model
 
     body = BodyModel.from_model(load_model())
     log_episodes(rec, [], body)
     keys = Keys(run)
     seen: set[tuple[int, int]] = set()
-    counts = {"frames": 0, "rejected": 0}
+    image_views: list[str] = []  # images/<these>, one view each in the layout
+    lock = threading.Lock()
+    rejections = Rejections(logging.getLogger("l2r.view"))
+    frames = 0
 
     def on_frame(sample: zenoh.Sample) -> None:
+        nonlocal frames
         try:
             frame = decode(sample.payload, Frame)
         except ProtocolError as e:
-            counts["rejected"] += 1
-            if counts["rejected"] <= 3:
-                print(f"l2r view: rejected a frame from {sample.key_expr}: {e}", file=sys.stderr)
+            rejections.add(e, str(sample.key_expr))
             return
         root = f"{GROUND}/actor{frame.actor_id}/env{frame.env_id}"
-        if (frame.actor_id, frame.env_id) not in seen:
-            seen.add((frame.actor_id, frame.env_id))
-            for name in body.bodies:
-                _log_shapes(rec, f"{root}/{name}/shape", [s for s in body.shapes if s.body == name])
-        log_frame(rec, body, frame, root)
-        counts["frames"] += 1
+        where = f"actor{frame.actor_id}_env{frame.env_id}"
+        with lock:
+            frames += 1
+            if "body_pos" in frame.arrays and (frame.actor_id, frame.env_id) not in seen:
+                seen.add((frame.actor_id, frame.env_id))
+                for name in body.bodies:
+                    _log_shapes(rec, f"{root}/{name}/shape", [s for s in body.shapes if s.body == name])
+            new_views = [f"{name}/{where}" for name in frame.images or () if f"{name}/{where}" not in image_views]
+            if new_views:  # a camera task's field or environment not drawn yet: a view of its own
+                image_views.extend(new_views)
+                rec.send_blueprint(blueprint(follow=False, images=image_views))
+        log_frame(rec, body, frame, root, where)
 
     # Handled here, not left to KeyboardInterrupt: a process started in the background by a shell
     # inherits SIGINT ignored, and Python then never raises it; SIGTERM stops it the same way.
@@ -275,12 +288,14 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
         token.undeclare()
     for sig, handler in previous.items():
         signal.signal(sig, handler)
-    print(f"l2r view: {counts['frames']} frames from {len(seen)} environment(s) drawn", file=sys.stderr)
+    rejected = ", ".join(f"{n} {reason}" for reason, n in rejections.by_reason.items())
+    print(f"l2r view: {frames} frames drawn, {rejections.total} rejected{f' ({rejected})' if rejected else ''}",
+          file=sys.stderr)
     return 0
 
 
-def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str) -> None:
-    """One live frame (``l2r.episodes.live.frame``): poses, muscles, reward and distance."""
+def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str, where: str) -> None:
+    """One live frame (``l2r.episodes.live.frame``): poses, muscles, camera frames, reward and distance."""
     arrays = frame.arrays
     rec.set_time("wall", timestamp=time.time())
     rec.set_time("step", sequence=frame.step)
@@ -292,7 +307,8 @@ def log_frame(rec: rr.RecordingStream, body: BodyModel, frame, root: str) -> Non
             points = body.muscle_points(pos, quat)
             colors = activation_colors(np.asarray(arrays["muscle_activation"])[: len(points)])
             rec.log(f"{root}/muscles", rr.LineStrips3D(points, colors=colors, radii=0.008))
-    where = f"actor{frame.actor_id}_env{frame.env_id}"
+    for name, rows in (frame.images or {}).items():  # (1, 3, H, W): channels last for Rerun
+        rec.log(f"{IMAGES}/{name}/{where}", rr.Image(rows[0].transpose(1, 2, 0), color_model="RGB"))
     for name, value in frame.values.items():
         rec.log(f"plots/{name}/{where}", rr.Scalars(float(value)))
 

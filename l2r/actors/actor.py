@@ -386,7 +386,7 @@ class Actor:
             self.frames += int(info.get("inner_steps", 1))
             if slot.recorder is not None:
                 slot.recorder.log_step(obs, action, reward, info)
-            self.live.publish(i, slot.episode, slot.length, reward, info)
+            self.live.publish(i, slot.episode, slot.length, obs, reward, info)
             if terminated or truncated:
                 self.end_episode(i, slot, info, terminated, truncated)
                 ended.append((i, action, reward, terminated, truncated, obs, log_probs[i]))

@@ -414,8 +414,7 @@ def _split(obs: Any) -> tuple[Any, dict[str, np.ndarray]]:
     """The vector an observation logs in Step, and its camera frames (uint8[3, H, W] fields) by name."""
     if not isinstance(obs, Mapping):
         return obs, {}
-    images = {name: a for name, a in obs.items() if a.dtype == np.uint8 and a.ndim == 3 and a.shape[0] == 3}
-    return obs.get(VECTOR_FIELD, ()), images
+    return obs.get(VECTOR_FIELD, ()), schema.image_fields(obs)
 
 
 def _model_version(path: Path) -> str:

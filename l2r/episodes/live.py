@@ -5,12 +5,13 @@ step of each environment::
 
     live = LiveFrames(session, Keys(run), actor_id, rate_hz=10)
     ...
-    live.publish(env_id, episode, step, reward, info)   # returns at once when no viewer watches
+    live.publish(env_id, episode, step, obs, reward, info)   # returns at once when no viewer watches
 
 Viewers hold a liveliness token under ``Keys(run).viewers``; while none exists ``publish`` is
 one attribute check. With a viewer it sends at most ``rate_hz`` frames per second per
-environment: body poses, activations, reward and distance, best effort at background priority
-(``FRAMES_QOS``), so a viewer never slows training down.
+environment: body poses, activations, reward and distance, and the observation's camera frames
+(its uint8[3, H, W] fields, raw), best effort at background priority (``FRAMES_QOS``), so a
+viewer never slows training down.
 """
 
 from __future__ import annotations
@@ -22,16 +23,22 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from l2r.episodes.schema import image_fields
 from l2r.protocol.keys import FRAMES_QOS, Keys
 from l2r.protocol.messages import Frame, encode
 
 FRAME_ARRAYS = ("body_pos", "body_quat", "muscle_activation")  # from the env's info
 
 
-def frame(actor_id: int, env_id: int, episode: int, step: int, reward: float, info: dict[str, Any]) -> Frame:
-    """The frame of one step: the env's poses and activations, the reward and the distance."""
+def frame(actor_id: int, env_id: int, episode: int, step: int, observation: dict[str, np.ndarray], reward: float,
+          info: dict[str, Any]) -> Frame:
+    """The frame of one step: the env's poses and activations, the reward and the distance (of a
+    task that has one), and the camera frames of the observation after the step (its fields)."""
     arrays = {name: np.asarray(info[name], dtype=np.float32) for name in FRAME_ARRAYS if name in info}
-    return Frame(actor_id, env_id, episode, step, arrays, {"reward": float(reward), "distance": float(info.get("distance", 0.0))})
+    values = {"reward": float(reward)} | ({"distance": float(info["distance"])} if "distance" in info else {})
+    # Raw, not PNG: at 10 frames a second the bytes cost less than the encoding (docs/episodes.md).
+    images = {name: image[None] for name, image in image_fields(observation).items()} or None
+    return Frame(actor_id, env_id, episode, step, arrays, values, images)
 
 
 class LiveFrames:
@@ -57,7 +64,8 @@ class LiveFrames:
                 self._viewers.discard(str(sample.key_expr))
             self.watched = bool(self._viewers)
 
-    def publish(self, env_id: int, episode: int, step: int, reward: float, info: dict[str, Any]) -> bool:
+    def publish(self, env_id: int, episode: int, step: int, observation: dict[str, np.ndarray], reward: float,
+                info: dict[str, Any]) -> bool:
         """Send this step's frame if a viewer watches and the rate allows; whether it was sent."""
         if not self.watched:
             return False
@@ -69,7 +77,7 @@ class LiveFrames:
         if publisher is None:
             publisher = self._session.declare_publisher(self.keys.frames(self.actor_id, env_id), **FRAMES_QOS.publisher())
             self._publishers[env_id] = publisher
-        publisher.put(encode(frame(self.actor_id, env_id, episode, step, reward, info)))
+        publisher.put(encode(frame(self.actor_id, env_id, episode, step, observation, reward, info)))
         self.sent += 1
         return True
 

@@ -18,6 +18,9 @@ Metadata records: ``episode`` (who, what, written first) and ``result`` (written
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
+import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 TOPIC_ROBOT = "/robot_description"
@@ -32,6 +35,12 @@ BODY_SCALARS = ("distance", "pelvis_height")  # the runner's; a task without a b
 def image_topic(field: str) -> str:
     """The channel of an observation's image field: ``/pixels`` for ``pixels``."""
     return f"/{field}"
+
+
+def image_fields(observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The camera frames of an observation's fields: its uint8[3, H, W] ones, by name (logged
+    as images, and sent to live viewers)."""
+    return {name: a for name, a in observation.items() if a.dtype == np.uint8 and a.ndim == 3 and a.shape[0] == 3}
 
 
 WORLD_FRAME = "world"

@@ -479,12 +479,13 @@ class ActorId(Message):
 
 @dataclass
 class Frame(Message):
-    """One step of a running episode for a live viewer: named arrays and numbers."""
+    """One step of a running episode for a live viewer: named arrays and numbers, and the camera
+    frames of the observation after the step."""
 
     KIND: ClassVar[str] = "frame"
     SCHEMA: ClassVar[dict[str, str]] = {
         "actor_id": "int", "env_id": "int", "episode": "int", "step": "int",
-        "arrays": "arrays", "values": "numbers",
+        "arrays": "arrays", "values": "numbers", "images": "fields?",
     }
     actor_id: int
     env_id: int
@@ -492,6 +493,20 @@ class Frame(Message):
     step: int
     arrays: dict[str, np.ndarray]
     values: dict[str, float] = field(default_factory=dict)
+    images: dict[str, np.ndarray] | None = None
+    """Observation fields of one row, each an RGB frame: uint8 (1, 3, H, W) by field name. A frame
+    with images is version 2 (observation fields), so a version-1 viewer rejects it as ``version``."""
+
+    def validate(self) -> None:
+        if self.images is None:
+            return
+        _observation_rows(self, "images", 1, "expected 1 (the observation after the step)")
+        for name, rows in self.images.items():
+            if rows.dtype != np.uint8:
+                raise ProtocolError(f"frame.images.{name}: dtype {rows.dtype}, expected uint8", "wrong_dtype")
+            if rows.ndim != 4 or rows.shape[1] != 3:
+                raise ProtocolError(f"frame.images.{name}: shape {list(rows.shape)}, expected [1, 3, height, width]",
+                                    "wrong_shape")
 
 
 # -- encoding -----------------------------------------------------------------------------

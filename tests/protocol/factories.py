@@ -66,6 +66,7 @@ def every_message() -> list:
         Stats("replay", "0", 123.0, {"size": 10, "inserts_per_s": 2.5}),
         LearnerVersion(11, 2200, 5.0),
         Frame(1, 0, 3, 17, {"xpos": rng.random((12, 3))}, {"reward": 0.5}),
+        Frame(2, 1, 0, 4, {}, {"reward": 1.0}, {"pixels": np.arange(60, dtype=np.uint8).reshape(1, 3, 4, 5)}),
         ActorIdRequest("actor-7f3a:7"),
         ActorId("actor-7f3a:7", 12),
         Gradient(3, 5, 5, rng.random(300, np.float32), np.array([5.0, *rng.random(82)])),  # last: rng order
