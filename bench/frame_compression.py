@@ -14,9 +14,10 @@ chunk starts where the one before ended). For each chunk, raw and compressed (zs
   sample, decode, checks, insert, the log's CRC and write; an ack thread fsyncs every 0.5 s),
   per-thread CPU clocks, so other processes on a shared machine do not count.
 
-From these: the frames a second one core of a shard ingests, the frames a second two cores
-render and ingest together (actors rendering, the shard ingesting, each frame once), and the
-frames a second a 1 Gbit/s link carries. Prints one JSON line, with the machine (``cpu_model``,
+From these: the frames a second one core of a shard ingests; the frames a second two cores
+render, encode and ingest together (actors rendering, the shard ingesting, each frame once),
+and encode and ingest alone (frames made at no cost: the bound where rendering is not the
+work); and the frames a second a 1 Gbit/s link carries. Prints one JSON line, with the machine (``cpu_model``,
 ``cpu_flags``) and the load average before and after (the figures are CPU times, but a loaded
 machine's caches are shared).
 """
@@ -151,6 +152,7 @@ def measure(env_id: str, episodes: int, steps: int, repeats: int) -> dict:
             "decode_ms_per_chunk": round(decode_ms, 3), "shard_ingest_ms_per_chunk": round(shard_ms, 3),
             "shard_frames_per_s_one_core": round(STEPS_PER_CHUNK / (shard_ms / 1e3)),
             "two_cores_frames_per_s": round(2 / (render_s + per_frame_s), 1),
+            "two_cores_without_rendering_frames_per_s": round(2 / per_frame_s),
             "link_1gbit_frames_per_s": round(LINK_BYTES_PER_S / bytes_per_frame),
         }
     compressor = FrameCompressor(1)
