@@ -192,8 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
     a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
     a.add_argument("--compress-frames", choices=("on", "off"), default="on",
-                   help="the actors send a camera task's frames zstd-compressed (l2r-actor --compress-frames): 3.4 "
-                        "to 28 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
+                   help="the actors send a camera task's frames zstd-compressed (l2r-actor --compress-frames): 3.5 "
+                        "to 32 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
                         "of an actor's CPU; off sends them raw. Other tasks send the same bytes either way")
     rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
                               "evaluators run the plain env); each off by default and unmeasured so far "

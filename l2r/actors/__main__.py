@@ -94,7 +94,7 @@ class ActorSettings(DaemonSettings):
                                   group=EXPERIENCE, gt=0)
     compress_frames: Literal["on", "off"] = setting(
         "on", "send a camera task's frames (its uint8 observation fields) zstd-compressed, as protocol version 3: "
-        "3.4x fewer bytes on walker, 28x on cartpole, for 1-3 ms of CPU per 64-step chunk against about 1.2 s of "
+        "3.5x fewer bytes on walker, 32x on cartpole, for 1-3 ms of CPU per 64-step chunk against about 1.2 s of "
         "rendering; a replay shard older than version 3 rejects such chunks (logged as version), so give it off "
         "for one. Other tasks send the same bytes either way", group=EXPERIENCE)
     send_gradients: bool = setting(False, "A3C (l2r-learner --algo a3c): send the gradient of each chunk's rollout, "

@@ -2,9 +2,9 @@
 
 A camera chunk's frames are most of its bytes (1.4 MB for 64 steps of 84 x 84 RGB), and
 consecutive frames of one episode are much alike. zstd at level 1 over a field's rows as one
-zstd frame finds that likeness (a window of 512 KiB spans 24 frames of 84 x 84): 3.4x on
-walker, 32x on cartpole, for 0.6 - 2.4 ms of the actor's CPU per chunk, where compressing each
-frame alone gains 1.6x (bench/frame_compression.py, docs/performance.md).
+zstd frame finds that likeness (a window of 512 KiB spans 24 frames of 84 x 84): 3.5x on
+walker, 32x on cartpole, for 0.8 - 3 ms of the actor's CPU per chunk, where compressing each
+frame alone gains 1.6 - 1.7x (bench/frame_compression.py, docs/performance.md).
 
 On the wire a compressed field is an array map with a fourth key, ``codec``: the data are the
 zstd frame of the field's C-order bytes, with its content size and checksum in it.
@@ -26,8 +26,8 @@ ZSTD = "zstd"
 CODECS = (ZSTD,)
 """The codecs a receiver of this version decompresses."""
 LEVEL = 1
-"""zstd's level for frames: levels 2 and 3 gain under 10 % more on walker for 25 - 80 % more
-CPU, and none on cartpole (docs/performance.md)."""
+"""zstd's level for frames: levels 2 and 3 save 5 - 7 % more bytes on walker for 25 - 85 % more
+CPU, and nothing on cartpole (docs/performance.md)."""
 
 
 class FrameCompressor:
