@@ -37,7 +37,6 @@ class FrameCompressor:
     codec = ZSTD
 
     def __init__(self, level: int = LEVEL):
-        self.level = level
         self._zstd = zstandard.ZstdCompressor(level=level, write_checksum=True, write_content_size=True)
 
     def compress(self, rows: np.ndarray) -> bytes:
