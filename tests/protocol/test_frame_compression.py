@@ -13,20 +13,11 @@ import zstandard
 
 from l2r.protocol import FrameCompressor, ProtocolError, decode, encode, messages
 from tests.protocol.factories import make_chunk, make_frames_batch, make_image_chunk
+from tests.protocol.test_observation_messages import pack, reason_of
 
 
 def wire(payload: bytes) -> dict:
     return msgpack.unpackb(payload, raw=False)
-
-
-def pack(raw: dict) -> bytes:
-    return msgpack.packb(raw, use_bin_type=True)
-
-
-def reason_of(payload: bytes) -> str:
-    with pytest.raises(ProtocolError) as error:
-        decode(payload)
-    return error.value.reason
 
 
 def compressed_chunk() -> dict:
