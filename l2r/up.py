@@ -195,6 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
                         "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
     a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
+    a.add_argument("--compress-frames", choices=("on", "off"), default="on",
+                   help="the actors send a camera task's frames zstd-compressed (l2r-actor --compress-frames): 3.5 "
+                        "to 32 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
+                        "of an actor's CPU; off sends them raw. Other tasks send the same bytes either way")
     rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
                               "evaluators run the plain env); each off by default and unmeasured so far "
                               "(docs/training.md, \"Levers for robustness\")")
@@ -603,6 +607,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--actor-id", str(i),
                                          *([] if shards == 1 else ["--num-shards", str(shards)]),
                                          "--random-steps", str(recipe["random_steps"]), *gradient_flags(args, recipe),
+                                         "--compress-frames", args.compress_frames,
                                          *robustness_flags(args, opensim=bool(opensim)), *logs, *args.actor_arg,
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):

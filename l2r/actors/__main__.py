@@ -96,6 +96,11 @@ class ActorSettings(DaemonSettings):
     resend_delay: float = setting(DEFAULTS.resend_delay, "seconds after its last send before an unacknowledged "
                                   "chunk is sent again; the wait doubles with each resend, up to 30 s",
                                   group=EXPERIENCE, gt=0)
+    compress_frames: Literal["on", "off"] = setting(
+        "on", "send a camera task's frames (its uint8 observation fields) zstd-compressed, as protocol version 3: "
+        "3.5x fewer bytes on walker, 32x on cartpole, for 1-3 ms of CPU per 64-step chunk against about 1.2 s of "
+        "rendering; a replay shard older than version 3 rejects such chunks (logged as version), so give it off "
+        "for one. Other tasks send the same bytes either way", group=EXPERIENCE)
     send_gradients: bool = setting(False, "A3C (l2r-learner --algo a3c): send the gradient of each chunk's rollout, "
                                    "computed at the weights that acted it, instead of the chunk; weights are "
                                    "swapped in only between chunks (--chunk-size: A2C's n-steps, 5)",
@@ -169,6 +174,7 @@ class ActorSettings(DaemonSettings):
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
             torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,
             max_speed=self.max_speed, resend_buffer_mb=self.resend_buffer_mb, resend_delay=self.resend_delay,
+            compress_frames=self.compress_frames == "on",
             episode_log=episode_log, send_gradients=self.send_gradients,
         )
 

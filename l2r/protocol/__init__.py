@@ -9,6 +9,7 @@ from l2r.protocol.messages import (
     Frame, Gradient, LearnerVersion, Message, NotReady, PriorityUpdate, ProtocolError, ReplayAck, SampleBatch,
     SampleRequest, Stats, Weights, decode, encode, encode_gathered,
 )
+from l2r.protocol.frames_codec import FrameCompressor
 from l2r.protocol.observations import FieldSpec, ObservationSpec, as_fields
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
@@ -22,7 +23,7 @@ __all__ = [
     "MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "ActorId", "ActorIdRequest", "EpisodeSummary", "EvaluationRound",
     "ExperienceChunk", "Frame", "Gradient", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError",
     "ReplayAck", "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "encode_gathered",
-    "FieldSpec", "ObservationSpec", "as_fields", "ReplayClient",
+    "FrameCompressor", "FieldSpec", "ObservationSpec", "as_fields", "ReplayClient",
     "DaemonSettings", "Rejections", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
     "watched", "with_reply_pool",
 ]

@@ -1,8 +1,9 @@
 """The messages l2r daemons exchange, and their msgpack wire format.
 
 Every message is one msgpack map ``{"v": VERSION, "kind": KIND, <fields>}``, where VERSION is
-the lowest protocol version that can read it: 2 for a message with observation fields other
-than the float32 vector, else 1, so version-1 peers get the bytes they know.
+the lowest protocol version that can read it: 3 for an experience chunk whose frames are
+compressed (``frames_codec``), 2 for a message with observation fields other than the float32
+vector, else 1, so older peers get the bytes they know.
 An array field is a map ``{"dtype": "<f4", "shape": [T, 41], "data": <bin>}`` in C order,
 decoded with ``numpy.frombuffer`` (a read-only view, no copy of the data; data of 64 KiB or
 more is left in the payload, ``_unpackb``).
@@ -20,12 +21,15 @@ import msgpack
 import numpy as np
 
 from l2r.protocol.errors import ProtocolError
+from l2r.protocol.frames_codec import FrameCompressor, inflate
 from l2r.protocol.limits import ANY, INTEGER_LIMITS
 from l2r.protocol.observations import DTYPES as OBSERVATION_DTYPES
 from l2r.protocol.observations import VECTOR_FIELD, ObservationSpec, as_fields
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 """The newest version this side speaks; it reads every version from 1 on."""
+COMPRESSED_VERSION = 3
+"""The version of experience chunks with compressed frames (a map with ``codec``)."""
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_ARRAY_DIMS = 4
 MAX_GRADIENT_VALUES = 2**26
@@ -34,8 +38,9 @@ MAX_GRADIENT_VALUES = 2**26
 # Field types: "int", "float", "bool", "str", "numbers" (str -> number), "dict" (free-form,
 # msgpack-native), "arrays" (str -> float array), an array of one dtype such as "float32[]",
 # "fields" (observation field name -> array with rows first, in the field's dtype: version 2
-# only), or "observations": the float32[rows, width] array of the vector observation in
-# version 1, fields in version 2 (in memory, the array or the map of fields).
+# on), or "observations": the float32[rows, width] array of the vector observation in
+# version 1, fields in version 2, fields that may be compressed in version 3 (in memory, the
+# array or the map of fields, never compressed).
 # A trailing "?" marks a field added later: a sender may leave it out (it is then None), so
 # messages of earlier senders still decode.
 _SCALARS = {"int": (int,), "float": (float, int), "bool": (bool,), "str": (str,)}
@@ -511,9 +516,11 @@ class Frame(Message):
 
 # -- encoding -----------------------------------------------------------------------------
 
-def encode(message: Message) -> bytes:
-    """msgpack bytes of ``message`` (validated first, so a sender cannot emit garbage)."""
-    return _packb(_wire_map(message))
+def encode(message: Message, frames: FrameCompressor | None = None) -> bytes:
+    """msgpack bytes of ``message`` (validated first, so a sender cannot emit garbage). With
+    ``frames``, its uint8 observation fields (an experience chunk's frames) go compressed, in
+    version 3; a message without them is the same bytes as without ``frames``."""
+    return _packb(_wire_map(message, frames))
 
 
 def encode_gathered(batch: SampleBatch, sources: Mapping[str, np.ndarray], rows: np.ndarray) -> bytes | bytearray:
@@ -554,12 +561,13 @@ def encode_gathered(batch: SampleBatch, sources: Mapping[str, np.ndarray], rows:
     return message
 
 
-def _wire_map(message: Message) -> dict[str, Any]:
+def _wire_map(message: Message, frames: FrameCompressor | None = None) -> dict[str, Any]:
     """The map ``encode`` packs: version, kind and each field in its wire form (array data as
-    memoryviews of the arrays), after checking ``message``."""
+    memoryviews of the arrays; ``frames`` compresses uint8 observation fields), after checking
+    ``message``."""
     message.validate()
     _check_ranges(message)
-    version = _version(message)
+    version = _version(message, frames is not None)
     out: dict[str, Any] = {"v": version, "kind": message.KIND}
     for name, kind in message.SCHEMA.items():
         value = getattr(message, name)
@@ -568,6 +576,9 @@ def _wire_map(message: Message) -> dict[str, Any]:
             continue  # an optional field left out
         if kind == "observations" and version == 1:
             out[name] = _pack_array(as_fields(value)[VECTOR_FIELD])
+        elif kind == "observations" and version == COMPRESSED_VERSION:
+            out[name] = {field_name: _pack_compressed(rows, frames) if rows.dtype == np.uint8 else _pack_array(rows)
+                         for field_name, rows in as_fields(value).items()}
         elif kind in ("observations", "fields"):
             out[name] = {field_name: _pack_array(rows) for field_name, rows in as_fields(value).items()}
         elif kind == "arrays":
@@ -637,9 +648,13 @@ def _bin_header(size: int) -> bytes:
     return b"\xc6" + size.to_bytes(4, "big")
 
 
-def _version(message: Message) -> int:
-    """The lowest protocol version that reads ``message``: 2 where it holds observation fields
-    other than the float32 vector alone, else 1."""
+def _version(message: Message, compressing: bool = False) -> int:
+    """The lowest protocol version that reads ``message``: 3 where it holds uint8 observation
+    fields to be compressed (``compressing``), 2 where it holds observation fields other than
+    the float32 vector alone, else 1."""
+    if compressing and any(rows.dtype == np.uint8 for name, kind in message.SCHEMA.items()
+                           if kind == "observations" for rows in as_fields(getattr(message, name)).values()):
+        return COMPRESSED_VERSION
     for name, kind in message.SCHEMA.items():
         value = getattr(message, name)
         if kind.removesuffix("?") == "fields" and value is not None:
@@ -656,6 +671,10 @@ def _pack_array(a: np.ndarray) -> dict:
     if a.dtype.byteorder == ">":
         a = a.astype(a.dtype.newbyteorder("<"))
     return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.reshape(-1).view(np.uint8).data}
+
+
+def _pack_compressed(a: np.ndarray, frames: FrameCompressor) -> dict:
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "codec": frames.codec, "data": memoryview(frames.compress(a))}
 
 
 # -- decoding -----------------------------------------------------------------------------
@@ -684,7 +703,9 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
         raise ProtocolError(f"unknown message kind {kind!r}", "unknown_kind")
     if not issubclass(cls, expected):
         raise ProtocolError(f"unexpected message kind {kind!r} here", "unexpected_kind")
-    values = {name: _field(kind, name, spec, raw.get(name, _MISSING), version) for name, spec in cls.SCHEMA.items()}
+    inflation = _Inflation()
+    values = {name: _field(kind, name, spec, raw.get(name, _MISSING), version, inflation)
+              for name, spec in cls.SCHEMA.items()}
     message = cls(**values)
     try:
         message.validate()
@@ -696,6 +717,20 @@ def decode(payload: bytes | bytearray | memoryview | Any, expected: type | tuple
 
 
 _MISSING = object()
+
+
+class _Inflation:
+    """What the compressed fields of one message may decompress to, together: no more than a
+    message may hold raw, so compression lets no peer make a receiver allocate more."""
+
+    def __init__(self):
+        self.left = MAX_MESSAGE_BYTES
+
+    def take(self, where: str, nbytes: int) -> None:
+        if nbytes > self.left:
+            raise ProtocolError(f"{where}: compressed fields of more than {MAX_MESSAGE_BYTES} bytes in all",
+                                "oversized")
+        self.left -= nbytes
 
 
 def _unpackb(payload: bytes | bytearray | memoryview) -> Any:
@@ -807,7 +842,7 @@ class _ViewWalk:
         return at
 
 
-def _field(kind: str, name: str, spec: str, value: Any, version: int) -> Any:
+def _field(kind: str, name: str, spec: str, value: Any, version: int, inflation: _Inflation) -> Any:
     where = f"{kind}.{name}"
     if spec.endswith("?"):
         if value is _MISSING:
@@ -817,12 +852,14 @@ def _field(kind: str, name: str, spec: str, value: Any, version: int) -> Any:
         raise ProtocolError(f"{where}: missing", "missing_field")
     if spec == "fields" and version < 2:
         raise ProtocolError(f"{where}: observation fields in a version {version} message", "version")
+    compressed = inflation if spec == "observations" and version >= COMPRESSED_VERSION else None
     if spec == "observations":
         spec = "fields" if version >= 2 else "float32[]"
     if spec == "fields":
         if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
             raise ProtocolError(f"{where}: expected a map of field names to arrays", "wrong_type")
-        return {k: _unpack_array(f"{where}.{k}", v, tuple(OBSERVATION_DTYPES.values())) for k, v in value.items()}
+        return {k: _unpack_array(f"{where}.{k}", v, tuple(OBSERVATION_DTYPES.values()), compressed)
+                for k, v in value.items()}
     if spec in _SCALARS:
         ok = isinstance(value, _SCALARS[spec]) and not (spec != "bool" and isinstance(value, bool))
         if not ok:
@@ -867,8 +904,12 @@ def _check_ranges(message: Message) -> None:
             _in_range(f"{message.KIND}.{name}", getattr(message, name), limits)
 
 
-def _unpack_array(where: str, value: Any, allowed: tuple[np.dtype, ...]) -> np.ndarray:
-    if not isinstance(value, dict) or len(value) != 3:
+def _unpack_array(where: str, value: Any, allowed: tuple[np.dtype, ...],
+                  compressed: _Inflation | None = None) -> np.ndarray:
+    """The array of an array map; with ``compressed``, the map may name a ``codec`` its data are
+    compressed with (experience observations from version 3 on)."""
+    codec = value.get("codec") if compressed is not None and isinstance(value, dict) else None
+    if not isinstance(value, dict) or len(value) != 3 + (codec is not None):
         raise ProtocolError(f"{where}: expected an array map with dtype, shape and data", "bad_array")
     dtype_str, shape, data = value.get("dtype"), value.get("shape"), value.get("data")
     if not isinstance(dtype_str, str) or not isinstance(data, (bytes, memoryview)):
@@ -882,6 +923,9 @@ def _unpack_array(where: str, value: Any, allowed: tuple[np.dtype, ...]) -> np.n
             or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
         raise ProtocolError(f"{where}: bad shape {shape!r}", "bad_array")
     expected_bytes = math.prod(shape) * dtype.itemsize
+    if codec is not None:
+        compressed.take(where, expected_bytes)
+        data = inflate(where, codec, data, expected_bytes)
     if expected_bytes != len(data):
         raise ProtocolError(f"{where}: shape {shape} of {dtype_str} needs {expected_bytes} bytes, got {len(data)}",
                             "bad_array")

@@ -1,7 +1,8 @@
 """A real `l2r-actor` on a real camera task (the suite's cartpole, 16 × 16 frames, rendered) feeding
 a real `l2r-replay` started with `--observation`, over loopback Zenoh: one uint8 frame per step
-reaches the shard, the frames of the chunks are the environment's own, resets go where they
-belong, policies for other observations are refused, and the actor's stats count its frames."""
+reaches the shard, compressed, the frames of the chunks are the environment's own, resets go
+where they belong, policies for other observations are refused, and the actor's stats count its
+frames."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import subprocess
 import sys
 import uuid
 
+import msgpack
 import numpy as np
 import pytest
 import zenoh
@@ -54,10 +56,10 @@ def test_a_camera_actor_sends_its_environment_s_frames_one_a_step_to_a_camera_re
     replay = Replay(run, f"tcp/127.0.0.1:{free_port()}", tmp_path / "replay.log",
                     ["--observation", f"pixels: uint8[3, {IMAGE_SIZE}, {IMAGE_SIZE}]", "--act-dim", "1"])
     session = zenoh.open(session_config(connect=[replay.endpoint]))
-    chunks: list[ExperienceChunk] = []
+    payloads: list[bytes] = []
     stats: dict[str, dict] = {}
     vector_weights = encode(Weights(3, policy_state(build_policy(SPEC)), SPEC))  # a policy of 41 floats
-    subs = [session.declare_subscriber(keys.experience_of_shard(0), lambda s: chunks.append(decode(s.payload))),
+    subs = [session.declare_subscriber(keys.experience_of_shard(0), lambda s: payloads.append(s.payload.to_bytes())),
             session.declare_subscriber(keys.all_stats, lambda s: stats.update({str(s.key_expr): decode(s.payload, Stats).values})),
             session.declare_queryable(keys.weights_query, lambda q: q.reply(keys.weights_query, vector_weights))]
     actor = None
@@ -99,6 +101,8 @@ def test_a_camera_actor_sends_its_environment_s_frames_one_a_step_to_a_camera_re
     assert actor.returncode == 0, out
     assert "bad_spec" in out and "the environment gives {pixels: uint8[3, 16, 16]}" in out, out
 
+    assert {msgpack.unpackb(p)["v"] for p in payloads} == {3}  # frames compressed, the actor's default
+    chunks: list[ExperienceChunk] = [decode(p) for p in payloads]
     # Env 0's first three chunks (12 steps, 2 episodes): each row the frame its env showed, the
     # step that ended an episode closed by its true last frame, the next episode's first frame after.
     mine = sorted((c for c in chunks if c.env_id == 0), key=lambda c: c.seq)

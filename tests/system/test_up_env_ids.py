@@ -148,6 +148,13 @@ def test_a_camera_task_plans_its_observation_spec_and_the_pixels_recipe():
     assert (config.frame_stack, config.augment_pad, config.n_step, config.hidden) == (3, 4, 3, (1024, 1024))
     # The task holds each action for 2 suite steps itself; the actors add no repeat of their own.
     assert actor_settings(children["actor-0"]).action_repeat == 1
+    assert actor_settings(children["actor-0"]).actor().compress_frames  # frames go compressed unless told
+
+
+def test_compress_frames_off_reaches_the_actors():
+    args, _ = parse_args(["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3", "--compress-frames", "off"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
+    assert not actor_settings(children["actor-0"]).actor().compress_frames
 
 
 def test_a_camera_task_s_frame_size_reaches_every_daemon():
