@@ -6,7 +6,6 @@ frames."""
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import uuid
@@ -14,17 +13,15 @@ import uuid
 import msgpack
 import numpy as np
 import pytest
-import zenoh
 
 from l2r.actors.actor import ActorConfig, episode_seed, make_task
 from l2r.policy import build_policy, policy_state
 from l2r.protocol import (
-    ExperienceChunk, Keys, SampleBatch, SampleRequest, Stats, Weights, decode, encode, session_config, wait_alive,
+    ExperienceChunk, Keys, SampleBatch, SampleRequest, Stats, Weights, decode, encode, wait_alive,
 )
-from tests.actors.camera import CAMERA, EPISODE_STEPS, IMAGE_SIZE, RENDERER
+from tests.actors.camera import CAMERA, EPISODE_STEPS, IMAGE_SIZE, RENDERER, camera_shard, stop_all
 from tests.actors.test_actor import SPEC
-from tests.conftest import ROOT, free_port, wait_for
-from tests.replay.conftest import Replay
+from tests.conftest import ROOT, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")]
 
@@ -53,9 +50,7 @@ def replayed(actions: np.ndarray, episodes: int) -> list[list[np.ndarray]]:
 def test_a_camera_actor_sends_its_environment_s_frames_one_a_step_to_a_camera_replay_shard(tmp_path):
     run = f"test-camera-{uuid.uuid4().hex[:8]}"
     keys = Keys(run)
-    replay = Replay(run, f"tcp/127.0.0.1:{free_port()}", tmp_path / "replay.log",
-                    ["--observation", f"pixels: uint8[3, {IMAGE_SIZE}, {IMAGE_SIZE}]", "--act-dim", "1"])
-    session = zenoh.open(session_config(connect=[replay.endpoint]))
+    replay, session = camera_shard(run, tmp_path)
     payloads: list[bytes] = []
     stats: dict[str, dict] = {}
     vector_weights = encode(Weights(3, policy_state(build_policy(SPEC)), SPEC))  # a policy of 41 floats
@@ -91,13 +86,7 @@ def test_a_camera_actor_sends_its_environment_s_frames_one_a_step_to_a_camera_re
         assert isinstance(batch, SampleBatch), batch
         assert batch.frames["pixels"].dtype == np.uint8 and batch.frames["pixels"].shape[1:] == (3, IMAGE_SIZE, IMAGE_SIZE)
     finally:
-        if actor is not None:
-            actor.send_signal(signal.SIGTERM)
-            out, _ = actor.communicate(timeout=30)
-        for sub in subs:
-            sub.undeclare()
-        session.close()
-        replay.stop()
+        out = stop_all(actor, subs, session, replay)
     assert actor.returncode == 0, out
     assert "bad_spec" in out and "the environment gives {pixels: uint8[3, 16, 16]}" in out, out
 

@@ -4,7 +4,6 @@ liveliness token exists."""
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import threading
@@ -15,10 +14,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from l2r.protocol import ExperienceChunk, Frame, Keys, decode, session_config, wait_alive
-from tests.actors.camera import CAMERA, IMAGE_SIZE, RENDERER
-from tests.conftest import ROOT, free_port, wait_for
-from tests.replay.conftest import Replay
+from l2r.protocol import ExperienceChunk, Frame, Keys, decode, wait_alive
+from tests.actors.camera import CAMERA, IMAGE_SIZE, RENDERER, camera_shard, stop_all
+from tests.conftest import ROOT, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")]
 
@@ -26,9 +24,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(not RENDERER, reason="no EGL 
 def test_a_camera_actor_sends_its_observation_s_frames_live_while_a_viewer_watches(tmp_path):
     run = f"test-live-{uuid.uuid4().hex[:8]}"
     keys = Keys(run)
-    replay = Replay(run, f"tcp/127.0.0.1:{free_port()}", tmp_path / "replay.log",
-                    ["--observation", f"pixels: uint8[3, {IMAGE_SIZE}, {IMAGE_SIZE}]", "--act-dim", "1"])
-    session = zenoh.open(session_config(connect=[replay.endpoint]))
+    replay, session = camera_shard(run, tmp_path)
     chunks: list[ExperienceChunk] = []
     frames: list[Frame] = []
     lock = threading.Lock()
@@ -57,13 +53,7 @@ def test_a_camera_actor_sends_its_observation_s_frames_live_while_a_viewer_watch
         time.sleep(1.0)
         assert len(frames) == watched, "frames must stop when the viewer leaves"
     finally:
-        if actor is not None:
-            actor.send_signal(signal.SIGTERM)
-            out, _ = actor.communicate(timeout=30)
-        for sub in subs:
-            sub.undeclare()
-        session.close()
-        replay.stop()
+        out = stop_all(actor, subs, session, replay)
     assert actor.returncode == 0, out
 
     # Each live frame is one the env returned after a step: the frames the chunks carry.
