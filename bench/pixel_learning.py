@@ -1,10 +1,11 @@
 """DrQ-v2 through `l2r up` on a camera task, on this host, against DrQ-v2's published curve at the same frames.
 
     python bench/pixel_learning.py                                    # cartpole-swingup, 48 x 48 frames, one hour
+    python bench/pixel_learning.py --task cartpole-balance            # the same on cartpole-balance
     python bench/pixel_learning.py --image-size 84 --batch-size 256 --seconds 1200   # DrQ-v2's own sizes (a GPU)
     python bench/pixel_learning.py --run-dir RUN --plot docs/pixel_curve.png         # a run already made
 
-The job is `l2r up --env-id l2r/dmc-cartpole-swingup-v0 --algo td3` (the pixels recipe, DrQ-v2's
+The job is `l2r up --env-id l2r/dmc-<task>-v0 --algo td3` (the pixels recipe, DrQ-v2's
 values) with `--image-size`, `--batch-size` and `--samples-per-insert` half the batch, so that the
 learner makes one update per 2 env steps whatever the batch, as DrQ-v2 does. On a CPU DrQ-v2's
 update at 84 x 84 and batch 256 makes about 0.9 updates/s on 2 threads (bench/pixel_update.py),
@@ -14,8 +15,8 @@ one thread. Evaluation: 5 deterministic episodes (seeds 0-4) of each new policy 
 
 Frames are the suite's steps, as DrQ-v2 counts them: 2 per env step (the task holds each action
 for 2). At each milestone the newest evaluation round by then is set against DrQ-v2's 10 seeds
-at that frame (their repository's curves/dmc_cartpole_swingup.csv: median, mean and range of
-the evaluation return; 84 x 84 frames, batch 256, on a GPU).
+at that frame (their repository's curves/dmc_<task>.csv: median, mean and range of the
+evaluation return; 84 x 84 frames, batch 256, on a GPU).
 
 Prints one JSON line: the run, frames and updates reached and their rates, the evaluation
 returns at each milestone beside the published ones, the machine (CPU model and flags, load
@@ -36,24 +37,34 @@ from env_speed import cpu_flags, cpu_model
 from learning_curve import read_rows, rolling
 
 ROOT = Path(__file__).resolve().parents[1]
-ENV_ID = "l2r/dmc-cartpole-swingup-v0"
 FRAMES_PER_STEP = 2  # the camera tasks' action repeat (l2r.control.env.ACTION_REPEAT), DrQ-v2's
-# DrQ-v2's evaluation return on cartpole-swingup over its 10 seeds (curves/dmc_cartpole_swingup.csv
-# of its repository): frames -> (median, mean, lowest, highest).
-DRQV2_CARTPOLE_SWINGUP = {
-    0: (17.5, 16.7, 1.2, 37.5),
-    20_000: (75.1, 101.8, 54.8, 240.3),
-    40_000: (183.0, 203.3, 74.0, 421.7),
-    60_000: (271.1, 325.7, 65.6, 664.6),
-    80_000: (498.6, 483.8, 90.4, 800.7),
-    100_000: (774.9, 626.4, 168.3, 824.4),
-    120_000: (794.7, 714.4, 258.7, 843.8),
+# DrQ-v2's evaluation return over its 10 seeds (curves/dmc_<task>.csv of its repository):
+# frames -> (median, mean, lowest, highest).
+DRQV2 = {
+    "cartpole-swingup": {
+        0: (17.5, 16.7, 1.2, 37.5),
+        20_000: (75.1, 101.8, 54.8, 240.3),
+        40_000: (183.0, 203.3, 74.0, 421.7),
+        60_000: (271.1, 325.7, 65.6, 664.6),
+        80_000: (498.6, 483.8, 90.4, 800.7),
+        100_000: (774.9, 626.4, 168.3, 824.4),
+        120_000: (794.7, 714.4, 258.7, 843.8),
+    },
+    "cartpole-balance": {
+        0: (340.4, 373.9, 308.6, 508.4),
+        20_000: (411.1, 374.7, 135.3, 492.4),
+        40_000: (959.4, 834.9, 429.4, 984.8),
+        60_000: (988.3, 984.5, 962.8, 994.6),
+        80_000: (991.0, 988.8, 976.1, 997.0),
+        100_000: (990.1, 987.4, 953.2, 998.0),
+        120_000: (989.4, 982.0, 934.4, 997.2),
+    },
 }
 
 
 def run_job(args: argparse.Namespace) -> Path:
-    name = f"pixels{args.image_size}"
-    subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--env-id", ENV_ID, "--algo", "td3",
+    name = f"{args.task}-{args.image_size}px"
+    subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--env-id", f"l2r/dmc-{args.task}-v0", "--algo", "td3",
                     "--image-size", str(args.image_size), "--batch-size", str(args.batch_size),
                     "--samples-per-insert", str(args.batch_size / 2), "--seconds", str(args.seconds),
                     "--eval-episodes", "5", "--eval-interval", str(args.eval_interval), "--seed", str(args.seed),
@@ -71,18 +82,23 @@ def evaluation_rounds(run_dir: Path) -> list[tuple[int, float]]:
                    statistics.fmean(r["return"] for r in rows)) for rows in rounds.values())
 
 
+def task_of(launch: dict) -> str:
+    """The suite task of a run's camera id, `cartpole-swingup` of `l2r/dmc-cartpole-swingup-v0`."""
+    return launch["env_id"].removeprefix("l2r/dmc-").removesuffix("-v0")
+
+
 def summary(run_dir: Path) -> dict:
     done = json.loads((run_dir / "summary.json").read_text())
+    launch = json.loads((run_dir / "launch.json").read_text())["args"]
     rounds = evaluation_rounds(run_dir)
     frames = done["env_steps"] * FRAMES_PER_STEP
     at = {}
-    for milestone, (median, mean, lowest, highest) in DRQV2_CARTPOLE_SWINGUP.items():
+    for milestone, (median, mean, lowest, highest) in DRQV2[task_of(launch)].items():
         reached = [ret for f, ret in rounds if f <= milestone]
         if milestone <= frames and reached:
             at[milestone] = {"l2r_eval": round(reached[-1], 1), "drqv2_median": median, "drqv2_mean": mean,
                              "drqv2_range": [lowest, highest]}
     seconds = max(done["time"], 1e-9)
-    launch = json.loads((run_dir / "launch.json").read_text())["args"]
     return {"bench": "pixel_learning", "run_dir": str(run_dir), "env_id": launch["env_id"],
             "image_size": launch.get("image_size"), "batch_size": launch.get("batch_size"),
             "seconds": round(done["time"], 1), "frames": frames, "frames_per_s": round(frames / seconds, 1),
@@ -100,8 +116,9 @@ def plot(run_dir: Path, out: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    frames = np.array(list(DRQV2_CARTPOLE_SWINGUP))
-    published = np.array(list(DRQV2_CARTPOLE_SWINGUP.values()))
+    launch = json.loads((run_dir / "launch.json").read_text())["args"]
+    frames = np.array(list(DRQV2[task_of(launch)]))
+    published = np.array(list(DRQV2[task_of(launch)].values()))
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.fill_between(frames, published[:, 2], published[:, 3], color="0.85", label="DrQ-v2, 10 seeds: range")
     ax.plot(frames, published[:, 0], color="0.4", label="DrQ-v2: median (84 x 84, batch 256, GPU)")
@@ -113,8 +130,7 @@ def plot(run_dir: Path, out: Path) -> None:
     rounds = np.array(evaluation_rounds(run_dir))
     if len(rounds):
         ax.plot(rounds[:, 0], rounds[:, 1], "o-", color="tab:blue", label="l2r: evaluation (5 episodes)")
-    launch = json.loads((run_dir / "launch.json").read_text())["args"]
-    ax.set_title(f"cartpole-swingup from pixels: l2r {launch.get('image_size') or 84} x "
+    ax.set_title(f"{task_of(launch)} from pixels: l2r {launch.get('image_size') or 84} x "
                  f"{launch.get('image_size') or 84}, batch {launch.get('batch_size')}, 2 CPU cores")
     ax.set_xlabel("frames (suite steps)")
     ax.set_ylabel("episode return")
@@ -127,6 +143,7 @@ def plot(run_dir: Path, out: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run-dir", type=Path, help="summarise this run instead of running one")
+    p.add_argument("--task", choices=tuple(DRQV2), default="cartpole-swingup", help="the suite task (default: %(default)s)")
     p.add_argument("--image-size", type=int, default=48, help="frames' side in pixels (default: %(default)s)")
     p.add_argument("--batch-size", type=int, default=128, help="transitions per update (default: %(default)s)")
     p.add_argument("--seconds", type=float, default=3600, help="the job's time budget (default: %(default)s)")
