@@ -716,7 +716,7 @@ def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates
     score = score_of(args.env_id)
     lines = [failure for failure in summary["failing"] if failure not in summary["outcome"]]
     lines += [f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates "
-             f"({summary['updates'] - updates_before:,} in this session), best evaluation "
+             f"({summary['updates'] - updates_before:,} in this session), best evaluation episode "
              f"{score.text(summary['best_eval_score'])}", f"run directory: {run_dir}",
              f"metrics: tensorboard --logdir {run_dir / 'metrics'}  (CSV files beside)"]
     if summary["updates"] == 0:

@@ -94,7 +94,7 @@ def test_a_standard_task_keeps_the_policy_and_the_episode_of_the_best_return_and
 
     assert "| eval return 45.25 |" in line and "distance" not in line and " m " not in line
     said = report(tmp_path, "Hopper-v5", summary)
-    assert "best evaluation return 80.00" in said
+    assert "best evaluation episode return 80.00" in said
     assert f"(v4, mean return 75.00): l2r eval {best.path} --env-id Hopper-v5" in said
     assert "distance" not in said and "a longer run" not in said  # the runner's advice is the runner's
 
@@ -113,7 +113,7 @@ def test_the_runner_keeps_the_policy_and_the_episode_of_the_longest_distance_and
 
     assert "| eval distance 1.90 m |" in line
     said = report(tmp_path, "l2r/Run-v0", summary)
-    assert "best evaluation distance 3.00 m" in said
+    assert "best evaluation episode distance 3.00 m" in said
     assert f"(v4, mean distance 2.60 m): l2r eval {best.path}\n" in said
     assert "a longer run: l2r up" in said
 
@@ -133,7 +133,7 @@ def test_a_photo_task_keeps_the_policy_and_the_episode_of_the_best_psnr_and_spea
 
     assert "| eval psnr 21.45 dB |" in line
     said = report(tmp_path, TUNE_ID, summary, "--algo", "td3")
-    assert "best evaluation psnr 25.00 dB" in said
+    assert "best evaluation episode psnr 25.00 dB" in said
     assert f"(v4, mean psnr 24.80 dB): l2r eval {best.path} --env-id {TUNE_ID}" in said
 
 
