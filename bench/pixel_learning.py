@@ -103,7 +103,7 @@ def summary(run_dir: Path) -> dict:
             "image_size": launch.get("image_size"), "batch_size": launch.get("batch_size"),
             "seconds": round(done["time"], 1), "frames": frames, "frames_per_s": round(frames / seconds, 1),
             "updates": done["updates"], "updates_per_s": round(done["updates"] / seconds, 2),
-            "best_eval_return": round(max((ret for _, ret in rounds), default=float("nan")), 1),
+            "best_eval_return": round(max(ret for _, ret in rounds), 1) if rounds else None,
             "last_eval_return": round(rounds[-1][1], 1) if rounds else None, "at_frames": at,
             "cpu_model": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count(),
             "load_average_1min_at_end": round(os.getloadavg()[0], 2)}
@@ -131,7 +131,7 @@ def plot(run_dir: Path, out: Path) -> None:
     if len(rounds):
         ax.plot(rounds[:, 0], rounds[:, 1], "o-", color="tab:blue", label="l2r: evaluation (5 episodes)")
     ax.set_title(f"{task_of(launch)} from pixels: l2r {launch.get('image_size') or 84} x "
-                 f"{launch.get('image_size') or 84}, batch {launch.get('batch_size')}, 2 CPU cores")
+                 f"{launch.get('image_size') or 84}, batch {launch.get('batch_size')}")
     ax.set_xlabel("frames (suite steps)")
     ax.set_ylabel("episode return")
     ax.set_xlim(0, max(rounds[-1, 0] if len(rounds) else 0, 20_000) * 1.05)
