@@ -66,7 +66,7 @@ from l2r.replay.snapshot import snapshot_path
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.sim.randomize import Randomization
-from l2r.spaces import task_spaces
+from l2r.spaces import image_size_option, task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
 
 log = logging.getLogger("l2r.up")
@@ -403,8 +403,10 @@ def replay_snapshot_capacity(directory: Path, shard: int) -> int | None:
 
 
 def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.Namespace:
-    if args.image_size is not None and family_of(args.env_id) != PIXELS:
-        parser.error(f"--image-size is for the camera tasks (l2r/dmc-...), not {args.env_id}")
+    try:
+        image_size_option(args.env_id, args.image_size)
+    except ValueError as e:
+        parser.error(f"--image-size {args.image_size}: {e}")
     if family_of(args.env_id) != RUNNER:
         try:
             observation, _ = task_spaces(args.env_id, args.image_size)

@@ -13,10 +13,11 @@ from l2r.actors.actor import ActorConfig, main, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
 from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
-from l2r.families import PIXELS, RUNNER, family_of
+from l2r.families import RUNNER, family_of
 from l2r.protocol import DaemonSettings, configure_logging
 from l2r.sim import PORT_ID
 from l2r.sim.randomize import Randomization
+from l2r.spaces import image_size_option
 
 DEFAULTS = ActorConfig()
 ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role", "episode logs (MCAP)"
@@ -143,8 +144,10 @@ class ActorSettings(DaemonSettings):
                 raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")
             if self.evaluate:
                 raise UsageError("--difficulty-schedule is for training actors: an evaluator keeps --difficulty")
-        if self.image_size is not None and family_of(self.env_id) != PIXELS:
-            raise UsageError(f"--image-size is for the camera tasks (l2r/dmc-...), not {self.env_id}")
+        try:
+            image_size_option(self.env_id, self.image_size)
+        except ValueError as e:
+            raise UsageError(f"--image-size {self.image_size}: {e}") from None
         if self.native_vector_env and (self.observation_noise or self.action_noise):
             raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
                              "vector env; add --vector-env off")

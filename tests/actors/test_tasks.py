@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 from gymnasium.wrappers import RescaleAction
 
+from l2r.actors.__main__ import parse_settings
 from l2r.actors.actor import ActorConfig, make_env, observation_spec
+from l2r.config import UsageError
 from l2r.evaluate import WrongTask, evaluate
 from l2r.learner.td3 import TD3Config, init_state
 from l2r.policy import build_policy
@@ -59,6 +61,8 @@ def test_a_camera_task_renders_frames_of_the_size_asked_and_l2r_eval_the_size_it
         evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id=DMC_CARTPOLE)
     with pytest.raises(ValueError, match="an image size is for the camera tasks"):
         make_env(ActorConfig(env_id="Hopper-v5", image_size=20), seed=0)
+    with pytest.raises(UsageError, match="--image-size 20: an image size is for the camera tasks"):
+        parse_settings(["--env-id", "Hopper-v5", "--image-size", "20"])
 
 
 @pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")

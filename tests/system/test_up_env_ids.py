@@ -169,7 +169,7 @@ def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
     for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0"], "images train with --algo td3 (DrQ-v2), not sac"),
                       (["--env-id", "Nope-v0"], "doesn't exist"),
                       (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo"),
-                      (["--env-id", "Hopper-v5", "--image-size", "48"], "--image-size is for the camera tasks"),
+                      (["--env-id", "Hopper-v5", "--image-size", "48"], "--image-size 48: an image size is for the camera tasks"),
                       (["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3", "--image-size", "12"],
                        "the drq encoder takes uint8[C, H, W] images of at least 15 x 15")):
         with pytest.raises(SystemExit) as exit_:
