@@ -19,7 +19,7 @@ from typing import Sequence
 import zenoh
 
 from l2r.config import CommandParser
-from l2r.protocol.session import configure_logging, session_config
+from l2r.protocol.session import configure_logging, session_config, wait_until_stopped
 
 log = logging.getLogger("l2r.router")
 
@@ -80,7 +80,7 @@ def main(conf: zenoh.Config, stop: threading.Event) -> None:
             lambda event: log_transport_event(session, event), history=True
         )
         log.info("router %s ready", session.info.zid())
-        stop.wait()
+        wait_until_stopped(stop)
         listener.undeclare()
         log.info("stopping")
 

@@ -41,7 +41,7 @@ from l2r.config import (
 )
 from l2r.episodes.body import BodyModel, Shape, rotate
 from l2r.episodes.read import Episode, read_episode
-from l2r.protocol.session import DaemonSettings, configure_logging
+from l2r.protocol.session import DaemonSettings, configure_logging, wait_until_stopped
 
 APP_ID = "l2r"
 GROUND = "world/ground"  # the model's y-up frame, turned z-up under "world"
@@ -283,7 +283,7 @@ def watch_live(rec: rr.RecordingStream, conf, run: str, duration: float | None) 
         subscriber = session.declare_subscriber(keys.all_frames, on_frame)  # before the token asks for frames
         token = session.liveliness().declare_token(keys.alive("viewer", uuid.uuid4().hex[:12]))
         print(f"l2r view: watching run {run!r} (frames on {keys.all_frames}); Ctrl-C stops", file=sys.stderr)
-        stop.wait(duration)
+        wait_until_stopped(stop, duration)
         subscriber.undeclare()
         token.undeclare()
     for sig, handler in previous.items():

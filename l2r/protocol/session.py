@@ -184,6 +184,21 @@ class DaemonSettings(Settings):
         return session_config(self.connect, self.listen, mode=mode, config_file=self.zenoh_config)
 
 
+def wait_until_stopped(stop: threading.Event, seconds: float | None = None) -> None:
+    """Wait until ``stop`` is set (by a signal handler, say), or ``seconds`` pass when given.
+
+    The wait is cut into short slices. A signal sent to the process may be delivered to one of
+    Zenoh's threads; Python then runs its handler only once the main thread runs Python again,
+    which a main thread blocked in one untimed wait never does: a router, sent SIGTERM while
+    idle, once waited for ever."""
+    deadline = None if seconds is None else time.monotonic() + seconds
+    while not stop.is_set():
+        left = 0.25 if deadline is None else min(0.25, deadline - time.monotonic())
+        if left <= 0:
+            return
+        stop.wait(left)
+
+
 def configure_logging(level: str = "INFO") -> None:
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=LOG_FORMAT)
 

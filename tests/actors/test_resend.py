@@ -123,4 +123,4 @@ def test_chunks_sent_while_no_replay_server_listened_are_resent_and_stored_witho
                 assert proc.wait(timeout=20) == 0, logs()
             except subprocess.TimeoutExpired:
                 proc.kill()
-                raise
+                raise AssertionError(f"{proc.args[2:4]} still running 20 s after SIGTERM\n{logs()}") from None

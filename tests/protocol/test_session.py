@@ -4,12 +4,15 @@ settings are in tests/test_config.py)."""
 from __future__ import annotations
 
 import json
+import signal
 import threading
+import time
 
 import pytest
 import zenoh
 
 from l2r.protocol import Keys, decode, encode, parse_alive, session_config, shard_of, wait_alive
+from l2r.protocol.session import wait_until_stopped
 from tests.protocol.factories import every_message
 from tests.protocol.test_messages import assert_same
 
@@ -70,3 +73,27 @@ def test_every_message_crosses_real_zenoh(endpoint, run_name):
         token.undeclare()
     for sent, got in zip(messages, received):
         assert_same(got, sent)
+
+
+def test_a_stop_signal_delivered_to_another_thread_ends_the_wait():
+    # The kernel may hand a process's SIGTERM to any thread (a Zenoh thread, in a daemon); Python
+    # runs the handler in the main thread only when that thread next runs Python.
+    stop, idle = threading.Event(), threading.Event()
+    bystander = threading.Thread(target=idle.wait)
+    bystander.start()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        threading.Timer(0.2, signal.pthread_kill, (bystander.ident, signal.SIGTERM)).start()
+        started = time.monotonic()
+        wait_until_stopped(stop, 10.0)
+        assert stop.is_set() and time.monotonic() - started < 2.0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        idle.set()
+        bystander.join()
+
+
+def test_the_wait_ends_after_its_seconds_when_nothing_stops_it():
+    started = time.monotonic()
+    wait_until_stopped(threading.Event(), 0.3)
+    assert 0.3 <= time.monotonic() - started < 1.5
