@@ -98,22 +98,35 @@ class Feeder:
 
 
 class WeightsWatcher:
-    """Collects every published weights version, and checks the weights build a policy."""
+    """Collects every published weights version, and checks the weights build a policy.
+
+    A learner publishes its first weights once, at start, perhaps before Zenoh has linked it to
+    this session (peers link through gossip, later on a busy machine); until it has heard some,
+    the watcher asks for the latest, as an actor does."""
 
     def __init__(self, session, run: str):
         self.versions: list[int] = []
         self.metrics: list[dict] = []
         self.last: Weights | None = None
+        self._last_replied = False
         self._lock = threading.Lock()
-        keys = Keys(run)
-        self._subs = [session.declare_subscriber(keys.weights, self._on_weights),
-                      session.declare_subscriber(keys.all_metrics, self._on_metrics)]
+        self._session, self._keys = session, Keys(run)
+        self._subs = [session.declare_subscriber(self._keys.weights, self._on_weights),
+                      session.declare_subscriber(self._keys.all_metrics, self._on_metrics)]
 
-    def _on_weights(self, sample) -> None:
+    def _on_weights(self, sample, replied: bool = False) -> None:
         weights = decode(sample.payload, Weights)
         with self._lock:
-            self.versions.append(weights.version)
+            # A publication heard just after the reply that answered with the same weights is one version.
+            if not (self._last_replied and weights.version == self.versions[-1]):
+                self.versions.append(weights.version)
+            self._last_replied = replied
             self.last = weights
+
+    def _ask_for_the_latest(self) -> None:
+        for reply in self._session.get(self._keys.weights_query, timeout=1.0):
+            if reply.ok:
+                self._on_weights(reply.ok, replied=True)
 
     def _on_metrics(self, sample) -> None:
         self.metrics.append(decode(sample.payload, Stats).values)
@@ -124,7 +137,10 @@ class WeightsWatcher:
             with self._lock:
                 if predicate(list(self.versions)):
                     return
+                heard = bool(self.versions)
             assert daemon.proc.poll() is None, f"learner exited early:\n{daemon.log()}"
+            if not heard:
+                self._ask_for_the_latest()
             time.sleep(0.05)
         raise AssertionError(f"timed out waiting for {what}; versions {self.versions}\n{daemon.log()}")
 
