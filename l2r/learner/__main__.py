@@ -31,7 +31,7 @@ from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS, PPOConfig  # noqa: E402
 from l2r.learner.reinforce import ReinforceConfig  # noqa: E402
 from l2r.learner.sac import HIDDEN_WIDTHS, SACConfig  # noqa: E402
 from l2r.learner.steps import COMPILE_MODES  # noqa: E402
-from l2r.learner.td3 import TD3Config  # noqa: E402
+from l2r.learner.td3 import ACTOR_LOSSES, TD3Config  # noqa: E402
 from l2r.learner.trpo import TRPOConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, ObservationSpec, ProtocolError, configure_logging  # noqa: E402
 from l2r.protocol.limits import MAX_FRAME_STACK  # noqa: E402
@@ -169,6 +169,11 @@ class LearnerSettings(DaemonSettings):
                                            "instead of --target-noise (DrQ-v2's way)", group=TD3)
     noise_clip: float = setting(TD3_DEFAULTS.noise_clip, "the target action's noise is clipped to +-this (DrQ-v2: "
                                 "0.3)", group=TD3, ge=0)
+    online_target_actor: bool = setting(False, "the target action is the online actor's (DrQ-v2), not its Polyak "
+                                        "copy's (TD3)", group=TD3)
+    actor_loss: Literal[ACTOR_LOSSES] = setting(
+        TD3_DEFAULTS.actor_loss, "what the actor ascends: q1, the first critic at its own action (TD3); min-noisy, "
+        "the lower critic at its action plus the exploration noise clipped at --noise-clip (DrQ-v2)", group=TD3)
     exploration_std_start: float = setting(TD3_DEFAULTS.exploration_std_start, "std of the actors' Gaussian "
                                            "exploration noise at update 0 (DrQ-v2: 1.0)", group=TD3, ge=0)
     exploration_std_end: float = setting(TD3_DEFAULTS.exploration_std_end, "... and after "
@@ -374,6 +379,7 @@ class LearnerSettings(DaemonSettings):
                 critic_lr=self._given("lr", TD3_DEFAULTS.critic_lr),
                 update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
                 target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
+                online_target_actor=self.online_target_actor, actor_loss=self.actor_loss,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
                 exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,
                 frame_stack=self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),

@@ -7,21 +7,23 @@ copy of target actor and target critics. The learner daemon and the tests call t
 through `steps.GradientSteps`, which counts the updates, decides `actor_step` from the count, and
 may compile the update or capture it as CUDA graphs.
 
-Two additions to Fujimoto et al.'s algorithm, both off by default:
+Additions to Fujimoto et al.'s algorithm, all off by default:
 - n-step returns (`n_step`): the replay server sums the rewards of n steps and gives each sample
   its bootstrap's discount (`Batch.discounts`), so the target needs no knowledge of the window.
 - a linear schedule of the exploration noise (`exploration_std_*`), as DrQ-v2 decays it. The
   std is a buffer of the policy (`DeterministicPolicy.exploration_std`): set after every batch's
   updates (`follow_exploration_schedule`), it goes out with every weights message and checkpoint,
   and the actors explore with it.
+- DrQ-v2's two departures (`online_target_actor`, `actor_loss`): the target action from the online actor,
+  and the actor ascending the lower critic at its action plus clipped exploration noise.
 
 Image observations make it DrQ-v2 (docs/learner.md): one convolutional encoder (the actor's),
 learnt by the critic loss alone, embeds each batch once for all networks, each of which projects
 the embedding its own way; every update shifts the images at random first (`augment_pad`).
 
 The critics, the batches, the precision options and the speed measures are SAC's
-(`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; its one
-branch is on the `actor_step` bool, never on a tensor or a counter; the exploration std is written
+(`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; it
+branches on the `actor_step` bool and the config, never on a tensor or a counter; the exploration std is written
 from Python outside it (the target noise reads the std's buffer, not a Python float).
 """
 
@@ -41,6 +43,10 @@ from l2r.learner.sac import Batch, TwinCritic
 from l2r.policy import DETERMINISTIC, DeterministicPolicy
 from l2r.protocol.limits import MAX_FRAME_STACK
 from l2r.protocol.observations import ObservationSpec
+
+
+Q1, MIN_NOISY = "q1", "min-noisy"
+ACTOR_LOSSES = (Q1, MIN_NOISY)
 
 
 @dataclass
@@ -78,6 +84,12 @@ class TD3Config:
     exploration std, as DrQ-v2 does."""
     noise_clip: float = 0.5
     """The target action's noise is clipped to +-noise_clip (TD3's paper and SB3: 0.5; DrQ-v2: 0.3)."""
+    online_target_actor: bool = False
+    """The target action is the online actor's (DrQ-v2), not its Polyak copy's (TD3)."""
+    actor_loss: str = Q1
+    """What the actor ascends: 'q1', the first critic at the actor's own action (TD3); 'min-noisy', the
+    lower of the two critics at that action plus the exploration noise clipped at noise_clip, kept
+    in [-1, 1] without cutting the gradient (DrQ-v2)."""
     exploration_std_start: float = 0.1
     """Std of the actors' Gaussian exploration noise at update 0 (SB3 / rl-zoo: 0.1; DrQ-v2: 1.0)."""
     exploration_std_end: float = 0.1
@@ -111,6 +123,8 @@ class TD3Config:
         check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
             raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
+        if self.actor_loss not in ACTOR_LOSSES:
+            raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {self.actor_loss!r}")
         if self.encoder not in encoders.IMAGE_VIEWS:
             raise ValueError(f"encoder must be one of {sorted(encoders.IMAGE_VIEWS)}, got {self.encoder!r}")
         if not 1 <= self.frame_stack <= MAX_FRAME_STACK or self.augment_pad < 0:
@@ -259,7 +273,8 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
     # 1. Target: clipped double Q of the target policy's action, smoothed by clipped noise.
     #    Only a real termination cuts the bootstrap; n-step batches carry the discount of theirs.
     with torch.no_grad(), state.autocast():
-        next_action = state.target_actor.action_of(next_embedding)
+        target_policy = state.actor if config.online_target_actor else state.target_actor
+        next_action = target_policy.action_of(next_embedding)
         noise_std = state.actor.exploration_std if config.target_noise is None else config.target_noise
         smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
         next_action = (next_action + smoothing).clamp(-1.0, 1.0)
@@ -280,12 +295,21 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
     metrics = {"critic_loss": critic_loss.detach(), "q_mean": q.detach().mean(), "target_mean": target.mean(),
                "priorities": td_error.detach().abs().mean(0)}
 
-    # 3. Delayed: the actor ascends Q1 of its own action against the updated critics (their
-    #    weights detached: only dQ/da is needed), then the targets follow by Polyak averaging.
+    # 3. Delayed: the actor ascends Q1 of its own action, or the lower critic at it with noise (DrQ-v2),
+    #    against the updated critics (their weights detached: only dQ/da is needed), then the
+    #    targets follow by Polyak averaging.
     if actor_step:
         with state.autocast():
             embedding = embedding.detach()
-            q_pi = state.critic(embedding, state.actor.action_of(embedding), detach_weights=True, critics=1)[0]
+            action = state.actor.action_of(embedding)
+            if config.actor_loss == Q1:
+                q_pi = state.critic(embedding, action, detach_weights=True, critics=1)[0]
+            else:
+                noise = (torch.randn_like(action) * state.actor.exploration_std).clamp(-config.noise_clip,
+                                                                                       config.noise_clip)
+                noisy = action + noise
+                noisy = noisy + (noisy.clamp(-1.0, 1.0) - noisy).detach()  # in range; the gradient passes as if not clamped
+                q_pi = state.critic(embedding, noisy, detach_weights=True).min(0).values
         actor_loss = -q_pi.mean()
         state.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()

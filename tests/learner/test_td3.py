@@ -114,13 +114,15 @@ def test_the_one_step_target_is_cut_by_a_termination_only():
     torch.testing.assert_close(metrics["target_mean"], expected.mean())
 
 
-def recorded_target_actions(config: TD3Config, target_action: float, n: int = 512) -> torch.Tensor:
+def recorded_target_actions(config: TD3Config, target_action: float, n: int = 512,
+                            online_action: float = 0.0) -> torch.Tensor:
     """The actions the target critics are asked about in one update, the target policy's every output
-    being `target_action`."""
+    being `target_action` and the online policy's `online_action`."""
     state = init_state(config, OBS, ACT, seed=5)
     with torch.no_grad():
-        state.target_actor.head.weight.zero_()
-        state.target_actor.head.bias.fill_(math.atanh(target_action))
+        for policy, action in ((state.target_actor, target_action), (state.actor, online_action)):
+            policy.head.weight.zero_()
+            policy.head.bias.fill_(math.atanh(action))
     seen = []
     forward = state.target_critic.forward
     state.target_critic.forward = lambda obs, action, **kw: seen.append(action) or forward(obs, action, **kw)
@@ -144,6 +146,13 @@ def test_target_noise_none_takes_the_scheduled_exploration_std():
     actions = recorded_target_actions(config, target_action=0.0, n=2048)
     assert float(actions.std()) == pytest.approx(0.05, rel=0.05)
     assert float(actions.mean()) == pytest.approx(0.0, abs=0.01)
+
+
+@pytest.mark.parametrize("online", [False, True])
+def test_the_target_action_is_the_polyak_copy_s_or_if_asked_the_online_actor_s(online):
+    actions = recorded_target_actions(small_config(target_noise=0.0, online_target_actor=online), target_action=-0.5,
+                                      online_action=0.5)
+    torch.testing.assert_close(actions, torch.full_like(actions, 0.5 if online else -0.5))
 
 
 def test_the_exploration_schedule_is_linear_then_constant_and_the_weights_carry_it():
@@ -203,6 +212,46 @@ def test_the_actor_loss_is_minus_q1_of_its_own_action_against_the_updated_critic
         q = state.critic(state.actor.observation_filter(batch.obs), actor_before(batch.obs))
     torch.testing.assert_close(metrics["actor_loss"], -q[0].mean())
     assert not torch.allclose(q[0].mean(), q.min(0).values.mean(), atol=1e-3), "Q1 and min(Q1, Q2) must differ here"
+
+
+def actor_step_actions(state, batch, config: TD3Config) -> tuple[dict, torch.Tensor]:
+    """One update's metrics and the actions the actor's loss asked the critics about."""
+    seen = []
+    forward = state.critic.forward
+    state.critic.forward = lambda obs, action, **kw: (kw.get("detach_weights") and seen.append(action.detach())) \
+        or forward(obs, action, **kw)
+    metrics = train_step(state, batch, config)
+    (actions,) = seen
+    return metrics, actions
+
+
+def test_the_min_noisy_actor_loss_is_minus_the_lower_critic_at_the_noisy_action():
+    config = small_config(policy_delay=1, actor_loss="min-noisy", exploration_std_start=100.0,
+                          exploration_std_end=100.0, noise_clip=0.3)
+    state = trained_state(config, seed=12)
+    actor_before, batch = copy.deepcopy(state.actor), random_batch(seed=13)
+    metrics, noisy = actor_step_actions(state, batch, config)
+    with torch.no_grad():  # the critic step came first; the actor step changes no critic
+        own = actor_before(batch.obs)
+        q = state.critic(state.actor.observation_filter(batch.obs), noisy)
+    torch.testing.assert_close(metrics["actor_loss"], -q.min(0).values.mean())
+    # A std of 100 puts nearly every draw past the clip, and the action stays within its bounds.
+    assert noisy.abs().max() <= 1.0
+    shift = noisy - own
+    assert shift.abs().max() <= 0.3 + 1e-6
+    assert ((shift.abs() - 0.3).abs() < 1e-5).float().mean() > 0.8
+
+
+def test_the_min_noisy_actor_learns_through_noisy_actions_held_at_the_bounds():
+    # Noise clipped at 5 with a std of 1e6: every noisy action lies past a bound and is held there;
+    # the actor's gradient goes through the hold as if it were not there (DrQ-v2's), not zero.
+    config = small_config(policy_delay=1, actor_loss="min-noisy", exploration_std_start=1e6,
+                          exploration_std_end=1e6, noise_clip=5.0)
+    state = trained_state(replace(config, exploration_std_start=0.1, exploration_std_end=0.1), seed=12)
+    follow_exploration_schedule(state, config)
+    _, noisy = actor_step_actions(state, random_batch(seed=13), config)
+    assert torch.equal(noisy.abs(), torch.ones_like(noisy))
+    assert state.actor.head.weight.grad.abs().sum() > 0  # (what the actor's step took)
 
 
 def test_targets_follow_by_polyak_averaging_on_actor_updates():
@@ -311,6 +360,8 @@ def test_the_command_line_builds_td3_s_settings():
     assert config == TD3Config(n_step=3, policy_delay=4, noise_clip=0.3, exploration_std_start=1.0,
                                exploration_std_updates=500, hidden=(64, 64), mirror=True)
     assert parse_settings(["--algo", "td3", "--scheduled-target-noise"]).algorithm().target_noise is None
+    drqv2 = parse_settings(["--algo", "td3", "--online-target-actor", "--actor-loss", "min-noisy"]).algorithm()
+    assert (drqv2.online_target_actor, drqv2.actor_loss) == (True, "min-noisy")
     assert parse_settings(["--algo", "td3"]).algorithm() == TD3Config()
 
 
