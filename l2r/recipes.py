@@ -26,6 +26,7 @@ from typing import Mapping
 from l2r.encoders import IMAGE_VIEWS
 from l2r.families import PHOTO, PIXELS, RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS
+from l2r.learner.td3 import ACTOR_LOSSES
 from l2r.policy import ACTIVATIONS
 
 Value = bool | int | float | str
@@ -153,6 +154,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
         reward_scale=10.0, update_repeat=1, publish_every=50,
         n_step=1, policy_delay=2, target_noise=0.2, scheduled_target_noise=False, noise_clip=0.5,
+        online_target_actor=False, actor_loss="q1",
         exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
@@ -164,6 +166,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         hidden="256,256", activation="relu", layer_norm=False, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
         reward_scale=1.0, update_repeat=1, publish_every=1,
         n_step=1, policy_delay=2, target_noise=0.2, scheduled_target_noise=False, noise_clip=0.5,
+        online_target_actor=False, actor_loss="q1",
         exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=25_000, samples_per_insert=256.0, hold_actors=True,
@@ -179,6 +182,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         hidden="1024,1024", activation="relu", layer_norm=False, batch_size=256, lr=1e-4, gamma=0.99, tau=0.01,
         reward_scale=1.0, update_repeat=1, publish_every=10,
         n_step=3, policy_delay=1, target_noise=0.2, scheduled_target_noise=True, noise_clip=0.3,
+        online_target_actor=False, actor_loss="q1",
         exploration_std_start=1.0, exploration_std_end=0.1, exploration_std_updates=50_000,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=2_000, samples_per_insert=128.0, hold_actors=True,
@@ -198,6 +202,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         hidden="400,300", activation="relu", layer_norm=False, batch_size=128, lr=1e-4, gamma=0.9, tau=0.007,
         reward_scale=1.0, update_repeat=1, publish_every=10,
         n_step=1, policy_delay=2, target_noise=0.04, scheduled_target_noise=False, noise_clip=0.01,
+        online_target_actor=False, actor_loss="q1",
         exploration_std_start=0.02, exploration_std_end=0.02, exploration_std_updates=250_000,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=100, samples_per_insert=128.0, hold_actors=True,
@@ -236,6 +241,9 @@ SETTINGS: dict[str, str] = {
     "scheduled_target_noise": "the target action's noise takes the current exploration std instead of "
                               "--target-noise (TD3)",
     "noise_clip": "the target action's noise is clipped to +- this (TD3)",
+    "online_target_actor": "the target action is the online actor's (DrQ-v2), not its Polyak copy's (TD3)",
+    "actor_loss": "what the actor ascends: q1, the first critic at its own action; min-noisy, the lower critic at "
+                  "its action plus the exploration noise clipped at --noise-clip, as DrQ-v2 (TD3)",
     "exploration_std_start": "std of the actors' Gaussian exploration noise at update 0 (TD3)",
     "exploration_std_end": "... and after --exploration-std-updates updates (TD3)",
     "exploration_std_updates": "learner updates over which the exploration std goes linearly from start to end "
@@ -285,7 +293,8 @@ SETTINGS: dict[str, str] = {
 }
 # Settings whose values are one of a few names.
 CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS,
-                                       "optimizer": OPTIMIZERS, "encoder": tuple(IMAGE_VIEWS)}
+                                       "optimizer": OPTIMIZERS, "encoder": tuple(IMAGE_VIEWS),
+                                       "actor_loss": ACTOR_LOSSES}
 
 # The replay server's settings, under their l2r-replay flags.
 REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per-insert",
