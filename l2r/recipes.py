@@ -178,8 +178,8 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # one per 2 env steps; its medium tasks take 250,000), the target's noise that same std clipped
     # at 0.3, the actor every update, learning after 2,000 uniform random steps; the target action
     # from the online actor, and the actor ascending the lower critic at its action plus that noise
-    # (TD3's target actor and Q1 left cartpole-swingup at 74 for an hour, seed 0; these reached 183
-    # at 40k frames: docs/training.md). Weights go out every 10th update rather than each: an image
+    # (TD3's target actor and Q1 left cartpole-swingup at 74 for an hour, seed 0; these reached 194
+    # at 20k frames: docs/training.md). Weights go out every 10th update rather than each: an image
     # policy is 8 MB, mostly its encoder's projection.
     (PIXELS, "td3"): dict(
         hidden="1024,1024", activation="relu", layer_norm=False, batch_size=256, lr=1e-4, gamma=0.99, tau=0.01,

@@ -14,8 +14,9 @@ Additions to Fujimoto et al.'s algorithm, all off by default:
   std is a buffer of the policy (`DeterministicPolicy.exploration_std`): set after every batch's
   updates (`follow_exploration_schedule`), it goes out with every weights message and checkpoint,
   and the actors explore with it.
-- DrQ-v2's two departures (`online_target_actor`, `actor_loss`): the target action from the online actor,
-  and the actor ascending the lower critic at its action plus clipped exploration noise.
+- DrQ-v2's two departures (`online_target_actor`, `actor_loss`): the target action from the
+  online actor, and the actor ascending the lower critic at its action plus clipped exploration
+  noise.
 
 Image observations make it DrQ-v2 (docs/learner.md): one convolutional encoder (the actor's),
 learnt by the critic loss alone, embeds each batch once for all networks, each of which projects
@@ -23,8 +24,8 @@ the embedding its own way; every update shifts the images at random first (`augm
 
 The critics, the batches, the precision options and the speed measures are SAC's
 (`l2r.learner.sac`). For graph capture: the update never reads a value back to Python; it
-branches on the `actor_step` bool and the config, never on a tensor or a counter; the exploration std is written
-from Python outside it (the target noise reads the std's buffer, not a Python float).
+branches on the `actor_step` bool and the config, never on a tensor or a counter; the exploration
+std is written from Python outside it (the target noise reads the std's buffer, not a Python float).
 """
 
 from __future__ import annotations
@@ -308,7 +309,8 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
                 noise = (torch.randn_like(action) * state.actor.exploration_std).clamp(-config.noise_clip,
                                                                                        config.noise_clip)
                 noisy = action + noise
-                noisy = noisy + (noisy.clamp(-1.0, 1.0) - noisy).detach()  # in range; the gradient passes as if not clamped
+                # Held in range, its gradient passed as if it were not (DrQ-v2's): a bound stops no learning.
+                noisy = noisy + (noisy.clamp(-1.0, 1.0) - noisy).detach()
                 q_pi = state.critic(embedding, noisy, detach_weights=True).min(0).values
         actor_loss = -q_pi.mean()
         state.actor_opt.zero_grad(set_to_none=True)
