@@ -117,11 +117,14 @@ class WeightsWatcher:
     def _on_weights(self, sample, replied: bool = False) -> None:
         weights = decode(sample.payload, Weights)
         with self._lock:
-            # A publication heard just after the reply that answered with the same weights is one version.
+            # A reply and a publication of the same weights, heard in either order, are one version;
+            # a reply that comes after newer publications adds nothing.
+            if replied and self.versions and weights.version <= self.versions[-1]:
+                return
             if not (self._last_replied and weights.version == self.versions[-1]):
                 self.versions.append(weights.version)
+                self.last = weights
             self._last_replied = replied
-            self.last = weights
 
     def _ask_for_the_latest(self) -> None:
         for reply in self._session.get(self._keys.weights_query, timeout=1.0):
