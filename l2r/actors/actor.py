@@ -152,7 +152,8 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
         return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
     env = gymnasium.make(env_id, **image_size_option(env_id, image_size))
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
-        env = RescaleAction(env, 0.0, 1.0)
+        bound = env.action_space.dtype.type  # (Python floats would make gymnasium warn of a float64 bound)
+        env = RescaleAction(env, bound(0.0), bound(1.0))
     return env
 
 

@@ -1,6 +1,8 @@
 """An actor steps tasks other than the runner: gymnasium's own, with Box actions in other bounds,
 and the camera tasks, by their ids alone; `l2r eval` tells a policy of other observations apart."""
 
+import warnings
+
 import numpy as np
 import pytest
 from gymnasium.wrappers import RescaleAction
@@ -20,8 +22,11 @@ DMC_CARTPOLE = "l2r/dmc-cartpole-swingup-v0"
 
 
 def test_another_task_takes_the_policy_s_excitations_rescaled_to_its_action_bounds():
-    env = make_env(ActorConfig(env_id="Hopper-v5", action_repeat=1), seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # gymnasium warned of bounds rescaled in float64
+        env = make_env(ActorConfig(env_id="Hopper-v5", action_repeat=1), seed=0)
     assert (env.action_space.low.tolist(), env.action_space.high.tolist()) == ([0.0] * 3, [1.0] * 3)
+    assert env.action_space.dtype == np.float32
     np.testing.assert_allclose(env.action(np.array([0.0, 0.5, 1.0], np.float32)), [-1.0, 0.0, 1.0])
     obs, _ = env.reset(seed=0)
     assert obs.shape == (11,) and env.step(np.full(3, 0.5, np.float32))[0].shape == (11,)
