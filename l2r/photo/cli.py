@@ -18,7 +18,7 @@ import numpy as np
 
 from l2r.config import CommandParser
 from l2r.photo import enhance, photos, tune
-from l2r.photo.env import PhotoEnhanceEnv, psnr_db
+from l2r.photo.env import GOALS, PhotoEnhanceEnv, psnr_db
 from l2r.photo.pipeline import NAMES, finish, params_from_actions
 
 OPTIMIZERS = {"cmaes": tune.cmaes, "random": tune.random_search}
@@ -59,12 +59,17 @@ def build_parser() -> argparse.ArgumentParser:
     c = commands.add_parser("compare", help="the policy against random search and CMA-ES on the held-out photos",
                             description="On held-out problems as l2r/PhotoTune-v0 poses them (a crop of a test "
                                         "photo and a goal made with hidden random parameters: RLPixTuner's "
-                                        "FiveK-Random), the mean PSNR and SSIM to the goal of the untouched input, of "
-                                        "random search and CMA-ES at each budget, and of the policy at 10 queries "
-                                        "when --checkpoint is given; a table, or one JSON line.")
+                                        "FiveK-Random; or, with --goals looks, another test scene's look), the mean "
+                                        "PSNR and SSIM to the goal of the untouched input, of random search and "
+                                        "CMA-ES at each budget, and of the policy at 10 queries when --checkpoint "
+                                        "is given; a table, or one JSON line.")
     add_held_out(c, "also run this policy of l2r/PhotoTune-v0")
     c.add_argument("--budgets", default=",".join(map(str, tune.BUDGETS)), metavar="N,N,...",
                    help=f"the optimisers' query budgets (default: {','.join(map(str, tune.BUDGETS))})")
+    c.add_argument("--goals", choices=GOALS, default="random",
+                   help="random: the crop finished with hidden random parameters, which an exact answer reaches; "
+                        "looks: the crop with the colour statistics of a crop of another test scene (Reinhard's "
+                        "colour transfer in CIELAB), a grade the pipeline can only approach (default: random)")
     add_common(c)
     e = commands.add_parser("enhance", help="the enhancer's policy against automatic levels and histogram "
                                             "equalisation on degraded held-out photos",
@@ -191,11 +196,12 @@ def run_compare(args: argparse.Namespace) -> dict:
     policy = None if args.checkpoint is None else load_policy(args.checkpoint)
     started = time.monotonic()
     try:
-        problems = tune.held_out_problems(args.photos, args.seed, args.folder)
+        problems = tune.held_out_problems(args.photos, args.seed, args.folder, goals=args.goals)
         result = tune.compare(problems, budgets, policy, args.seed)
     except (FileNotFoundError, ValueError) as e:
         raise PhotoError(str(e)) from None
-    return result | {"problems": [p.name for p in problems], "seconds": round(time.monotonic() - started, 1)}
+    return result | {"goals": args.goals, "problems": [p.name for p in problems],
+                     "seconds": round(time.monotonic() - started, 1)}
 
 
 def run_enhance(args: argparse.Namespace) -> dict:
@@ -222,7 +228,9 @@ def print_enhance(result: dict) -> None:
 
 
 def print_compare(result: dict) -> None:
-    print(f"{result['photos']} held-out problems ({', '.join(result['problems'])}), {result['seconds']:.0f} s")
+    goals = "another scene's look" if result["goals"] == "looks" else "hidden random parameters"
+    print(f"{result['photos']} held-out problems, goals made with {goals} ({', '.join(result['problems'])}), "
+          f"{result['seconds']:.0f} s")
     print(f"{'method':<14} {'queries':>7} {'PSNR (dB)':>10} {'SSIM':>7}")
     rows = [("input", 0, result["input_psnr_db"], result["input_ssim"])]
     for method, label in (("random", "random search"), ("cmaes", "CMA-ES")):

@@ -5,7 +5,10 @@ bring a photo degraded by hidden pipeline parameters back towards its original.
 RLPixTuner's goal-conditioned tuning task (its `envs/isp_env.py`) in the "FiveK-Random" setting:
 each episode crops a 256 × 256 working image from a photo of the split and makes its goal by
 running the pipeline (l2r.photo.pipeline) on it with hidden parameters, each action drawn
-uniformly in [-1, 1]; a crop or goal that is itself collapsed (below) is drawn again.
+uniformly in [-1, 1]; a crop or goal that is itself collapsed (below) is drawn again. With
+`goals="looks"` the goal is instead the crop with another scene's look (`transfer_look`: the
+colour statistics of a crop of a photo of another scene of the same split), a colour grade the
+pipeline can approach but, unlike a random edit, not always reach (as a retoucher's target).
 
 The action is a complete setting of the nine parameters, each in [-1, 1] mapped onto its range,
 not a change to the current one: as in RLPixTuner (`isp_inp_original`), each step runs the
@@ -37,6 +40,7 @@ a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the curre
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -55,6 +59,9 @@ MAX_PSNR_DB = 100.0
 """PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
 MAX_DRAWS = 100
 VIEWS = ("images", "statistics")
+GOALS = ("random", "looks")
+"""How the tuner's goals are made: the crop finished with hidden random parameters, or the crop
+with another scene's look (`transfer_look`)."""
 
 
 def psnr_db(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
@@ -102,6 +109,21 @@ def image_statistics(images: np.ndarray) -> np.ndarray:
     return np.stack([luminance.mean(axis=(1, 2)), luminance.var(axis=(1, 2)), saturation.mean(axis=(1, 2))], axis=1)
 
 
+def transfer_look(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``image`` (float [3, H, W] in [0, 1]) with ``reference``'s look: each CIELAB channel shifted
+    and scaled to the reference's mean and standard deviation (Reinhard et al.'s colour transfer,
+    2001), back in RGB clipped to [0, 1]. A linear map of each channel, so it grades without the
+    posterising of histogram matching between photos of different content."""
+    from skimage.color import lab2rgb, rgb2lab
+
+    source, target = (rgb2lab(np.moveaxis(x, 0, -1)) for x in (image, reference))
+    spread = target.std(axis=(0, 1)) / np.maximum(source.std(axis=(0, 1)), 1e-6)
+    graded = (source - source.mean(axis=(0, 1))) * spread + target.mean(axis=(0, 1))
+    with warnings.catch_warnings():  # lab2rgb warns of each colour outside the gamut, which it clips
+        warnings.simplefilter("ignore", UserWarning)
+        return np.moveaxis(np.clip(lab2rgb(graded), 0.0, 1.0), -1, 0).astype(np.float32)
+
+
 class PhotoTuneEnv(gym.Env):
     """The goal-conditioned photo-finishing tuner's task.
 
@@ -110,6 +132,7 @@ class PhotoTuneEnv(gym.Env):
     sources: photos to crop from instead of the split's, by name ([3, H, W] uint8 or uint16: a
         FiveK folder's, say).
     view: "images" (both images and their statistics) or "statistics" (`image_features` alone).
+    goals: "random" (RLPixTuner's FiveK-Random) or "looks" (another scene's look; the tuner's task alone).
     """
 
     metadata = {"render_modes": []}
@@ -117,17 +140,20 @@ class PhotoTuneEnv(gym.Env):
     """Whether the observation shows the goal (the tuner's task) or the current image alone."""
     task = "PhotoTune"
     """The name errors begin with."""
+    goal_kinds = GOALS
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
-                 sources: Mapping[str, np.ndarray] | None = None, view: str = "images"):
+                 sources: Mapping[str, np.ndarray] | None = None, view: str = "images", goals: str = "random"):
         photos.check_split(split)
         if view not in VIEWS:
             raise ValueError(f"{self.task}: view must be one of {', '.join(VIEWS)}, got {view!r}")
+        if goals not in self.goal_kinds:
+            raise ValueError(f"{self.task}: goals must be one of {', '.join(self.goal_kinds)}, got {goals!r}")
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if sources is not None and not sources:
             raise ValueError(f"{self.task}: sources holds no photo")
-        self.split, self.max_steps, self.view = split, max_steps, view
+        self.split, self.max_steps, self.view, self.goals = split, max_steps, view, goals
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
@@ -142,8 +168,10 @@ class PhotoTuneEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
         """A new episode on a crop and goal drawn from the split; `options={"source": S, "goal": G}`
-        tunes S towards G instead (float32 [3, 256, 256] in [0, 1]: `l2r photo tune`'s way)."""
+        tunes S towards G instead (float32 [3, 256, 256] in [0, 1]: `l2r photo tune`'s way).
+        `info["look"]` names the photo whose look the goal has (None: not a borrowed look)."""
         super().reset(seed=seed)
+        self.look = None
         if options and "goal" in options:
             self.photo_name = "given"
             self.source, self.goal = (self.check_image(options, name) for name in ("source", "goal"))
@@ -153,19 +181,27 @@ class PhotoTuneEnv(gym.Env):
         self.image, self.params, self.steps = self.source, NEUTRAL, 0
         self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
         self.episode_over = False
-        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name}
+        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name, "look": self.look}
 
     def draw(self) -> None:
-        """The episode's input, a crop of a photo of the split, and its goal, that crop edited with
-        hidden random parameters."""
-        self.photo_name, self.source, self.goal_params, self.goal = self.random_edit()
+        """The episode's input, a crop of a photo of the split, and its goal: that crop edited with
+        hidden random parameters, or given another scene's look."""
+        if self.goals == "looks":
+            self.photo_name, self.source, self.look, self.goal = self.borrowed_look()
+            self.goal_params = None  # no parameters are known to reach it
+        else:
+            self.photo_name, self.source, self.goal_params, self.goal = self.random_edit()
+
+    def loaded(self) -> dict[str, np.ndarray]:
+        """The photos episodes crop from, by name, loaded at the first call."""
+        if self.photos is None:
+            self.photos = photos.load_split(self.split)
+        return self.photos
 
     def random_edit(self) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
         """A photo of the split by name, a random crop of it, parameters drawn uniformly as actions
         in [-1, 1], and the crop finished with them: neither image collapsed."""
-        if self.photos is None:
-            self.photos = photos.load_split(self.split)
-        names = list(self.photos)
+        names = list(self.loaded())
         for _ in range(MAX_DRAWS):
             name = names[int(self.np_random.integers(len(names)))]
             crop = photos.random_crop(self.photos[name], self.np_random)
@@ -174,6 +210,25 @@ class PhotoTuneEnv(gym.Env):
             if not collapsed(crop) and not collapsed(edited):
                 return name, crop, params, edited
         raise RuntimeError(f"{MAX_DRAWS} crops of the {self.split} photos and their edits in a row were collapsed")
+
+    def borrowed_look(self) -> tuple[str, np.ndarray, str, np.ndarray]:
+        """A photo of the split by name, a random crop of it, a photo of another scene by name, and
+        the crop with the look of a random crop of that photo: neither the crop nor its goal
+        collapsed."""
+        names = list(self.loaded())
+        for _ in range(MAX_DRAWS):
+            name = names[int(self.np_random.integers(len(names)))]
+            others = [other for other in names if photos.scene(other) != photos.scene(name)]
+            if not others:
+                raise ValueError(f"{self.task}: goals='looks' needs photos of two scenes at least; "
+                                 f"the photos are {', '.join(names)}")
+            look = others[int(self.np_random.integers(len(others)))]
+            crop = photos.random_crop(self.photos[name], self.np_random)
+            reference = photos.random_crop(self.photos[look], self.np_random)
+            goal = transfer_look(crop, reference)
+            if not collapsed(crop) and not collapsed(goal):
+                return name, crop, look, goal
+        raise RuntimeError(f"{MAX_DRAWS} crops of the {self.split} photos and their looks in a row were collapsed")
 
     def check_image(self, options: dict, name: str) -> np.ndarray:
         side = photos.WORKING_SIZE
@@ -223,6 +278,7 @@ class PhotoEnhanceEnv(PhotoTuneEnv):
 
     shows_goal = False
     task = "PhotoEnhance"
+    goal_kinds = ("random",)
 
     def draw(self) -> None:
         self.photo_name, self.goal, self.degradation, self.source = self.random_edit()

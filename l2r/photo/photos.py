@@ -73,6 +73,12 @@ SPLITS = {
 """The photos of each split, by name."""
 
 
+def scene(name: str) -> str:
+    """The scene a photo shows: its source in `PHOTOS` (the motorcycle pair is one scene), or
+    its own name for a photo of the user's."""
+    return PHOTOS[name][0] if name in PHOTOS else name
+
+
 def check_split(split: str) -> None:
     if split not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")

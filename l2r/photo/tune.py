@@ -127,20 +127,22 @@ def policy_tune(policy, problem: Problem, env_ids: tuple[str, ...] = TUNE_IDS) -
 
 
 def held_out_problems(count: int, seed: int = 0, folder: str | Path | None = None,
-                      task: type[PhotoTuneEnv] = PhotoTuneEnv) -> list[Problem]:
+                      task: type[PhotoTuneEnv] = PhotoTuneEnv, goals: str = "random") -> list[Problem]:
     """`count` problems as `task` poses them on seeds seed, seed + 1, ...: crops of the held-out
     photos (the test split, or the test split of a FiveK folder's inputs) and goals made with
-    hidden random parameters (RLPixTuner's FiveK-Random); with `PhotoEnhanceEnv`, those edits
-    are the sources and the crops the goals."""
+    hidden random parameters (RLPixTuner's FiveK-Random) or, with `goals="looks"`, with another
+    held-out scene's look; with `PhotoEnhanceEnv`, the random edits are the sources and the
+    crops the goals."""
     sources = None
     if folder is not None:
         pairs = photos.fivek_split(photos.fivek_pairs(folder), "test")
         sources = {source.stem: photos.read_image(source) for source, _ in pairs}
-    env = task(split="test", sources=sources)
+    env = task(split="test", sources=sources, **({"goals": goals} if goals != "random" else {}))
     problems = []
     for i in range(count):
-        env.reset(seed=seed + i)
-        problems.append(Problem(f"{env.photo_name}@{seed + i}", env.source, env.goal))
+        _, info = env.reset(seed=seed + i)
+        look = f" in {info['look']}'s look" if info["look"] else ""
+        problems.append(Problem(f"{env.photo_name}@{seed + i}{look}", env.source, env.goal))
     return problems
 
 

@@ -10,7 +10,7 @@ import pytest
 
 import l2r.photo.env  # registers the id (l2r.photo)
 from l2r.photo import photos
-from l2r.photo.env import collapsed, image_features, image_statistics, psnr_db
+from l2r.photo.env import collapsed, image_features, image_statistics, psnr_db, transfer_look
 from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
 from l2r.protocol.observations import ObservationSpec
 
@@ -196,3 +196,50 @@ def test_photos_given_to_the_env_are_the_ones_it_crops():
     assert {given.reset(seed=seed)[1]["photo"] for seed in range(3)} == {"mine"}
     with pytest.raises(ValueError, match="sources holds no photo"):
         l2r.photo.env.PhotoTuneEnv(sources={})
+
+
+def lab_statistics(image):
+    from skimage.color import rgb2lab
+
+    lab = rgb2lab(np.moveaxis(image, 0, -1))
+    return lab.mean(axis=(0, 1)), lab.std(axis=(0, 1))
+
+
+def test_a_transferred_look_takes_the_reference_s_colour_statistics_and_keeps_the_image_s_shapes():
+    rng = np.random.default_rng(5)
+    image, reference = (photos.random_crop(photos.load_photo(name), rng) for name in ("coffee", "chelsea"))
+    graded = transfer_look(image, reference)
+    assert graded.dtype == np.float32 and graded.shape == image.shape and 0.0 <= graded.min() <= graded.max() <= 1.0
+    (mean, std), (reference_mean, reference_std) = lab_statistics(graded), lab_statistics(reference)
+    np.testing.assert_allclose(mean, reference_mean, atol=1.0)  # (L in 0-100; clipping to RGB moves it a little)
+    np.testing.assert_allclose(std, reference_std, rtol=0.1)
+    assert np.abs(mean - lab_statistics(image)[0]).max() > 5.0  # a look other than the image's own
+    luminance = [x.mean(axis=0).ravel() for x in (image, graded)]
+    assert np.corrcoef(*luminance)[0, 1] > 0.9  # the same picture
+    np.testing.assert_allclose(transfer_look(image, image), image, atol=1e-4)
+
+
+def test_goals_of_looks_come_from_another_scene_of_the_split_and_repeat_with_the_seed():
+    looks = gymnasium.make("l2r/PhotoTune-v0", split="test", goals="looks").unwrapped
+    seen = set()
+    for seed in range(12):
+        _, info = looks.reset(seed=seed)
+        assert info["look"] in photos.SPLITS["test"] and photos.scene(info["look"]) != photos.scene(info["photo"])
+        assert looks.goal_params is None and not collapsed(looks.goal)
+        seen.add((info["photo"], info["look"]))
+        _, again = looks.reset(seed=seed)
+        assert again["look"] == info["look"]
+    assert len(seen) > 2
+    first = looks.reset(seed=3)[0]["goal"]
+    np.testing.assert_array_equal(looks.reset(seed=3)[0]["goal"], first)
+    assert gymnasium.make("l2r/PhotoTune-v0").reset(seed=0)[1]["look"] is None  # random goals by default
+
+
+def test_looks_are_refused_without_a_second_scene_or_for_the_enhancer():
+    pair = {name: photos.load_photo(name) for name in ("motorcycle_left", "motorcycle_right")}  # one scene
+    with pytest.raises(ValueError, match="goals='looks' needs photos of two scenes at least"):
+        l2r.photo.env.PhotoTuneEnv(sources=pair, goals="looks").reset(seed=0)
+    with pytest.raises(ValueError, match="goals must be one of random, looks, got 'expert'"):
+        gymnasium.make("l2r/PhotoTune-v0", goals="expert")
+    with pytest.raises(ValueError, match="goals must be one of random, got 'looks'"):
+        gymnasium.make("l2r/PhotoEnhance-v0", goals="looks")

@@ -104,6 +104,16 @@ def test_compare_without_a_checkpoint_reports_no_policy_and_prints_a_table():
     assert [line.split()[0] for line in lines[2:]] == ["input", "random", "CMA-ES"]  # no policy row
 
 
+def test_compare_on_other_scenes_looks_names_each_problem_s_look():
+    run = l2r_photo("compare", "--photos", "2", "--budgets", "10", "--goals", "looks", "--json")
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout)
+    assert result["goals"] == "looks" and len(result["problems"]) == 2
+    assert all(" in " in name and name.endswith("'s look") for name in result["problems"])
+    random_goals = json.loads(l2r_photo("compare", "--photos", "2", "--budgets", "10", "--json").stdout)
+    assert random_goals["goals"] == "random" and random_goals["input_psnr_db"] != result["input_psnr_db"]
+
+
 def write_pair(tmp_path, size=(96, 128)):
     """An input (a crop of chelsea, not square) and its goal finished with GOAL_ACTIONS, as PNG files."""
     source = photos.load_photo("chelsea")[:, :size[0], :size[1]]
