@@ -189,8 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="of the --actors, how many step l2r/RunOpenSim-v0 (OpenSim 4.6, about 100 steps/s) instead "
                         "of the actors' environment: experience from the simulator that judges, mixed in replay")
     a.add_argument("--log-every", type=int, default=10,
-                   help="actors log every Nth training episode as MCAP under episodes/ (0: none; the runner and "
-                        "camera tasks only); evaluation episodes are always logged")
+                   help="actors log every Nth training episode as MCAP under episodes/ (0: none; the runner, "
+                        "camera and photo tasks only); evaluation episodes are always logged")
     a.add_argument("--actor-nice", type=int, default=10,
                    help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
                         "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
@@ -598,8 +598,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"]),  # a runner's speed limit
               *([] if args.image_size is None else ["--image-size", str(args.image_size)])]
     reserve = disk_budget.reserve_bytes(run_dir, disk_budget.task_checkpoint_bytes(args.env_id, recipe["hidden"]))
-    # MCAP episode logs record the runner's body or a camera task's frames: none for another task
-    logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS) else [
+    # MCAP episode logs record the runner's body, or a camera or photo task's images: none for another task
+    logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS, PHOTO) else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every),
         "--log-min-free-mb", f"{disk_budget.LOW_FACTOR * reserve / MB:.1f}"]
     for i in range(args.actors):

@@ -8,7 +8,9 @@ other on the ``time`` timeline: the body drawn from the model's own shapes movin
 ground and obstacles, each muscle a line along its path coloured by activation (blue at
 rest, red fully active), and time series of reward, distance, pelvis height, activations and
 forces. A camera task's episodes show the frames the policy saw, one image view per camera
-field, beside their reward. Interrupted ``.mcap.part`` files play up to where they stop.
+field, beside their reward; a photo task's its images step by step (each query's and the goal)
+beside the reward and the PSNR to the goal. Interrupted ``.mcap.part`` files play up to where
+they stop.
 
 ``--live`` declares a viewer liveliness token, which tells actors to publish low-rate frames
 of the episodes they are running, and draws those frames as they come: the runner's body, or a
@@ -55,15 +57,16 @@ IMAGES = "images"  # a camera task's frames: images/<observation field>, live im
 # ------------------------------------------------------------------------------ recordings
 
 
-def blueprint(follow: bool = True, images: Sequence[str] = ()) -> rrb.Blueprint:
+def blueprint(follow: bool = True, images: Sequence[str] = (), psnr: bool = False) -> rrb.Blueprint:
     """The layout: the runner in 3D (seen from its side through CAMERA, which moves with it, when
     ``follow``; live runners of many actors get the viewer's own camera), the episodes, and plots;
-    or with ``images`` (the entities under IMAGES: a camera task's fields, or live, each field of
-    each environment, ``pixels/actor0_env1``) its frames, the episodes and the reward."""
+    or with ``images`` (the entities under IMAGES: a camera or photo task's fields, or live, each
+    field of each environment, ``pixels/actor0_env1``) its frames, the episodes and the reward,
+    and with ``psnr`` a photo task's PSNR to its goal."""
     reward = rrb.TimeSeriesView(name="reward", origin="/plots/reward")
     if images:
         scenes = [rrb.Spatial2DView(name=name, origin=f"/{IMAGES}/{name}") for name in images]
-        plots = [reward]
+        plots = [reward, *([rrb.TimeSeriesView(name="PSNR to the goal (dB)", origin="/plots/psnr_db")] if psnr else [])]
     else:
         eye = rrb.EyeControls3D(tracking_entity=CAMERA) if follow else None
         scenes = [rrb.Spatial3DView(name="runner", origin="/world", eye_controls=eye)]
@@ -130,6 +133,8 @@ def log_episode(
     rec.log("episodes", rr.TextLog(f"episode {number}: {episode.path.name} ({describe})"))
     s = episode.steps
     rec.send_columns("plots/reward", index, rr.Scalars.columns(scalars=s["reward"]))
+    if is_photo(episode):
+        rec.send_columns("plots/psnr_db", index, rr.Scalars.columns(scalars=s["psnr_db"]))
     for name, frames in episode.images.items():  # frame k is step k's; a cut file may end its frames sooner
         n, (height, width) = len(frames), frames.shape[2:]
         image_format = rr.components.ImageFormat(width=width, height=height, color_model="RGB", channel_datatype="U8")
@@ -216,6 +221,11 @@ def image_fields(episodes: Sequence[Episode]) -> list[str]:
     return list(dict.fromkeys(name for episode in episodes for name in episode.images))
 
 
+def is_photo(episode: Episode) -> bool:
+    """Whether the episode is a photo task's: its result holds the PSNR it ended at."""
+    return "psnr_db" in episode.result
+
+
 def _obstacles(text: str) -> list[tuple[float, float, float]]:
     return [tuple(float(v) for v in item.split(",")) for item in text.split(";") if item]
 
@@ -224,7 +234,8 @@ def write_recording(mcap_paths: Sequence[str | Path], rrd_path: str | Path) -> P
     """Convert episode files into one Rerun recording file (episodes in the given order)."""
     episodes = [read_episode(p) for p in mcap_paths]
     rec = new_recording()
-    rec.save(str(rrd_path), default_blueprint=blueprint(images=image_fields(episodes)))
+    rec.save(str(rrd_path), default_blueprint=blueprint(images=image_fields(episodes),
+                                                       psnr=any(map(is_photo, episodes))))
     log_episodes(rec, episodes)
     rec.flush()
     rec.disconnect()
@@ -387,7 +398,7 @@ def view(s: ViewSettings) -> int:
     if files and not episodes:
         raise StartupFailure("none of the files is a readable episode")
 
-    layout = blueprint(follow=not s.live, images=image_fields(episodes))
+    layout = blueprint(follow=not s.live, images=image_fields(episodes), psnr=any(map(is_photo, episodes)))
     rec = new_recording()
     if s.save:
         rec.save(str(s.save), default_blueprint=layout)

@@ -437,7 +437,8 @@ class Actor:
         self.summaries.put(encode(summary))
         if slot.recorder is not None:
             slot.recorder.end({"return": summary.episode_return, "distance": summary.distance,
-                               "length": summary.length, "terminated": terminated, "truncated": truncated})
+                               "length": summary.length, "terminated": terminated, "truncated": truncated,
+                               **score_record(summary.psnr_db)})
         self.episodes += 1
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
@@ -611,6 +612,11 @@ def final_psnr(info: dict) -> float | None:
     return None if "psnr_db" not in info else float(info["psnr_db"])
 
 
+def score_record(psnr: float | None) -> dict[str, float]:
+    """What an episode log's result holds beside return and distance: a photo task's PSNR."""
+    return {} if psnr is None else {"psnr_db": psnr}
+
+
 class EpisodeResult(NamedTuple):
     """One deterministic episode, in the terms of EpisodeSummary (so a family's Score reads it)."""
 
@@ -662,7 +668,8 @@ def run_deterministic(policy, envs: list[gymnasium.Env], seeds: list[int], stop:
                                            final_psnr(info))
                 if recorders[i] is not None:
                     recorders[i].end({"return": returns[i], "distance": results[i].distance, "length": lengths[i],
-                                      "terminated": terminated, "truncated": truncated})
+                                      "terminated": terminated, "truncated": truncated,
+                                      **score_record(results[i].psnr_db)})
             else:
                 still.append(i)
         running = still
@@ -679,6 +686,7 @@ def make_episode_logger(config: ActorConfig):
     policy = LogPolicy(every=options.pop("every", 10), evaluation=True)
     return EpisodeLogger(run=config.run, actor_id=config.actor_id, policy=policy,
                          step_seconds=0.01 * config.action_repeat, with_body=family_of(config.env_id) == RUNNER,
+                         with_psnr=family_of(config.env_id) == PHOTO,
                          **options)
 
 

@@ -15,9 +15,11 @@ Usage (one logger per actor process, one recorder per running episode)::
                  "terminated": terminated, "truncated": truncated})
     logger.close()                                   # on shutdown: flushes what is queued
 
-Tasks without the runner's body (``with_body=False``: camera tasks) log the Step numbers they
-have (observation vector, action, reward, time) and each uint8[3, H, W] field of the
-observation as PNG frames, one channel per field.
+Tasks without the runner's body (``with_body=False``: camera and photo tasks) log the Step
+numbers they have (observation vector, action, reward, time; ``with_psnr``: the photo tasks'
+``info["psnr_db"]``) and each uint8[3, H, W] field of the observation as PNG frames, one channel
+per field, or where the observation holds no image, those of ``info["frames"]`` (a photo task
+observed through statistics shows its images there).
 
 ``begin_episode`` always returns a recorder (a no-op one for episodes not logged), so the
 actor never branches. Recorders of different environments are independent.
@@ -99,6 +101,7 @@ class EpisodeLogger:
         chunk_bytes: int = CHUNK_BYTES,
         body: BodyModel | None = None,
         with_body: bool = True,
+        with_psnr: bool = False,
     ):
         self.directory = Path(directory)
         self.write_failures = FailureLog(log, "episode logs")
@@ -113,6 +116,7 @@ class EpisodeLogger:
                       "writer_cpu_s": 0.0}
         self._layouts: dict[tuple, StepLayout] = {}
         self.body = (body or BodyModel.from_model(load_model())) if with_body else None
+        self.with_psnr = with_psnr
         if self.body is not None:
             self.model_version = _model_version(MODEL_PATH)
             self._transforms = TransformEncoder(self.body.bodies)
@@ -178,7 +182,9 @@ class EpisodeLogger:
     def layout(self, sizes: dict[str, int]) -> StepLayout:
         key = tuple(sorted(sizes.items()))
         if key not in self._layouts:
-            kept = [name for name, _ in schema.STEP_SCALARS if self.body is not None or name not in schema.BODY_SCALARS]
+            kept = [name for name, _ in schema.STEP_SCALARS
+                    if (self.body is not None or name not in schema.BODY_SCALARS)
+                    and (self.with_psnr or name not in schema.PHOTO_SCALARS)]
             self._layouts[key] = StepLayout(sizes, kept)
         return self._layouts[key]
 
@@ -305,7 +311,7 @@ class Recorder:
                 log.error("episode log %s: step %d cannot be logged (%r); episode not logged", self.path.name, self._step, e)
 
     def _copy_step(self, obs: Any, action: Any, reward: float, info: dict[str, Any]) -> None:
-        vector, images = _split(obs)
+        vector, images = _split(obs, info)
         if self._block is None:
             self._new_block(vector, action, info, images)
         i, c = self._row, self._columns
@@ -316,6 +322,8 @@ class Recorder:
         c["time"][i] = (self._step + 1) * self.logger.step_seconds
         for name in self._info_vectors:
             c[name][i] = info[name].reshape(-1)
+        if "psnr_db" in c:
+            c["psnr_db"][i] = info["psnr_db"]
         if self._pos is not None:
             c["distance"][i] = info["distance"]
             pos = info["body_pos"]
@@ -410,11 +418,13 @@ def _open_file(logger: EpisodeLogger, recorder: Recorder) -> EpisodeFile:
                        logger.chunk_bytes, logger._transforms, logger.body_json)  # fmt: skip
 
 
-def _split(obs: Any) -> tuple[Any, dict[str, np.ndarray]]:
-    """The vector an observation logs in Step, and its camera frames (uint8[3, H, W] fields) by name."""
-    if not isinstance(obs, Mapping):
-        return obs, {}
-    return obs.get(VECTOR_FIELD, ()), schema.image_fields(obs)
+def _split(obs: Any, info: Mapping[str, Any]) -> tuple[Any, dict[str, np.ndarray]]:
+    """The vector an observation logs in Step, and its camera frames (uint8[3, H, W] fields) by
+    name: the observation's, or where it holds none, those the step's info gives as ``frames``."""
+    images = schema.image_fields(obs) if isinstance(obs, Mapping) else {}
+    if not images and isinstance(info.get("frames"), Mapping):
+        images = schema.image_fields(info["frames"])
+    return (obs.get(VECTOR_FIELD, ()) if isinstance(obs, Mapping) else obs), images
 
 
 def _model_version(path: Path) -> str:

@@ -10,7 +10,9 @@ l2r decodes it; the encodings are the ones Rerun and Foxglove decode on their ow
     /<field>            foxglove.CompressedImage (protobuf)  every step: a camera field as PNG
 
 The runner's episodes have the first four; a camera task's have ``/step`` (without distance and
-pelvis height) and one image channel per uint8[3, H, W] field of its observation (``/pixels``).
+pelvis height) and one image channel per uint8[3, H, W] field of its observation (``/pixels``);
+a photo task's the same, ``/step`` with the PSNR to the goal, and its images from the observation
+or, where the observation holds none (`l2r/PhotoTuneStats-v0`), from ``info["frames"]``.
 Bodies are frames named as in the model; their poses are in the frame ``ground`` (the model's
 frame: x forward, y up), which the frame ``world`` (z up, as the viewers expect) holds rotated.
 Metadata records: ``episode`` (who, what, written first) and ``result`` (written last).
@@ -30,6 +32,7 @@ TOPIC_STEP = "/step"
 IMAGE_MESSAGE = "foxglove.CompressedImage"  # the schema of every image channel
 IMAGE_FORMAT = "png"
 BODY_SCALARS = ("distance", "pelvis_height")  # the runner's; a task without a body leaves them out
+PHOTO_SCALARS = ("psnr_db",)  # a photo task's score after the step; other tasks leave it out
 
 
 def image_topic(field: str) -> str:
@@ -54,7 +57,7 @@ PROFILE = "l2r"
 
 # The Step message: scalars, then one packed repeated double per vector. Field numbers are
 # the wire format: never renumber, only append.
-STEP_SCALARS = (("time", 2), ("reward", 3), ("distance", 4), ("pelvis_height", 5))
+STEP_SCALARS = (("time", 2), ("reward", 3), ("distance", 4), ("pelvis_height", 5), ("psnr_db", 13))
 STEP_VECTORS = (
     ("observation", 6),
     ("action", 7),

@@ -35,7 +35,9 @@ where the image encoder makes a fraction of an update a second.
 The reward is the change in PSNR to the goal (on the working images, capped at 100 dB) times
 0.01. An episode ends after 10 steps, or early when the image collapses, its mean brightness
 below 0.01 or above 0.9; both are terminations, the count of steps being in the observation and
-a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the current image.
+a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the current image; with
+`view="statistics"`, `info["frames"]` holds the images the observation leaves out (`pixels` and
+`goal`, as the images view shows them), which episode logs record.
 """
 
 from __future__ import annotations
@@ -181,7 +183,8 @@ class PhotoTuneEnv(gym.Env):
         self.image, self.params, self.steps = self.source, NEUTRAL, 0
         self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
         self.episode_over = False
-        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name, "look": self.look}
+        return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name, "look": self.look,
+                                    **self.frames()}
 
     def draw(self) -> None:
         """The episode's input, a crop of a photo of the split, and its goal: that crop edited with
@@ -248,7 +251,16 @@ class PhotoTuneEnv(gym.Env):
         self.psnr, self.steps = psnr, self.steps + 1
         ruined = collapsed(self.image)
         self.episode_over = ruined or self.steps >= self.max_steps
-        return self.observation(), reward, self.episode_over, False, {"psnr_db": psnr, "collapsed": ruined}
+        return self.observation(), reward, self.episode_over, False, {"psnr_db": psnr, "collapsed": ruined,
+                                                                      **self.frames()}
+
+    def frames(self) -> dict[str, dict[str, np.ndarray]]:
+        """The images an observation of statistics leaves out, as the images view would show them,
+        for episode logs (`info["frames"]`); nothing where the observation shows them."""
+        if self.view != "statistics":
+            return {}
+        shown = {"pixels": self.image} | ({"goal": self.goal} if self.shows_goal else {})
+        return {"frames": {name: photos.to_uint8(photos.downsample(image)) for name, image in shown.items()}}
 
     def observation(self) -> dict[str, np.ndarray]:
         current = photos.downsample(self.image)
