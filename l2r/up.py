@@ -64,7 +64,7 @@ from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS
 from l2r.replay.queue import QueueConfig
 from l2r.replay.snapshot import snapshot_path
 from l2r.run_metrics import RunCounters, RunMetrics
-from l2r.sim import OPENSIM_ID, PORT_ID
+from l2r.sim import OPENSIM_ID, PORT_ID, randomize_refusal
 from l2r.sim.randomize import Randomization
 from l2r.spaces import image_size_option, task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
@@ -208,8 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "in place of --difficulty (the evaluators keep --difficulty, or --eval-difficulty). Unset: --difficulty "
                          "throughout")
     rb.add_argument("--randomize", metavar="NAME=FRACTION,...",
-                    help="draw a new body each episode on the l2r/Run-v0 actors (not the --opensim-actors): each "
-                         "named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
+                    help="draw a new body each episode on the l2r/Run-v0 and l2r/RunWarp-v0 actors (not the "
+                         "--opensim-actors): each named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
                          "(per muscle), mass (per segment), contact_stiffness, contact_damping, friction (the ground); "
                          "delay=P: the probability that an episode's excitations act one physics step late. E.g. "
                          "strength=0.1,mass=0.1,friction=0.2,delay=0.5 (l2r-actor --help says more). Unset: off")
@@ -446,8 +446,8 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
 def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """The robustness levers' values, and that the task takes them."""
     try:
-        if args.randomize is not None and Randomization.parse(args.randomize) and args.env_id != PORT_ID:
-            parser.error(f"--randomize is {PORT_ID}'s, not {args.env_id}'s")
+        if args.randomize is not None and Randomization.parse(args.randomize) and randomize_refusal(args.env_id):
+            parser.error(f"--randomize: {randomize_refusal(args.env_id)}")
         if args.difficulty_schedule is not None:
             DifficultySchedule.parse(args.difficulty_schedule)
             if family_of(args.env_id) != RUNNER:

@@ -15,7 +15,7 @@ from l2r.config import CommandParser, FilePath, UsageError, load, run_command, s
 from l2r.durable import MB
 from l2r.families import RUNNER, family_of
 from l2r.protocol import DaemonSettings, configure_logging
-from l2r.sim import PORT_ID
+from l2r.sim import randomize_refusal
 from l2r.sim.randomize import Randomization
 from l2r.spaces import image_size_option
 
@@ -58,8 +58,8 @@ class ActorSettings(DaemonSettings):
         "actor's env steps (its env_steps stat) have reached, in place of --difficulty (the runner; not with "
         "--evaluate)", group=ROBUSTNESS, metavar="STEP:DIFFICULTY,...")
     randomize: str | None = setting(
-        None, "draw a new body each episode (l2r/Run-v0 only): NAME=FRACTION items, each factor uniform in "
-        "1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack and fiber_length "
+        None, "draw a new body each episode (l2r/Run-v0 and l2r/RunWarp-v0 only): NAME=FRACTION items, each "
+        "factor uniform in 1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack and fiber_length "
         "(tendon slack and optimal fibre length, per muscle), mass (per segment, inertia with it), "
         "contact_stiffness, contact_damping, friction (the feet's ground contact, per episode); and delay=P, the "
         "probability that an episode's excitations act one physics step (2.5 ms) late. E.g. "
@@ -137,8 +137,8 @@ class ActorSettings(DaemonSettings):
         return text
 
     def check(self) -> None:
-        if self.randomize and Randomization.parse(self.randomize) and self.env_id != PORT_ID:
-            raise UsageError(f"--randomize is {PORT_ID}'s, not {self.env_id}'s")
+        if self.randomize and Randomization.parse(self.randomize) and randomize_refusal(self.env_id):
+            raise UsageError(f"--randomize: {randomize_refusal(self.env_id)}")
         if self.difficulty_schedule is not None:
             if family_of(self.env_id) != RUNNER:
                 raise UsageError(f"--difficulty-schedule is the runner's, not {self.env_id}'s")

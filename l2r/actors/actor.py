@@ -46,7 +46,7 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, FrameCompressor, Keys,
     ObservationSpec, ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.sim import PORT_ID, WARP_ID  # (importing l2r.sim registers l2r/Run-v0 and l2r/RunWarp-v0)
+from l2r.sim import PORT_ID, WARP_ID, randomize_refusal  # (importing l2r.sim registers l2r/Run-v0 and l2r/RunWarp-v0)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 from l2r.spaces import image_size_option
@@ -145,8 +145,8 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
     """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo port's alone),
     or any other gymnasium env with Box actions (a camera task's frames `image_size` pixels a side,
     None: its own), rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
-    if randomize and env_id != PORT_ID:
-        raise ValueError(f"randomisation is {PORT_ID}'s, not {env_id}'s")
+    if randomize and randomize_refusal(env_id):
+        raise ValueError(randomize_refusal(env_id))
     if family_of(env_id) == RUNNER:
         options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
         return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
@@ -200,6 +200,7 @@ def make_worlds(config: ActorConfig, seeds: list[int]) -> Worlds:
     options = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
     if config.env_id == WARP_ID:  # its worlds on the actor's device, each reset with the actor's seed and options
         options |= {"device": config.device, "autoreset_mode": AutoresetMode.DISABLED}
+        options |= {"randomize": config.randomize} if config.randomize else {}
     return VectorWorlds(gymnasium.make_vec(config.env_id, num_envs=config.num_envs,
                                            vectorization_mode="vector_entry_point", **options), config.action_repeat)
 

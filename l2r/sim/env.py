@@ -209,7 +209,8 @@ class RunEnv(gym.Env):
         if "mass" in drawn:
             m.body_mass[1:] = self._segment_mass * drawn["mass"]
             m.body_inertia[1:] = self._segment_inertia * drawn["mass"][:, None]
-            m.body_subtreemass[:] = subtree_masses(m)  # MuJoCo's centre of mass divides by them
+            # MuJoCo's centre of mass divides by them
+            m.body_subtreemass[:] = subtree_masses(m.body_mass, m.body_parentid)
         if any(name in drawn for name in CONTACT_FIELDS):
             law = self._contact_law.scaled(*(drawn.get(name, 1.0) for name in CONTACT_FIELDS))
             self._physics.contact[:] = law.table()
@@ -299,11 +300,12 @@ def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
     return spec.compile()
 
 
-def subtree_masses(m: mujoco.MjModel) -> np.ndarray:
-    """Each body's mass with its descendants' (MuJoCo's body_subtreemass) for the model's masses."""
-    mass = m.body_mass.copy()
-    for b in range(m.nbody - 1, 0, -1):  # children come after their parents
-        mass[m.body_parentid[b]] += mass[b]
+def subtree_masses(body_mass: np.ndarray, body_parentid: np.ndarray) -> np.ndarray:
+    """Each body's mass with its descendants' (MuJoCo's body_subtreemass) for these masses of a
+    model's bodies."""
+    mass = body_mass.copy()
+    for b in range(len(mass) - 1, 0, -1):  # children come after their parents
+        mass[body_parentid[b]] += mass[b]
     return mass
 
 

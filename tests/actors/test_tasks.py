@@ -97,5 +97,5 @@ def test_the_runner_takes_the_robustness_levers_configured_and_only_those():
     assert env.unwrapped.randomize == Randomization(mass=0.1)
     assert wrapper_types(env)[:3] == [ActionRepeat, ObservationNoise, ActionNoise]
     assert (env.env.noise.std, env.env.env.noise.std) == (0.01, 0.02)
-    with pytest.raises(ValueError, match="randomisation is l2r/Run-v0's"):
+    with pytest.raises(ValueError, match="randomisation is l2r/Run-v0 and l2r/RunWarp-v0's, not l2r/RunOpenSim-v0's"):
         make_env(ActorConfig(env_id="l2r/RunOpenSim-v0", randomize=Randomization(mass=0.1)), seed=0)

@@ -23,6 +23,7 @@ from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.worlds import EnvList, VectorWorlds
 from l2r.config import StartupFailure, UsageError
 from l2r.protocol import Keys, decode, encode, session_config
+from l2r.sim.randomize import Randomization
 from tests.conftest import ROOT, free_port, wait_for
 
 FALLER = "tests.actors.standin:Faller-v0"
@@ -131,6 +132,20 @@ def test_an_actor_seeds_each_runwarp_world_s_episodes_as_it_seeds_single_envs():
     chunks, episodes = sent(dataclasses.replace(config, vector_env=None), 100)
     assert {e.difficulty for e in episodes} == {0, 2} and len({e.seed for e in episodes}) == len(episodes)
     assert sent(dataclasses.replace(config, vector_env=False), 100) == (chunks, episodes)
+
+
+def test_randomised_runwarp_worlds_under_an_actor_are_its_randomised_single_envs():
+    """With every randomisation on, each world's episodes draw the bodies a one-world env draws
+    from the same seeds: the same chunks and episodes, byte for byte."""
+    randomize = Randomization(strength=0.1, tendon_slack=0.02, fiber_length=0.02, mass=0.1, contact_stiffness=0.2,
+                              contact_damping=0.2, friction=0.2, delay=0.5)
+    config = ActorConfig(run=f"test-warp-random-{uuid.uuid4().hex[:8]}", env_id="l2r/RunWarp-v0", num_envs=2,
+                         action_repeat=3, chunk_size=16, chunk_delay=60.0, resend_buffer_mb=0, device="cpu",
+                         randomize=randomize)
+    chunks, episodes = sent(dataclasses.replace(config, vector_env=None), 60)
+    assert len(episodes) >= 2
+    assert sent(dataclasses.replace(config, vector_env=False), 60) == (chunks, episodes)
+    assert sent(dataclasses.replace(config, vector_env=None, randomize=Randomization()), 60)[0] != chunks
 
 
 def test_runwarp_worlds_tell_the_episode_logger_their_obstacles_as_single_envs_do():

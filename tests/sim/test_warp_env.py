@@ -50,6 +50,38 @@ def test_warp_worlds_follow_the_numba_port():
     np.testing.assert_allclose(got_info["distance"], first_distance)  # and report their new episode's info
 
 
+RANDOMIZE = {"strength": 0.2, "tendon_slack": 0.05, "fiber_length": 0.05, "mass": 0.2, "contact_stiffness": 0.3,
+             "contact_damping": 0.3, "friction": 0.3, "delay": 1.0}
+
+
+@pytest.mark.parametrize("difficulty", [0, 2])
+def test_randomised_warp_worlds_are_the_randomised_port_s_bodies(difficulty):
+    """Every randomisation at once (every episode delayed): world 0 draws the port's body from
+    the same seed, after the same course (muscles, masses, contact law, delay) and follows the
+    port within 0.01 degrees and 0.01 cm over 0.2 s; world 1, its own body from another seed,
+    does not."""
+    actions = np.random.default_rng(1).uniform(0.0, 1.0, (STEPS, 18))
+    port = gymnasium.make("l2r/Run-v0", difficulty=difficulty, randomize=RANDOMIZE).unwrapped
+    worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=2, difficulty=difficulty, device="cpu", randomize=RANDOMIZE)
+    obs, info = port.reset(seed=3)
+    got, _ = worlds.reset(seed=[3, 4])
+    drawn = worlds.unwrapped.randomized
+    assert drawn[0].keys() == info["randomization"].keys() == RANDOMIZE.keys() and drawn[0]["delay"]
+    for name, value in info["randomization"].items():
+        np.testing.assert_array_equal(drawn[0][name], value)
+        assert not np.array_equal(drawn[1][name], value) or name == "delay"
+    np.testing.assert_allclose(worlds.unwrapped.max_isometric_force[0], port.max_isometric_force, rtol=1e-6)
+    np.testing.assert_allclose(got[0], obs, atol=1e-5)
+    for a in actions:
+        obs, *_ = port.step(a)
+        got, *_ = worlds.step(np.stack([a, a]))
+        assert np.degrees(np.abs(got[0, ANGLES] - obs[ANGLES])).max() < 0.01
+        assert 100 * np.abs(got[0, PELVIS] - obs[PELVIS]).max() < 0.01
+    assert np.degrees(np.abs(got[1, ANGLES] - obs[ANGLES])).max() > 1.0
+    one = gymnasium.make("l2r/RunWarp-v0", device="cpu", randomize={"strength": 0.1})
+    assert set(one.reset(seed=3)[1]["randomization"]) == {"strength"}
+
+
 def test_warp_worlds_draw_the_ports_obstacles_and_psoas_strengths():
     """At difficulty 2 world w's episodes are the port's from seed + w: the same obstacles (the
     observation's last 3 values, and the spheres where the port puts them) and psoas strengths

@@ -16,6 +16,10 @@ Warp's contacts (on at difficulties 1 and 2, off at 0 as in the port); their for
 come from MuJoCo Warp's contact sensors, as the port's from MuJoCo's. A world whose state turns
 non-finite ends its episode with reward 0 and `info["diverged"]` (MuJoCo Warp resets no world on
 its own and counts no warnings per world).
+
+`randomize` is `l2r/Run-v0`'s (`l2r.sim.randomize`): each world's episodes draw their body from
+the world's generator after the course, as `RunEnv` does, so world w's bodies are those of
+`RunEnv` reset with its seed; `randomized[w]` holds world w's draws.
 """
 
 from __future__ import annotations
@@ -31,10 +35,12 @@ from l2r.sim import model as body
 from l2r.sim import thelen
 from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, NUM_OBSTACLES,
                          PSOAS_RIGHT, STEP_SECONDS, check_arguments, check_difficulty, draw_episode, sensor_gathers,
-                         with_sensors)
+                         subtree_masses, with_sensors)
 from l2r.sim.layout import OBS_SIZE
 from l2r.sim.ligaments import LIGAMENTS
+from l2r.sim.contact import contact_law
 from l2r.sim.opensim import read_osim
+from l2r.sim.randomize import CONTACT_FIELDS, Randomization
 from l2r.sim.warp.physics import WarpPhysics
 
 
@@ -48,7 +54,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
     autoreset_mode: SAME_STEP (the default) begins a finished world's next episode in the step
         that ends it; DISABLED leaves it until `reset(seed=[...], options={"reset_mask": mask})`
         (a finished world goes on stepping meanwhile; what it does then means nothing).
-    The other arguments are `RunEnv`'s (no `randomize`).
+    The other arguments are `RunEnv`'s.
     """
 
     metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
@@ -56,8 +62,10 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, num_envs: int = 1, difficulty: int = 0, seed: int | None = None,
                  left_psoas: str = "glut_max_l", max_steps: int = MAX_STEPS, device: str | None = None,
-                 graphs: bool = True, autoreset_mode: gym.vector.AutoresetMode | str = gym.vector.AutoresetMode.SAME_STEP):
+                 graphs: bool = True, autoreset_mode: gym.vector.AutoresetMode | str = gym.vector.AutoresetMode.SAME_STEP,
+                 randomize: Randomization | dict[str, float] | None = None):
         check_arguments(difficulty, left_psoas, max_steps)
+        self.randomize = Randomization.of(randomize)
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
         mode = gym.vector.AutoresetMode(autoreset_mode)
@@ -79,7 +87,14 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         by_name = {mu.name: mu for mu in osim.muscles}
         with wp.ScopedDevice(self.device):
             self._physics = WarpPhysics(m, osim, [by_name[n] for n in body.MUSCLES], num_envs,
-                                        m.keyframe(body.DEFAULT_KEYFRAME).id, graphs)
+                                        m.keyframe(body.DEFAULT_KEYFRAME).id, graphs,
+                                        per_world_bodies=self.randomize.mass > 0)
+        # The body as the model has it, which randomisation scales per episode and world; host
+        # copies of the per-world arrays that randomisation writes, each assigned whole.
+        self._model, self._contact_law = m, contact_law(osim)
+        self._contact_tables = np.tile(self._contact_law.table(), (num_envs, 1))
+        self._bodies = {name: np.tile(getattr(m, name), (num_envs,) + (1,) * getattr(m, name).ndim)
+                        for name in ("body_mass", "body_inertia", "body_subtreemass")}
         self._parked = self._physics.obstacles.numpy()[0].astype(np.float64)  # (x, y, r) of the unused spheres
         physics, data = self._physics, self._physics.data
         self._state = HostState(self.device, {
@@ -99,6 +114,10 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         # none, and psoas strengths (world, (left, right)).
         self.obstacles = np.full((num_envs, NUM_OBSTACLES, 3), np.nan)
         self.psoas = np.ones((num_envs, 2))
+        self.randomized: list[dict[str, Any]] = [{} for _ in range(num_envs)]  # each world's draws this episode
+        # (world, muscle): this episode's randomised strength, fibre and slack length factors
+        self._muscle_factors = {name: np.ones((num_envs, NUM_MUSCLES)) for name in ("strength", "fiber_length",
+                                                                                      "tendon_slack")}
 
     def world_obstacles(self, w: int) -> list[tuple[float, float, float]]:
         """World w's obstacles this episode, (x, y, radius) sorted by x, as `RunEnv.obstacles`."""
@@ -164,7 +183,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
             raise ValueError("actions contain NaN or inf")
         physics = self._physics
         with wp.ScopedDevice(self.device):
-            physics.excitation.assign(a.clip(0.0, 1.0))
+            physics.next_excitation.assign(a.clip(0.0, 1.0))
             physics.step(self.substeps)
         self._steps += 1
         state = self._state.fetch()
@@ -195,18 +214,49 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         return obs, reward, terminated, truncated, info
 
     def _draw_episodes(self, worlds) -> None:
-        """The next episode's obstacles and psoas strengths of the worlds named, each drawn from
-        its world's generator as `RunEnv` draws them, into the physics' per-world arrays (which
-        the worlds take when reset)."""
+        """The next episode's obstacles, psoas strengths and (randomised) body of the worlds
+        named, each drawn from its world's generator as `RunEnv` draws them, into the physics'
+        per-world arrays (which the worlds take when reset)."""
         for w in worlds:
             course, self.psoas[w] = draw_episode(self._rngs[w], int(self.difficulties[w]))
             self.obstacles[w] = np.nan
             self.obstacles[w, :len(course)] = np.reshape(course, (-1, 3))
+            if self.randomize:
+                self.randomized[w] = self.randomize.draw(self._rngs[w], NUM_MUSCLES, self._model.nbody - 1)
         physics = self._physics
         physics.obstacles.assign(np.where(np.isnan(self.obstacles), self._parked, self.obstacles).astype(np.float32))
-        strength = np.ones(physics.strength.shape)
-        strength[:, self._psoas] = self.psoas
+        if self.randomize:
+            self._randomize_bodies(worlds)
+        strength = self._muscle_factors["strength"].copy()
+        strength[:, self._psoas] *= self.psoas
         physics.strength.assign(strength.astype(np.float32))
+
+    def _randomize_bodies(self, worlds) -> None:
+        """The randomised worlds' bodies: the default one scaled by each world's draws (as
+        `RunEnv._randomize_body` scales it), into the physics' per-world arrays."""
+        physics, model = self._physics, self._physics.model
+        for w in worlds:
+            drawn = self.randomized[w]
+            for name, factors in self._muscle_factors.items():
+                factors[w] = drawn.get(name, 1.0)
+        for name, array in (("fiber_length", physics.fiber_scale), ("tendon_slack", physics.slack_scale)):
+            array.assign(self._muscle_factors[name].astype(np.float32))
+        delay = np.array([int(self.randomized[w].get("delay", False)) for w in range(self.num_envs)], np.int32)
+        physics.delay.assign(delay)
+        if any(getattr(self.randomize, name) for name in CONTACT_FIELDS):
+            for w in worlds:
+                factors = (self.randomized[w].get(name, 1.0) for name in CONTACT_FIELDS)
+                self._contact_tables[w] = self._contact_law.scaled(*factors).table()
+            physics.contact_law.assign(self._contact_tables.astype(np.float32))
+        if self.randomize.mass:
+            m, bodies = self._model, self._bodies
+            for w in worlds:
+                factors = self.randomized[w]["mass"]
+                bodies["body_mass"][w, 1:] = m.body_mass[1:] * factors
+                bodies["body_inertia"][w, 1:] = m.body_inertia[1:] * factors[:, None]
+                bodies["body_subtreemass"][w] = subtree_masses(bodies["body_mass"][w], m.body_parentid)
+            for name, array in bodies.items():
+                getattr(model, name).assign(array.astype(np.float32))
 
     def _observe(self, state: dict[str, np.ndarray]) -> np.ndarray:
         obs = np.empty((self.num_envs, OBS_SIZE), dtype=np.float32)
@@ -253,8 +303,10 @@ class RunWarpEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, difficulty: int = 0, seed: int | None = None, left_psoas: str = "glut_max_l",
-                 max_steps: int = MAX_STEPS, device: str | None = None, graphs: bool = True):
-        self._worlds = RunWarpVectorEnv(1, difficulty, seed, left_psoas, max_steps, device, graphs)
+                 max_steps: int = MAX_STEPS, device: str | None = None, graphs: bool = True,
+                 randomize: Randomization | dict[str, float] | None = None):
+        self._worlds = RunWarpVectorEnv(1, difficulty, seed, left_psoas, max_steps, device, graphs,
+                                        randomize=randomize)
         self.muscle_names, self.ligament_names = self._worlds.muscle_names, self._worlds.ligament_names
         self.body_names = self._worlds.body_names
         self.action_space = self._worlds.single_action_space
@@ -270,7 +322,10 @@ class RunWarpEnv(gym.Env):
         super().reset(seed=seed)
         obs, info = self._worlds.reset(seed=seed, options=options)
         self._running = True
-        return obs[0], _world(info, 0)
+        info = _world(info, 0)
+        if self._worlds.randomize:  # as RunEnv's
+            info["randomization"] = self._worlds.randomized[0]
+        return obs[0], info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if not self._running:

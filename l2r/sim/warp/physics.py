@@ -9,7 +9,8 @@ tables the numba modules build.
 
 Per-world model fields that the kernels write (moving sites, actuator bias, ligament damping,
 knee couplings, the obstacles' places and sizes) are batched in the MuJoCo Warp model
-(`put_model`'s batch_sizes).
+(`put_model`'s batch_sizes), and with `per_world_bodies` the segments' masses and inertias, which
+a randomised env writes per episode.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ log = logging.getLogger(__name__)
 # The obstacles' bounds for the broad phase, geom_rbound and geom_aabb, stay shared: MuJoCo Warp
 # builds its broad phase anew for each batch size of those, that is for each number of worlds.
 PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data", "geom_pos", "geom_size")
+BODY_FIELDS = ("body_mass", "body_inertia", "body_subtreemass")
 
 
 def _ints(x) -> wp.array:
@@ -56,8 +58,12 @@ def _floats(x, dtype=float) -> wp.array:
 class Muscles:
     table: wp.array(dtype=muscles.MuscleRow)  # the muscles' parameters as the model has them
     strength: wp.array2d(dtype=float)  # per world and muscle: max isometric force over the table's
-    params: wp.array2d(dtype=muscles.MuscleRow)  # per world: the table, strengths applied
-    excitation: wp.array2d(dtype=float)
+    fiber_scale: wp.array2d(dtype=float)  # per world and muscle: optimal fibre length over the table's
+    slack_scale: wp.array2d(dtype=float)  # per world and muscle: tendon slack length over the table's
+    params: wp.array2d(dtype=muscles.MuscleRow)  # per world: the table, the scales applied
+    excitation: wp.array2d(dtype=float)  # what each physics step holds
+    next_excitation: wp.array2d(dtype=float)  # what the env asked for this step
+    delay: wp.array(dtype=int)  # per world: physics steps `excitation` holds before it turns to `next_excitation`
     activation: wp.array2d(dtype=float)
     fiber: wp.array2d(dtype=float)
     length: wp.array2d(dtype=float)
@@ -90,7 +96,7 @@ class Moving:
 
 @wp.struct
 class Feet:
-    law: wp.array(dtype=float)
+    law: wp.array2d(dtype=float)  # per world: `ContactLaw.table`
     radius: wp.array(dtype=float)
     sphere: wp.array(dtype=int)
     body: wp.array(dtype=int)
@@ -176,7 +182,7 @@ def _contact_actuation(ft: Feet, geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.
     site moves to the contact point, ctrl cancels the actuator speed MuJoCo took at its old place."""
     w, i = wp.tid()
     b = ft.body[i]
-    point, local, force, damping = feet.sphere_force(ft.law, ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
+    point, local, force, damping = feet.sphere_force(ft.law[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
                                                      xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
     ft.force[w, i] = force
     site_pos[w, ft.site[i]] = local
@@ -218,7 +224,7 @@ def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=flo
         mu.force[w, i] = muscles.tendon_force(mu.fiber[w, i], mu.length[w, i], mu.params[w, i])
     for i in range(ft.sphere.shape[0]):
         b = ft.body[i]
-        point, local, force, damping = feet.sphere_force(ft.law, ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
+        point, local, force, damping = feet.sphere_force(ft.law[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
                                                          xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
         ft.force[w, i] = force
     for i in range(lg.dof.shape[0]):
@@ -257,16 +263,31 @@ def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec
 
 @wp.kernel
 def _equilibrate(mu: Muscles, reset: wp.array(dtype=int)):
-    """Muscles of the worlds being reset at their strengths and activation, fibres in equilibrium,
-    still."""
+    """Muscles of the worlds being reset at their strengths, fibre and slack lengths (as
+    `thelen.scale_muscles` scales them) and activation, fibres in equilibrium, still."""
     w, i = wp.tid()
     if reset[w] >= 0:
         row = mu.table[i]
         row[muscles.MAX_FORCE] *= mu.strength[w, i]
+        fiber = mu.fiber_scale[w, i]
+        row[muscles.OPTIMAL_LENGTH] *= fiber
+        row[muscles.WIDTH] *= fiber
+        row[muscles.MAX_SPEED] *= fiber
+        row[muscles.MIN_FIBER_LENGTH] *= fiber
+        row[muscles.SLACK_LENGTH] *= mu.slack_scale[w, i]
         mu.params[w, i] = row
         mu.excitation[w, i] = 0.0
+        mu.next_excitation[w, i] = 0.0
         mu.activation[w, i] = thelen.DEFAULT_ACTIVATION
         mu.fiber[w, i] = muscles.equilibrium_fiber_length(mu.activation[w, i], mu.length[w, i], mu.params[w, i])
+
+
+@wp.kernel
+def _take_excitation(mu: Muscles, substep: int):
+    """From its delay on, a world's physics steps hold the excitations the env asked for."""
+    w, i = wp.tid()
+    if substep >= mu.delay[w]:
+        mu.excitation[w, i] = mu.next_excitation[w, i]
 
 
 class WarpPhysics:
@@ -274,22 +295,27 @@ class WarpPhysics:
     Warp device, and the launches that advance it with MuJoCo Warp's step.
 
     `model` and `data` are MuJoCo Warp's; the public arrays (world, item) are updated in place:
-    `excitation` is written by the env before `step`; `strength` (each muscle's max isometric
-    force as a fraction of the .osim's, 1 at first) and `obstacles` (the obstacle spheres as
-    (x, y, radius), at first where the model parks them) are the next episode's, which the env
-    may write before resetting a world; `params` is the muscles' table per world, strengths
-    applied.
+    `next_excitation` is written by the env before `step`, which holds the last step's
+    `excitation` over each world's first `delay` physics steps (0 at first) and it over the rest;
+    `strength`, `fiber_scale` and `slack_scale` (each muscle's max isometric force, optimal fibre
+    length and tendon slack length as fractions of the .osim's, 1 at first), `contact_law` (the
+    feet's `ContactLaw.table`) and `obstacles` (the obstacle spheres as (x, y, radius), at first
+    where the model parks them) are the next episode's, which the env may write before resetting
+    a world; `params` is the muscles' table per world, the scales applied. With
+    `per_world_bodies` each world has its own segment masses and inertias in `model`
+    (`BODY_FIELDS`), which the env may write before resetting a world.
     """
 
     def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int,
-                 graphs: bool = True):
+                 graphs: bool = True, per_world_bodies: bool = False):
         self.nworld, self.dt, self._keyframe = nworld, float(m.opt.timestep), keyframe
         self._device, self._graphs = wp.get_device(), {} if graphs else None
         self._reset_keys = wp.zeros(nworld, dtype=int)  # per world: the keyframe to reset to, or -1
         d = mujoco.MjData(m)
         mujoco.mj_resetDataKeyframe(m, d, keyframe)
         mujoco.mj_forward(m, d)
-        self.model = mjw.put_model(m, batch_sizes={f: nworld for f in PER_WORLD_FIELDS})
+        batched = PER_WORLD_FIELDS + (BODY_FIELDS if per_world_bodies else ())
+        self.model = mjw.put_model(m, batch_sizes={f: nworld for f in batched})
         self.data = mjw.put_data(m, d, nworld=nworld)
         self._acc_sensordata = wp.zeros_like(self.data.sensordata)
         n = len(muscle_list)
@@ -298,10 +324,12 @@ class WarpPhysics:
         mu = Muscles()
         table = thelen.muscle_parameters(muscle_list)
         mu.table = wp.array(table.astype(np.float32), dtype=muscles.MuscleRow)
-        mu.strength = wp.ones((nworld, n), dtype=float)
+        for name in ("strength", "fiber_scale", "slack_scale"):
+            setattr(mu, name, wp.ones((nworld, n), dtype=float))
         mu.params = wp.array(np.broadcast_to(table, (nworld, *table.shape)).astype(np.float32), dtype=muscles.MuscleRow)
-        for name in ("excitation", "activation", "fiber", "length", "force"):
+        for name in ("excitation", "next_excitation", "activation", "fiber", "length", "force"):
             setattr(mu, name, wp.zeros((nworld, n), dtype=float))
+        mu.delay = wp.zeros(nworld, dtype=int)
         mu.tendon = wp.array(np.broadcast_to(switches.on, (nworld, n)).astype(np.int32), dtype=int)
         mu.tension = wp.zeros((nworld, m.ntendon), dtype=float)
         mu.on, mu.switch_row, mu.switch_qpos = _ints(switches.on), _ints(points.switch_of_muscle(switches)), _ints(switches.qpos)
@@ -324,7 +352,8 @@ class WarpPhysics:
         spheres = np.array([m.geom(g).id for g in names])
         sphere_body = m.geom_bodyid[spheres]
         ft = Feet()
-        ft.law, ft.radius = _floats(contact_law(osim).table()), _floats(m.geom_size[spheres, 0])
+        law = contact_law(osim).table()
+        ft.law, ft.radius = _floats(np.broadcast_to(law, (nworld, len(law)))), _floats(m.geom_size[spheres, 0])
         ft.sphere, ft.body, ft.root = _ints(spheres), _ints(sphere_body), _ints(m.body_rootid[sphere_body])
         ft.site = _ints([m.site(f"{g}_contact").id for g in names])
         ft.x_actuator = _ints([m.actuator(f"{g}_x").id for g in names])
@@ -360,8 +389,28 @@ class WarpPhysics:
         return self._muscles.strength
 
     @property
+    def fiber_scale(self) -> wp.array:
+        return self._muscles.fiber_scale
+
+    @property
+    def slack_scale(self) -> wp.array:
+        return self._muscles.slack_scale
+
+    @property
+    def contact_law(self) -> wp.array:
+        return self._feet.law
+
+    @property
+    def delay(self) -> wp.array:
+        return self._muscles.delay
+
+    @property
     def excitation(self) -> wp.array:
         return self._muscles.excitation
+
+    @property
+    def next_excitation(self) -> wp.array:
+        return self._muscles.next_excitation
 
     @property
     def activation(self) -> wp.array:
@@ -449,6 +498,7 @@ class WarpPhysics:
     def _advance(self, substeps: int) -> None:
         m, d = self.model, self.data
         for substep in range(substeps):
+            wp.launch(_take_excitation, self._muscles.excitation.shape, [self._muscles, substep])
             self._drive()
             mjw.transmission(m, d)  # the contact sites moved: their actuators' moment arms
             mjw.step2(m, d)
