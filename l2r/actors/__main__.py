@@ -59,8 +59,8 @@ class ActorSettings(DaemonSettings):
         "--evaluate)", group=ROBUSTNESS, metavar="STEP:DIFFICULTY,...")
     randomize: str | None = setting(
         None, "draw a new body each episode (l2r/Run-v0 and l2r/RunWarp-v0 only): NAME=FRACTION items, each "
-        "factor uniform in 1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack and fiber_length "
-        "(tendon slack and optimal fibre length, per muscle), mass (per segment, inertia with it), "
+        "factor uniform in 1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack "
+        "and fiber_length (tendon slack and optimal fibre length, per muscle), mass (per segment, inertia with it), "
         "contact_stiffness, contact_damping, friction (the feet's ground contact, per episode); and delay=P, the "
         "probability that an episode's excitations act one physics step (2.5 ms) late. E.g. "
         "strength=0.1,tendon_slack=0.03,fiber_length=0.03,mass=0.1,contact_stiffness=0.2,friction=0.2,delay=0.5",

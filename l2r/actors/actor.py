@@ -46,7 +46,7 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, FrameCompressor, Keys,
     ObservationSpec, ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.sim import PORT_ID, WARP_ID, randomize_refusal  # (importing l2r.sim registers l2r/Run-v0 and l2r/RunWarp-v0)
+from l2r.sim import PORT_ID, WARP_ID, randomize_refusal  # (importing l2r.sim registers the runner's envs)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 from l2r.spaces import image_size_option
@@ -142,7 +142,7 @@ class ActorConfig:
 
 def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
               randomize: Randomization | None = None, image_size: int | None = None) -> gymnasium.Env:
-    """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo port's alone),
+    """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo bodies' alone),
     or any other gymnasium env with Box actions (a camera task's frames `image_size` pixels a side,
     None: its own), rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
     if randomize and randomize_refusal(env_id):

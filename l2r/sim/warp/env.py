@@ -36,9 +36,9 @@ from l2r.sim import thelen
 from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, NUM_OBSTACLES,
                          PSOAS_RIGHT, STEP_SECONDS, check_arguments, check_difficulty, draw_episode, sensor_gathers,
                          subtree_masses, with_sensors)
+from l2r.sim.contact import contact_law
 from l2r.sim.layout import OBS_SIZE
 from l2r.sim.ligaments import LIGAMENTS
-from l2r.sim.contact import contact_law
 from l2r.sim.opensim import read_osim
 from l2r.sim.randomize import CONTACT_FIELDS, Randomization
 from l2r.sim.warp.physics import WarpPhysics
