@@ -46,7 +46,7 @@ from l2r.protocol import (
     EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, FrameCompressor, Keys,
     ObservationSpec, ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
 )
-from l2r.sim import PORT_ID, WARP_ID, randomize_refusal  # (importing l2r.sim registers the runner's envs)
+from l2r.sim import WARP_ID, randomize_refusal  # (importing l2r.sim registers the runner's envs)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
 from l2r.spaces import image_size_option
