@@ -4,8 +4,6 @@ runner's files stay as they were."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium
@@ -22,8 +20,8 @@ from l2r.episodes.read import read_episode
 from l2r.policy import build_policy
 from l2r.sim.env import RunEnv
 from tests.actors.camera import CAMERA, EPISODE_STEPS, IMAGE_SIZE, RENDERER
-from tests.conftest import ROOT
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
+from tests.logs.recording import saved_view, view_origins
 
 pytestmark = pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
 
@@ -106,11 +104,7 @@ def test_an_interrupted_camera_file_reads_the_frames_it_has(camera_episode, tmp_
 @pytest.mark.slow
 def test_l2r_view_saves_a_camera_episode_with_its_frames(camera_episode, tmp_path):
     path, rendered = camera_episode
-    out = tmp_path / "camera.rrd"
-    result = subprocess.run([sys.executable, "-m", "l2r.cli", "view", str(path), "--save", str(out)],
-                            capture_output=True, text=True, timeout=60, cwd=ROOT)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    reader = rr.chunk.RrdReader(out)
+    reader = saved_view(path, tmp_path / "camera.rrd")
     chunks = [c for c in reader.stream().to_chunks() if not c.is_static]
     assert not any(c.entity_path.startswith("/world") for c in chunks)  # no body to draw
     rows = []
@@ -126,9 +120,7 @@ def test_l2r_view_saves_a_camera_episode_with_its_frames(camera_episode, tmp_pat
     assert {(f[0]["width"], f[0]["height"]) for _, _, f in rows} == {(IMAGE_SIZE, IMAGE_SIZE)}
     rewards = [v for c in chunks if c.entity_path == "/plots/reward" for v in c.to_record_batch().column("Scalars:scalars").to_pylist()]
     assert len(rewards) == EPISODE_STEPS
-    views = [c.to_record_batch() for c in reader.store(store=reader.blueprints()[0]).stream().to_chunks()]
-    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin") for row in v.column(n).to_pylist()
-               for o in row or ()}  # fmt: skip
+    origins = view_origins(reader)
     assert "/images/pixels" in origins and "/world" not in origins  # the frames in place of the runner's 3D view
 
 

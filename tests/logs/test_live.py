@@ -24,6 +24,7 @@ from l2r.protocol.session import session_config
 from l2r.sim.env import RunEnv
 from tests.actors.camera import RENDERER
 from tests.conftest import free_port, wait_for
+from tests.logs.recording import view_origins
 
 
 def start_viewer(run: str, port: int, out) -> subprocess.Popen:
@@ -132,11 +133,7 @@ def test_live_viewer_draws_a_camera_task_s_frames_as_images_and_rejects_bad_ones
                                   c.to_record_batch().column("Scalars:scalars").to_pylist())}  # fmt: skip
     assert rewards and all(np.float64(sent[step][1]) == value for step, value in rewards.items())
     assert not any(c.entity_path.startswith("/plots/distance") for c in chunks)  # the cartpole has no distance
-    views = [c.to_record_batch() for store in reader.blueprints()  # every layout the file holds
-             for c in reader.store(store=store).stream().to_chunks()]  # fmt: skip
-    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin")
-               for row in v.column(n).to_pylist() for o in row or ()}  # fmt: skip
-    assert "/images/pixels/actor5_env0" in origins  # a view of its own, beside the reward
+    assert "/images/pixels/actor5_env0" in view_origins(reader)  # a view of its own, beside the reward
 
 
 def test_a_photo_task_s_frame_carries_its_photo_and_goal_as_the_env_returned_them():

@@ -4,14 +4,11 @@ through statistics (its images come from the step's info), read back, and drawn 
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
-import rerun as rr
 
 from l2r.actors.actor import ActorConfig, make_episode_logger, make_task, run_deterministic
 from l2r.episodes import schema
@@ -20,8 +17,8 @@ from l2r.learner import td3
 from l2r.photo import TUNE_STATS_ID
 from l2r.photo.env import MAX_STEPS
 from l2r.spaces import task_spaces
-from tests.conftest import ROOT
 from tests.logs.episode_writer import RUN
+from tests.logs.recording import saved_view, view_origins
 
 SEED = 3
 
@@ -94,11 +91,7 @@ def test_only_a_photo_task_s_steps_carry_a_psnr(tmp_path):
 @pytest.mark.slow
 def test_l2r_view_shows_a_photo_episode_s_images_step_by_step_and_its_psnr(photo_episode, tmp_path):
     path, seen = photo_episode
-    out = tmp_path / "photo.rrd"
-    result = subprocess.run([sys.executable, "-m", "l2r.cli", "view", str(path), "--save", str(out)],
-                            capture_output=True, text=True, timeout=60, cwd=ROOT)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    reader = rr.chunk.RrdReader(out)
+    reader = saved_view(path, tmp_path / "photo.rrd")
     chunks = [c for c in reader.stream().to_chunks() if not c.is_static]
     rows = sorted((step, bytes(buffer[0])) for c in chunks if c.entity_path == "/images/pixels"
                   for step, buffer in zip(c.to_record_batch().column("step").to_pylist(),
@@ -109,7 +102,5 @@ def test_l2r_view_shows_a_photo_episode_s_images_step_by_step_and_its_psnr(photo
     psnr = [v[0] for c in chunks if c.entity_path == "/plots/psnr_db"
             for v in c.to_record_batch().column("Scalars:scalars").to_pylist()]
     np.testing.assert_allclose(psnr, seen.psnr)
-    views = [c.to_record_batch() for c in reader.store(store=reader.blueprints()[0]).stream().to_chunks()]
-    origins = {o for v in views for n in v.schema.names if n.endswith(":space_origin") for row in v.column(n).to_pylist()
-               for o in row or ()}  # fmt: skip
+    origins = view_origins(reader)
     assert {"/images/pixels", "/images/goal", "/plots/psnr_db"} <= origins and "/world" not in origins
