@@ -13,7 +13,7 @@ import rerun as rr
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from l2r.actors.actor import ActorConfig, make_episode_logger, make_task, run_deterministic
+from l2r.actors.actor import ActorConfig, make_task
 from l2r.actors.episode_log import EpisodeLogger, LogPolicy
 from l2r.episodes import schema
 from l2r.episodes.read import read_episode
@@ -21,7 +21,7 @@ from l2r.policy import build_policy
 from l2r.sim.env import RunEnv
 from tests.actors.camera import CAMERA, EPISODE_STEPS, IMAGE_SIZE, RENDERER
 from tests.logs.episode_writer import DIFFICULTY, RUN, meta, play
-from tests.logs.recording import saved_view, view_origins
+from tests.logs.recording import logged_evaluation, saved_view, view_origins
 
 pytestmark = pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")
 
@@ -50,17 +50,8 @@ def camera_episode(tmp_path_factory) -> tuple[Path, np.ndarray]:
     directory = tmp_path_factory.mktemp("camera")
     config = ActorConfig(run=RUN, actor_id=0, env_id=CAMERA,
                          episode_log={"directory": directory, "block_steps": 4, "chunk_bytes": 1024})
-    logger = make_episode_logger(config)
     env = Rendered(make_task(CAMERA))
-    try:
-        run_deterministic(build_policy(POLICY), [env], [SEED], env_id=CAMERA, record=lambda env, seed: logger.begin_episode(
-            {"env_id": CAMERA, "seed": seed, "evaluation": True, "policy_version": 3}))  # fmt: skip
-    finally:
-        env.close()
-        logger.close()
-    assert logger.stats["episodes_written"] == 1, logger.stats
-    (path,) = directory.glob("*.mcap")
-    return path, np.stack(env.frames)
+    return logged_evaluation(config, build_policy(POLICY), env, SEED, version=3), np.stack(env.frames)
 
 
 def test_a_camera_episode_holds_the_frames_its_env_rendered(camera_episode):

@@ -10,7 +10,7 @@ import gymnasium
 import numpy as np
 import pytest
 
-from l2r.actors.actor import ActorConfig, make_episode_logger, make_task, run_deterministic
+from l2r.actors.actor import ActorConfig, make_episode_logger, make_task
 from l2r.episodes import schema
 from l2r.episodes.read import read_episode
 from l2r.learner import td3
@@ -18,7 +18,7 @@ from l2r.photo import TUNE_STATS_ID
 from l2r.photo.env import MAX_STEPS
 from l2r.spaces import task_spaces
 from tests.logs.episode_writer import RUN
-from tests.logs.recording import saved_view, view_origins
+from tests.logs.recording import logged_evaluation, saved_view, view_origins
 
 SEED = 3
 
@@ -44,19 +44,10 @@ def photo_episode(tmp_path_factory) -> tuple[Path, Seen]:
     logged as an actor logs it, and what its env showed at each step."""
     directory = tmp_path_factory.mktemp("photo")
     config = ActorConfig(run=RUN, actor_id=0, env_id=TUNE_STATS_ID, episode_log={"directory": directory})
-    logger = make_episode_logger(config)
     observation, act_dim = task_spaces(TUNE_STATS_ID)
     policy = td3.init_state(td3.TD3Config(hidden=(16,), precision="float32"), observation, act_dim, seed=0).actor
     env = Seen(make_task(TUNE_STATS_ID))
-    try:
-        run_deterministic(policy, [env], [SEED], env_id=TUNE_STATS_ID, record=lambda env, seed: logger.begin_episode(
-            {"env_id": TUNE_STATS_ID, "seed": seed, "evaluation": True, "policy_version": 1}))  # fmt: skip
-    finally:
-        env.close()
-        logger.close()
-    assert logger.stats["episodes_written"] == 1, logger.stats
-    (path,) = directory.glob("*.mcap")
-    return path, env
+    return logged_evaluation(config, policy, env, SEED, version=1), env
 
 
 def test_a_photo_episode_holds_each_query_s_image_the_goal_and_the_psnr_of_each_step(photo_episode):
