@@ -24,6 +24,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+PROCESS_START_S = 60.0
+"""How long a test waits for a daemon process it has just started to do its first thing: the
+imports alone (torch, Zenoh, MuJoCo) take tens of seconds on a loaded 2-core machine."""
+
+
 def wait_for(predicate: Callable[[], T], timeout: float = 15.0, interval: float = 0.05) -> T:
     """Poll ``predicate`` until it returns something true or ``timeout`` seconds pass; return its
     last value, so callers write ``assert wait_for(...), "what never happened"``."""

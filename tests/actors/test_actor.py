@@ -17,7 +17,7 @@ from l2r.policy import build_policy, policy_state, uniform_log_prob
 from l2r.protocol import (
     EpisodeSummary, EvaluationRound, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config,
 )
-from tests.conftest import ROOT, free_port, wait_for
+from tests.conftest import PROCESS_START_S, ROOT, free_port, wait_for
 
 STANDIN = "tests.actors.standin:StandIn-v0"
 SPEC = {"obs_dim": 41, "act_dim": 18, "hidden": [32], "activation": "elu", "layer_norm": False}
@@ -88,7 +88,7 @@ def test_the_untrained_policy_of_a_new_run_leaves_the_warm_up_to_run_its_course(
     peer.replay_up(True)
     proc = peer.actor("--random-steps", "1000000", "--seed", "4")
     try:
-        assert wait_for(lambda: len(peer.chunks) >= 3), "chunks"
+        assert wait_for(lambda: len(peer.chunks) >= 3, PROCESS_START_S), "chunks"
         uniform = uniform_log_prob(SPEC["act_dim"])
         assert all(np.allclose(c.log_probs, uniform) for c in peer.chunks), "uniform random actions"
     finally:
@@ -101,7 +101,8 @@ def test_actor_follows_weights_survives_bad_ones_and_waits_for_replay(peer):
     proc = peer.actor("--random-steps", "1000000", "--seed", "4")
     try:
         # The weights it asked for on join drive its first chunks.
-        assert wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks)), "chunks acted by version 3"
+        assert wait_for(lambda: any(c.policy_version == 3 for c in peer.chunks), PROCESS_START_S), \
+            "chunks acted by version 3"
         assert wait_for(lambda: any(e.policy_version == 3 for e in peer.episodes)), "episodes acted by version 3"
         alive = peer.session.liveliness().get(peer.keys.alive_role("actor"))
         assert [str(r.ok.key_expr) for r in alive if r.ok] == [peer.keys.alive("actor", 0)]
@@ -177,7 +178,7 @@ def test_evaluation_role_announces_and_repeats_its_rounds_exactly_under_the_same
         return {e.seed: (e.episode_return, e.distance, e.length) for e in peer.episodes if e.policy_version == version}
 
     try:
-        assert wait_for(lambda: len(round_of(3)) == 4), "no evaluation round of version 3"
+        assert wait_for(lambda: len(round_of(3)) == 4, PROCESS_START_S), "no evaluation round of version 3"
         # The same weights again, under a new version: a second round that must repeat the first.
         peer.publish(encode(Weights(8, peer.latest.params, SPEC)))
         assert wait_for(lambda: len(round_of(8)) == 4), "no evaluation round of version 8"
