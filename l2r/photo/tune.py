@@ -137,7 +137,7 @@ def held_out_problems(count: int, seed: int = 0, folder: str | Path | None = Non
     if folder is not None:
         pairs = photos.fivek_split(photos.fivek_pairs(folder), "test")
         sources = {source.stem: photos.read_image(source) for source, _ in pairs}
-    env = task(split="test", sources=sources, **({"goals": goals} if goals != "random" else {}))
+    env = task(split="test", sources=sources, goals=goals)
     problems = []
     for i in range(count):
         _, info = env.reset(seed=seed + i)
