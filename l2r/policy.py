@@ -12,7 +12,9 @@ rebuild exactly the network the learner trains:
     {"obs_dim": 41, "act_dim": 18, "hidden": [512, 512, 512], "activation": "elu",
      "layer_norm": true, "relative_x": false, "normalize_obs": false, "kind": "gaussian"}
 
-A spec without "kind" (from before the deterministic kind) is a Gaussian one. A policy of image
+A spec without "kind" (from before the deterministic kind) is a Gaussian one. A vector policy
+with "frame_stack": k takes the last k observations, oldest first, concatenated (an observation
+history; an actor keeps them, the replay stacks them when it samples). A policy of image
 observations has no "obs_dim"; its spec says what it takes instead (l2r.encoders):
 
     {"observation": [{"name": "pixels", "dtype": "uint8", "shape": [3, 84, 84]}], "frame_stack": 3,
@@ -67,9 +69,10 @@ def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
 def check_spec(spec: Mapping) -> dict:
     """Return a clean copy of an architecture spec, or raise ValueError saying what is wrong.
 
-    A spec of the float32 vector `state` with no frame stack comes back in the form it has always
-    had ("obs_dim", no "observation"); any other observation comes with "observation" (its wire
-    form), "frame_stack" and "encoder" (`check_encoder`)."""
+    A spec of the float32 vector `state` comes back in the form it has always had ("obs_dim", no
+    "observation"), with "frame_stack" where the policy takes the last k observations (k > 1);
+    any other observation comes with "observation" (its wire form), "frame_stack" and "encoder"
+    (`check_encoder`)."""
     if not isinstance(spec, Mapping):
         raise ValueError(f"policy spec must be a mapping, got {type(spec).__name__}")
     required = [k for k in SPEC_KEYS if k != "obs_dim" or "observation" not in spec]
@@ -93,11 +96,12 @@ def check_spec(spec: Mapping) -> dict:
     common = {"act_dim": spec["act_dim"], "hidden": list(hidden), "activation": spec["activation"],
               "layer_norm": bool(spec["layer_norm"]), **options, "kind": kind}
     observation, frame_stack = _observation_of(spec)
-    if observation.vector_width is not None and frame_stack == 1:
+    if observation.vector_width is not None:
         if options["relative_x"] and observation.vector_width != layout.OBS_SIZE:
             raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
                              f"got obs_dim {observation.vector_width}")
-        return {"obs_dim": observation.vector_width, **common}
+        history = {"frame_stack": frame_stack} if frame_stack > 1 else {}
+        return {"obs_dim": observation.vector_width, **history, **common}
     if options["relative_x"] or options["normalize_obs"]:
         raise ValueError(f"policy spec 'relative_x' and 'normalize_obs' are for the float32 vector alone, not "
                          f"observation {observation} stacked {frame_stack}")
@@ -117,8 +121,6 @@ def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
     frame_stack = spec.get("frame_stack", 1)
     if type(frame_stack) is not int or not 1 <= frame_stack <= MAX_FRAME_STACK:
         raise ValueError(f"policy spec 'frame_stack' must be an int from 1 to {MAX_FRAME_STACK}, got {frame_stack!r}")
-    if frame_stack > 1 and observation.vector_width is not None:
-        raise ValueError("policy spec 'frame_stack': frame stacks are for image observations, not the float32 vector")
     return observation, frame_stack
 
 
@@ -159,14 +161,16 @@ class ObservationFilter(nn.Module):
         to +-CLIP. `update` adds a batch to the statistics (the learner's job). The deviation has
         a floor of MIN_STD: a value that has never varied (the psoas strengths and obstacle at
         difficulty 0) reads 0 until it does, then hits the clip.
+    frames: observations of `obs_dim` values concatenated in each input (an observation
+        history); each is filtered as one alone would be, with the same statistics.
     """
 
     CLIP = 5.0
     MIN_STD = 1e-2
 
-    def __init__(self, obs_dim: int, relative_x: bool, normalize: bool):
+    def __init__(self, obs_dim: int, relative_x: bool, normalize: bool, frames: int = 1):
         super().__init__()
-        self.relative_x, self.normalize = relative_x, normalize
+        self.relative_x, self.normalize, self.frames = relative_x, normalize, frames
         if relative_x:
             self.register_buffer("world_x", torch.tensor((layout.PELVIS_X, *layout.WORLD_X)), persistent=False)
         if normalize:
@@ -175,11 +179,18 @@ class ObservationFilter(nn.Module):
             self.register_buffer("count", torch.zeros((), dtype=torch.float64))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        obs = self._relative(obs)
+        if not (self.relative_x or self.normalize):
+            return obs
+        shape = obs.shape
+        obs = self._relative(self._per_frame(obs))
         if self.normalize:
             std = self.var.sqrt().clamp(min=self.MIN_STD)
             obs = ((obs - self.mean) / std).to(obs.dtype).clamp(-self.CLIP, self.CLIP)
-        return obs
+        return obs.reshape(shape)
+
+    def _per_frame(self, obs: torch.Tensor) -> torch.Tensor:
+        """(..., frames * obs_dim) as (..., frames, obs_dim): one row per observation."""
+        return obs if self.frames == 1 else obs.unflatten(-1, (self.frames, -1))
 
     def _relative(self, obs: torch.Tensor) -> torch.Tensor:
         if not self.relative_x:
@@ -203,8 +214,9 @@ class ObservationFilter(nn.Module):
 
     @torch.no_grad()
     def moments(self, obs: torch.Tensor) -> torch.Tensor:
-        """What `update` merges of a batch (n, obs_dim): float64 [n, sum of rows, sum of squared rows]."""
-        x = self._relative(obs).double()
+        """What `update` merges of a batch (n, frames * obs_dim): float64 [number of observations,
+        sum of them, sum of their squares]."""
+        x = self._relative(self._per_frame(obs)).double().flatten(0, -2)
         count = torch.full((1,), len(x), dtype=x.dtype, device=x.device)  # a fill: no copy that waits for a GPU
         return torch.cat([count, x.sum(0), x.pow(2).sum(0)])
 
@@ -251,8 +263,8 @@ class PolicyNetwork(nn.Module):
         else:
             self.image_fields, self.encoder, self.projection = [], None, None
             self.observation_filter = ObservationFilter(self.spec["obs_dim"], self.spec["relative_x"],
-                                                        self.spec["normalize_obs"])
-            features = self.spec["obs_dim"]
+                                                        self.spec["normalize_obs"], self.frame_stack)
+            features = self.spec["obs_dim"] * self.frame_stack
         self.trunk = mlp_trunk(features, self.spec["hidden"], self.spec["activation"], self.spec["layer_norm"])
         self.head = nn.Linear(self.spec["hidden"][-1], outputs * self.spec["act_dim"])
 
@@ -276,8 +288,13 @@ class PolicyNetwork(nn.Module):
         vector (given as an array, or as the field "state"), or the map of stacked fields, uint8
         images as they are (see `act`)."""
         if self.encoder is None:
-            vector = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
-            return torch.as_tensor(np.asarray(vector, dtype=np.float32), device=device)
+            vector = np.asarray(obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs, dtype=np.float32)
+            width = self.spec["obs_dim"] * self.frame_stack
+            if vector.ndim != 2 or vector.shape[1] != width:
+                raise ValueError(f"observations of shape {list(vector.shape)}, this policy takes [n, {width}]"
+                                 + (f" ({self.frame_stack} observations of {self.spec['obs_dim']} stacked)"
+                                    if self.frame_stack > 1 else ""))
+            return torch.as_tensor(vector, device=device)
         if not isinstance(obs, Mapping) or set(obs) != set(self.observation.fields):
             raise ValueError(f"this policy takes observations of fields {self.observation}, stacked "
                              f"{self.frame_stack}, as a map of arrays; got "

@@ -41,7 +41,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         reward_scale=10.0, initial_alpha=0.1, update_repeat=1, publish_every=50,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
-        random_steps=0, envs_per_actor=4, action_repeat=3,
+        random_steps=0, envs_per_actor=4, action_repeat=3, frame_stack=1,
     ),
     # Stable-Baselines3's and CleanRL's SAC for MuJoCo tasks: raw observations, learning from 5,000
     # steps on, one gradient step per env step (samples-per-insert = batch-size / update-repeat,
@@ -51,7 +51,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         reward_scale=1.0, initial_alpha=1.0, update_repeat=1, publish_every=1,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=5_000, samples_per_insert=256.0, hold_actors=True,
-        random_steps=5_000, envs_per_actor=1, action_repeat=1,
+        random_steps=5_000, envs_per_actor=1, action_repeat=1, frame_stack=1,
     ),
     # CleanRL's PPO (PPOConfig), but for the lag correction, with the runner's observation options.
     (RUNNER, "ppo"): dict(
@@ -158,7 +158,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
-        random_steps=0, envs_per_actor=4, action_repeat=3,
+        random_steps=0, envs_per_actor=4, action_repeat=3, frame_stack=1,
     ),
     # CleanRL's TD3 for MuJoCo tasks: standard/sac's networks and one gradient step per env step,
     # learning from 25,000 uniform random steps on.
@@ -170,7 +170,7 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         exploration_std_start=0.1, exploration_std_end=0.1, exploration_std_updates=250_000,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=25_000, samples_per_insert=256.0, hold_actors=True,
-        random_steps=25_000, envs_per_actor=1, action_repeat=1,
+        random_steps=25_000, envs_per_actor=1, action_repeat=1, frame_stack=1,
     ),
     # DrQ-v2's, for the camera tasks (TD3 on 3 stacked 84 x 84 frames; the learner's image defaults
     # add the frame stack of 3 and random shifts of 4 pixels): 1024-wide networks, n-step 3, the
@@ -289,7 +289,8 @@ SETTINGS: dict[str, str] = {
     "envs_per_actor": "environments per actor, batched in one policy call",
     "action_repeat": "0.01 s environment steps per action on the runner, environment steps per action on another "
                      "task (stored in checkpoints for `l2r eval`)",
-    "frame_stack": "image observations: frames stacked into each observation (TD3; unset: the learner's 3)",
+    "frame_stack": "observations stacked into each input, oldest first: a camera task's frames, or the vector's "
+                   "history (SAC, TD3; unset: the learner's 3 for images)",
     "augment_pad": "image observations: pixels of DrQ's random shift (TD3; 0: none; unset: the learner's 4)",
     "encoder": "image observations: the encoder of each image field, drq (DrQ-v2's convolutions) or dual "
                "(RLPixTuner's global and local paths, images of 32 x 32 or more; l2r-learner --help) (TD3)",

@@ -181,9 +181,11 @@ class LearnerSettings(DaemonSettings):
     exploration_std_updates: int = setting(TD3_DEFAULTS.exploration_std_updates, "learner updates over which the "
                                            "exploration std goes linearly from start to end (at one gradient step "
                                            "per environment step: environment steps)", group=TD3, ge=0)
-    frame_stack: int | None = setting(None, f"image observations: frames stacked into each observation, oldest first "
-                                      f"(default: {IMAGE_FRAME_STACK} for images, 1 for the vector, which takes no "
-                                      "other)", group=TD3, ge=1, le=MAX_FRAME_STACK)
+    frame_stack: int | None = setting(None, "observations stacked into each input, oldest first: an image "
+                                      "observation's last frames, or the float32 vector's history (the actors keep "
+                                      "them, the replay stacks them when it samples) (default: "
+                                      f"{IMAGE_FRAME_STACK} for images, 1 for the vector)", group=OFF_POLICY, ge=1,
+                                      le=MAX_FRAME_STACK)
     augment_pad: int | None = setting(None, "image observations: DrQ's random shift, each image of each update "
                                       "padded by this many pixels that repeat its edge, then cropped back to its "
                                       f"size at a random offset; 0: none (default: {IMAGE_AUGMENT_PAD} for images, "
@@ -281,9 +283,11 @@ class LearnerSettings(DaemonSettings):
             raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
         if self.images and self.compile not in ("auto", "off"):
             raise UsageError(f"--compile {self.compile}: the update of image observations runs eagerly")
-        if not self.images and ((self.frame_stack or 1) > 1 or self.augment_pad or self.encoder != DRQ):
-            raise UsageError(f"--frame-stack, --augment-pad and --encoder are for image observations, not "
-                             f"{observation}")
+        if not self.images and (self.augment_pad or self.encoder != DRQ):
+            raise UsageError(f"--augment-pad and --encoder are for image observations, not {observation}")
+        if (self.frame_stack or 1) > 1 and self.algo not in ("sac", "td3"):
+            raise UsageError(f"--frame-stack {self.frame_stack}: stacks are sampled from the replay table, by SAC "
+                             f"and TD3; --algo {self.algo} takes one observation at a time")
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
         if self.layer_norm and self.no_layer_norm:
@@ -321,7 +325,7 @@ class LearnerSettings(DaemonSettings):
                 critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
                 update_repeat=self.update_repeat, target_entropy=self.target_entropy,
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
-                precision=self.precision)
+                precision=self.precision, frame_stack=self.frame_stack or 1)
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None
 

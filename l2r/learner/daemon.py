@@ -53,6 +53,7 @@ from l2r.protocol import (
     STATS_QOS, VERSION_QOS, WEIGHTS_QOS, Gradient, Keys, LearnerVersion, ObservationSpec, ProtocolError, Rejections,
     ReplayClient, SampleBatch, Stats, Weights, decode, encode, reuse_large_buffers,
 )
+from l2r.protocol.observations import VECTOR_FIELD
 
 log = logging.getLogger("l2r.learner")
 # A checkpoint the disk refuses is one line per cause, and training goes on: the last one written stays whole.
@@ -241,8 +242,9 @@ def _learn_from_replay(config: LearnerConfig, algo: AlgorithmConfig, state: Trai
     """The replay client, then training on its batches."""
     # The replay table's requests stay as before the queue.
     table = "queue" if algorithm_of(algo) in ON_POLICY else None
-    # The vector's requests stay version 1, as before the frames form.
-    frame_stack = None if config.observation is None else algo.frame_stack
+    # The vector's requests stay version 1, as before the frames form, unless it takes a history.
+    frame_stack = getattr(algo, "frame_stack", 1)
+    frame_stack = None if config.observation is None and frame_stack == 1 else frame_stack
     with ReplayClient(session, config.run, algo.batch_size, config.prioritized, config.in_flight,
                       table=table, n_step=getattr(algo, "n_step", 1), gamma=algo.gamma,
                       frame_stack=frame_stack) as replay:
@@ -293,8 +295,11 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
 def _replay_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> sac.Batch:
     weights = batch.importance_weights(config.priority_beta) if batch.prioritized else None
     if batch.frames is not None:
-        return sac.batch_from_frames(batch.frames, batch.obs_frames, batch.next_obs_frames, batch.actions,
-                                     batch.rewards, batch.terminated, weights, device, batch.discounts)
+        stacked = sac.batch_from_frames(batch.frames, batch.obs_frames, batch.next_obs_frames, batch.actions,
+                                        batch.rewards, batch.terminated, weights, device, batch.discounts)
+        if config.observation is None:  # the vector's history: its networks take the stacked vector itself
+            stacked = replace(stacked, obs=stacked.obs[VECTOR_FIELD], next_obs=stacked.next_obs[VECTOR_FIELD])
+        return stacked
     return sac.batch_from_numpy(batch.obs, batch.actions, batch.rewards, batch.next_obs, batch.terminated, weights,
                                 device, batch.discounts)
 
@@ -526,12 +531,13 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
 def _check_observations(batch: SampleBatch, config: LearnerConfig, frame_stack: int | None) -> None:
     """ProtocolError unless the batch's observations are what this learner trains on: the vector of
     its width, or frames of its observation spec stacked `frame_stack` deep."""
-    if config.observation is None:
+    if config.observation is None and frame_stack is None:
         if batch.obs is None or batch.obs.shape[1] != config.obs_dim:
             raise ProtocolError(f"batch of obs {None if batch.obs is None else batch.obs.shape}, this learner trains "
                                 f"on {config.obs_dim}", "wrong_width")
         return
-    config.observation.check(batch.frames, "sample_batch.frames")  # the replay client asked for frames
+    observation = config.observation or ObservationSpec.vector(config.obs_dim)
+    observation.check(batch.frames, "sample_batch.frames")  # the replay client asked for frames
     if batch.obs_frames.shape[1] != frame_stack:
         raise ProtocolError(f"sample_batch: stacks of {batch.obs_frames.shape[1]} frames, this learner asked for "
                             f"{frame_stack}", "wrong_stack")

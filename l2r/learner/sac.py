@@ -33,6 +33,7 @@ from l2r.learner.common import (
 )
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
 from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
+from l2r.protocol.limits import MAX_FRAME_STACK
 from l2r.sim import layout
 
 # `hidden` as command lines write it: widths separated by commas, e.g. 256,256.
@@ -78,6 +79,9 @@ class SACConfig:
     mirror: bool = False
     """Each sampled transition has its legs swapped with probability 1/2: training on the
     mirrored data set as well, at no extra cost per update (the body is left-right symmetric)."""
+    frame_stack: int = 1
+    """The networks take the last k observations, oldest first (an observation history, as the
+    2017 winners stacked theirs); the actors keep them and the replay stacks them when it samples."""
     precision: str = "auto"
     """'bfloat16': hidden-layer matmuls in bfloat16 with float32 accumulation (weights, output
     heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 on CPUs that compute it
@@ -88,6 +92,8 @@ class SACConfig:
         check_off_policy(self)
         if self.batch_size < 1 or self.update_repeat < 1 or self.initial_alpha <= 0:
             raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
+        if not 1 <= self.frame_stack <= MAX_FRAME_STACK:
+            raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK}, got {self.frame_stack}")
 
     def to_dict(self) -> dict:
         return {**asdict(self), "hidden": list(self.hidden)}
@@ -200,8 +206,9 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
     check_mirror(config, obs_dim, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
-    actor = Policy(policy_spec(config, obs_dim, act_dim)).to(device)
-    critic = TwinCritic(obs_dim, act_dim, config.hidden, config.activation, config.layer_norm).to(device)
+    actor = Policy(policy_spec(config, obs_dim, act_dim, frame_stack=config.frame_stack)).to(device)
+    critic = TwinCritic(obs_dim * config.frame_stack, act_dim, config.hidden, config.activation,
+                        config.layer_norm).to(device)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     log_alpha = torch.tensor(math.log(config.initial_alpha), device=device, requires_grad=True)
     target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
@@ -261,10 +268,11 @@ def _batch(obs, next_obs, action: np.ndarray, reward: np.ndarray, terminated: np
 
 
 @functools.cache
-def _mirror_permutations(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """layout's leg-swapping permutations on `device`, made once: a copy from host memory to a GPU
-    would wait for the device's queued work on every batch."""
-    return torch.as_tensor(layout.MIRROR_OBS, device=device), torch.as_tensor(layout.MIRROR_ACTION, device=device)
+def _mirror_permutations(device: torch.device, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """layout's leg-swapping permutations on `device` (of each of `frames` observations stacked),
+    made once: a copy from host memory to a GPU would wait for the device's queued work on every batch."""
+    obs = np.concatenate([np.asarray(layout.MIRROR_OBS) + k * layout.OBS_SIZE for k in range(frames)])
+    return torch.as_tensor(obs, device=device), torch.as_tensor(layout.MIRROR_ACTION, device=device)
 
 
 def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
@@ -272,7 +280,7 @@ def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
     and add its observations to the running statistics the networks' inputs are standardised by."""
     if config.mirror:
         swap = torch.rand(len(batch.obs), 1, device=batch.obs.device) < 0.5
-        obs_mirror, action_mirror = _mirror_permutations(batch.obs.device)
+        obs_mirror, action_mirror = _mirror_permutations(batch.obs.device, state.actor.frame_stack)
         batch = replace(batch, obs=torch.where(swap, batch.obs[:, obs_mirror], batch.obs),
                         action=torch.where(swap, batch.action[:, action_mirror], batch.action),
                         next_obs=torch.where(swap, batch.next_obs[:, obs_mirror], batch.next_obs))

@@ -107,7 +107,8 @@ class TD3Config:
     precision: str = "auto"
     """Hidden-layer matmul precision, as SAC's: 'bfloat16', 'float32' or 'auto'."""
     frame_stack: int = 1
-    """Image observations: the frames stacked into each observation, oldest first (DrQ-v2: 3)."""
+    """Observations stacked into each input, oldest first: an image observation's frames (DrQ-v2: 3),
+    or the float32 vector's history (SAC's frame_stack)."""
     augment_pad: int = 0
     """Image observations: DrQ's random shift, each image of each update padded by this many pixels
     that repeat its edge and cropped back at a random offset (DrQ-v2: 4); 0: none."""
@@ -222,7 +223,7 @@ def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: i
         # The target policy sees observations through the online filter: its statistics are not
         # learned weights, so a slow copy of them would only be a stale one.
         target_actor.observation_filter = actor.observation_filter
-        critic_input = actor.spec["obs_dim"]
+        critic_input = actor.spec["obs_dim"] * actor.frame_stack
     else:
         # One encoder for all (DrQ-v2's): the target networks take the online encoder's embedding.
         target_actor.encoder = actor.encoder

@@ -186,8 +186,6 @@ def test_an_image_policy_spec_says_what_an_actor_stacks():
     assert ObservationSpec.from_policy_spec(spec) == CAMERA_AND_STATE and spec["frame_stack"] == K
     assert spec["encoder"] == {"channels": 8, "features": 6} and "obs_dim" not in spec
     assert check_spec(spec) == spec
-    with pytest.raises(ValueError, match="frame stacks are for image observations"):
-        check_spec({**default_spec(41, 18), "frame_stack": 2})
     with pytest.raises(ValueError, match="at least 15 x 15"):
         check_spec({**spec, "observation": ObservationSpec({"pixels": FieldSpec(np.uint8, (3, 8, 8))}).to_wire()})
     with pytest.raises(ValueError, match="float32 vector alone"):
@@ -242,7 +240,7 @@ def test_the_command_line_takes_the_observation_and_defaults_to_drq_v2_s_stack_a
     assert vector.learner().observation is None and vector.learner().obs_dim == 7 and vector.td3().frame_stack == 1
     for argv, message in ((["--algo", "sac", "--observation", str(PIXELS)], "train with --algo td3"),
                           (["--algo", "td3", "--compile", "inductor", "--observation", str(PIXELS)], "runs eagerly"),
-                          (["--algo", "td3", "--frame-stack", "3"], "for image observations"),
+                          (["--algo", "td3", "--augment-pad", "3"], "for image observations"),
                           (["--algo", "td3", "--env-id", "Hopper-v5", "--observation", str(PIXELS)], "give one")):
         with pytest.raises(UsageError, match=message):
             parse_settings(argv)
