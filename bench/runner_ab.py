@@ -1,0 +1,134 @@
+"""A/B runs of the runner's recipe, judged by OpenSim: one JSON line per arm.
+
+    python bench/runner_ab.py --seed 2 --seconds 3600 --arm default= --arm te9=--learner-arg=--target-entropy=-9
+    python bench/runner_ab.py --seed 2 --arm rand="--randomize strength=0.05,delay=0.5" --arm hist="--frame-stack 8"
+    python bench/runner_ab.py --judge RUN_DIR [RUN_DIR ...]      # judge runs made before
+
+Each arm is the 2-core recipe (`l2r up --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id
+l2r/Run-v0 --eval-episodes 1 --eval-interval 60`) with the arm's flags, all arms started **at
+once** on this host, so that they share the machine alike: on 2 cores, two arms get about one
+core each, about what one run alone makes in half the time. The levers and the reasons for
+judging this way: docs/training.md, "Levers for robustness".
+
+What each line holds, from the run's metrics/ and from `l2r eval` afterwards (arms judged at once):
+- `first_opensim_6m`: minutes and updates at the first OpenSim evaluation of 6 m or more;
+- `best_opensim`, `best_port`: the best evaluation in each simulator (metres, version, minute);
+- `opensim_over_port`: after `--after` minutes (default 30), each OpenSim evaluation over the
+  port's of the nearest version (at most 10 apart, where the port's ran over 1 m): least, median, count;
+- `kept` (learner/best.pt) and `newest` (the run's checkpoint): OpenSim and port distances at
+  difficulty 0 (seed 0) and the mean over seeds 0-19 at difficulty 2;
+- `updates`, `env_steps`, and the temperature and entropy the learner last reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from env_speed import cpu_flags, cpu_model  # this folder's: the same machine record as the speed figures
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = ["--evaluators", "2", "--eval-env-id", "l2r/RunOpenSim-v0", "--eval-env-id", "l2r/Run-v0",
+          "--eval-episodes", "1", "--eval-interval", "60"]
+SIMULATORS = {"opensim": "l2r/RunOpenSim-v0", "port": "l2r/Run-v0"}
+OBSTACLE_SEEDS = 20
+
+
+def rows(path: Path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def evaluations(run_dir: Path, env_id: str) -> list[tuple[float, int, float, int]]:
+    """(seconds, version, distance, updates) of each evaluation in `env_id`."""
+    return [(float(r["time"]), int(r["version"]), float(r["distance"]), int(r["updates"]))
+            for r in rows(run_dir / "metrics" / "evaluation.csv") if r["simulator"] == env_id]
+
+
+def curve_figures(run_dir: Path, after_s: float) -> dict:
+    opensim, port = (evaluations(run_dir, SIMULATORS[s]) for s in ("opensim", "port"))
+    first = next(((round(t / 60, 1), u) for t, _, d, u in opensim if d >= 6.0), None)
+    ratios = []
+    for t, version, distance, _ in opensim:
+        near = min(port, key=lambda p: abs(p[1] - version), default=None)
+        if t >= after_s and near and abs(near[1] - version) <= 10 and near[2] > 1.0:
+            ratios.append(distance / near[2])
+
+    def best(evals):
+        top = max(evals, key=lambda e: e[2], default=None)
+        return top and {"m": round(top[2], 2), "version": top[1], "minute": round(top[0] / 60, 1)}
+
+    learner = [r for r in rows(run_dir / "metrics" / "learner.csv") if r["entropy"]]
+    last = learner[-1] if learner else {}
+    return {"first_opensim_6m": first and {"minute": first[0], "updates": first[1]},
+            "best_opensim": best(opensim), "best_port": best(port),
+            "opensim_over_port": {"least": round(min(ratios), 2), "median": round(statistics.median(ratios), 2),
+                                  "count": len(ratios)} if ratios else None,
+            "evaluations": len(opensim), "updates": int(last.get("updates", 0)),
+            "env_steps": int(last.get("env_steps", 0)),
+            "alpha": last.get("alpha") and float(last["alpha"]), "entropy": last.get("entropy") and float(last["entropy"])}
+
+
+def distance(checkpoint: Path, env_id: str, difficulty: int, episodes: int) -> float:
+    out = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(checkpoint), "--env-id", env_id,
+                          "--difficulty", str(difficulty), "--episodes", str(episodes), "--json",
+                          "--progress-every", "0"], cwd=ROOT, capture_output=True, text=True, check=True)
+    return round(json.loads(out.stdout)["mean_distance"], 2)
+
+
+def judge(run_dir: Path, after_s: float) -> dict:
+    policies = {"kept": run_dir / "learner" / "best.pt", "newest": run_dir}
+    judged = {name: {f"{sim}_d0": distance(path, env_id, 0, 1) for sim, env_id in SIMULATORS.items()}
+                    | {f"{sim}_d2_mean": distance(path, env_id, 2, OBSTACLE_SEEDS) for sim, env_id in SIMULATORS.items()}
+              for name, path in policies.items()}
+    launch = json.loads((run_dir / "launch.json").read_text())["args"]
+    return {"run_dir": str(run_dir), "seed": launch.get("seed"), "seconds": launch.get("seconds"),
+            **curve_figures(run_dir, after_s), **judged}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--arm", action="append", default=[], metavar="NAME=FLAGS",
+                        help="an arm: its name and the l2r up flags it adds (none for the recipe itself)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seconds", type=int, default=3600, help="each arm's l2r up --seconds")
+    parser.add_argument("--after", type=float, default=30.0, help="minutes after which OpenSim is held to the port")
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs")
+    parser.add_argument("--judge", type=Path, nargs="+", metavar="RUN_DIR", help="judge these runs instead")
+    args = parser.parse_args()
+    machine = {"machine": f"{cpu_model()}, {os.cpu_count()} CPUs", "cpu_flags": cpu_flags()}
+
+    run_dirs, arms = args.judge or [], {}
+    if not run_dirs:
+        if not args.arm:
+            parser.error("give at least one --arm, or --judge")
+        arms = dict(arm.split("=", 1) for arm in args.arm)
+        started = time.strftime("%Y%m%d-%H%M%S")
+        jobs = []
+        for name, flags in arms.items():
+            run_name = f"ab-{name}-s{args.seed}-{started}"
+            command = [sys.executable, "-m", "l2r.cli", "up", "--seconds", str(args.seconds), "--seed", str(args.seed),
+                       "--name", run_name, "--runs-dir", str(args.runs_dir), "--status-interval", "60", *RECIPE,
+                       *shlex.split(flags)]
+            jobs.append(subprocess.Popen(command, cwd=ROOT))
+        if any(job.wait() for job in jobs):
+            sys.exit("an arm's l2r up failed: its run directory's logs say why")
+        run_dirs = [max(args.runs_dir.glob(f"ab-{name}-s{args.seed}-{started}-*")) for name in arms]
+
+    with ThreadPoolExecutor(len(run_dirs)) as pool:
+        results = list(pool.map(lambda d: judge(d, args.after * 60), run_dirs))
+    for name, result in zip(arms or [d.name for d in run_dirs], results):
+        print(json.dumps({"bench": "runner_ab", "arm": name, "flags": arms.get(name), **result, **machine}))
+
+
+if __name__ == "__main__":
+    main()
