@@ -16,7 +16,7 @@ What each line holds, from the run's metrics/ and from `l2r eval` afterwards (ar
 - `opensim_over_port`: after `--after` minutes (default 30), each OpenSim evaluation over the
   port's of the nearest version (at most 10 apart, where the port's ran over 1 m): least, median, count;
 - `kept` (learner/best.pt) and `newest` (the run's checkpoint): OpenSim and port distances at
-  difficulty 0 (seed 0) and the mean over seeds 0-19 at difficulty 2;
+  difficulty 0 (seed 0, `opensim_d0`, `port_d0`) and the mean over seeds 0-19 at difficulty 2;
 - `updates`, `env_steps`, and the temperature and entropy the learner last reported.
 """
 
@@ -74,8 +74,8 @@ def curve_figures(run_dir: Path, after_s: float) -> dict:
             "opensim_over_port": {"least": round(min(ratios), 2), "median": round(statistics.median(ratios), 2),
                                   "count": len(ratios)} if ratios else None,
             "evaluations": len(opensim), "updates": int(last.get("updates", 0)),
-            "env_steps": int(last.get("env_steps", 0)),
-            "alpha": last.get("alpha") and float(last["alpha"]), "entropy": last.get("entropy") and float(last["entropy"])}
+            "env_steps": int(last.get("env_steps", 0)), "alpha": float(last.get("alpha", "nan")),
+            "entropy": float(last.get("entropy", "nan"))}
 
 
 def distance(checkpoint: Path, env_id: str, difficulty: int, episodes: int) -> float:
@@ -87,8 +87,9 @@ def distance(checkpoint: Path, env_id: str, difficulty: int, episodes: int) -> f
 
 def judge(run_dir: Path, after_s: float) -> dict:
     policies = {"kept": run_dir / "learner" / "best.pt", "newest": run_dir}
-    judged = {name: {f"{sim}_d0": distance(path, env_id, 0, 1) for sim, env_id in SIMULATORS.items()}
-                    | {f"{sim}_d2_mean": distance(path, env_id, 2, OBSTACLE_SEEDS) for sim, env_id in SIMULATORS.items()}
+    episodes = {0: 1, 2: OBSTACLE_SEEDS}
+    judged = {name: {f"{sim}_d{difficulty}": distance(path, env_id, difficulty, episodes[difficulty])
+                     for difficulty in (0, 2) for sim, env_id in SIMULATORS.items()}
               for name, path in policies.items()}
     launch = json.loads((run_dir / "launch.json").read_text())["args"]
     return {"run_dir": str(run_dir), "seed": launch.get("seed"), "seconds": launch.get("seconds"),
