@@ -21,7 +21,7 @@ from l2r.spaces import image_size_option
 
 DEFAULTS = ActorConfig()
 ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role", "episode logs (MCAP)"
-ROBUSTNESS = "robustness (each off by default; unmeasured so far, docs/training.md)"
+ROBUSTNESS = "robustness (each off by default; what each A/B measured: docs/training.md)"
 
 
 class ActorSettings(DaemonSettings):
