@@ -6,15 +6,21 @@ sampling of batches of 256 in the frames form (stacks of 3 frames, one-step and 
 the storage's time per batch, the encode time and size of the reply, and the distinct frames it
 carries. Memory: bytes per stored transition against one frame's bytes. The chunks come from
 episodes of 1,000 steps, so stacks rarely meet an episode start (the case where frames repeat).
+
+With `--history`, the runner's float32[41] instead (an observation history, `--frame-stack k`):
+batches of 256 in the version-1 form (obs and next obs) against the frames form with stacks of
+1, 4 and 8, the storage's and the encoder's time per batch and the reply's size.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
+from env_speed import cpu_flags, cpu_model  # this folder's: the same machine record as the speed figures
 
 from l2r.protocol import ExperienceChunk, decode, encode
 from l2r.protocol.observations import ObservationSpec
@@ -49,11 +55,37 @@ def per_call(fn, seconds: float) -> float:
     return (time.perf_counter() - start) / n
 
 
+def history_figures(seconds: float, capacity: int = 200_000) -> dict:
+    """The runner's vector: version-1 batches against stacks of 1, 4 and 8 observations."""
+    spec, rng = ObservationSpec.vector(41), np.random.default_rng(0)
+    storage = Storage(StorageConfig(capacity=capacity, act_dim=18, observation=spec))
+    for seq in range(capacity // STEPS + 8):
+        obs = rng.normal(size=(STEPS + 1, 41)).astype(np.float32)
+        ends = (np.arange(seq * STEPS, (seq + 1) * STEPS) % EPISODE) == EPISODE - 1
+        storage.insert(ExperienceChunk(0, 0, 1, seq, 0, obs, rng.random((STEPS, 18), np.float32),
+                                       rng.random(STEPS, np.float32), ends, np.zeros(STEPS, bool),
+                                       rng.normal(size=(int(ends[:-1].sum()), 41)).astype(np.float32)))
+    figures = {"capacity": capacity, "observation": str(spec), "machine": f"{cpu_model()}, {os.cpu_count()} CPUs",
+               "cpu_flags": cpu_flags(), "load_average": os.getloadavg()[0]}
+    for stack in (None, 1, 4, 8):
+        def draw():
+            return storage.sample(256, False, frame_stack=stack)
+        batch, form = draw(), f"stack{stack}" if stack else "version1"
+        figures |= {f"{form}_sample_us": round(per_call(draw, seconds) * 1e6, 1),
+                    f"{form}_encode_us": round(per_call(lambda: encode(batch), seconds) * 1e6, 1),
+                    f"{form}_reply_bytes": len(encode(batch))}
+    return figures
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--capacity", type=int, default=16_384, help="slots of the storage (default 16,384: 390 MB)")
     parser.add_argument("--seconds", type=float, default=1.0, help="length of each timed phase")
+    parser.add_argument("--history", action="store_true", help="the runner's vector in stacks instead of frames")
     args = parser.parse_args()
+    if args.history:
+        print(json.dumps(history_figures(args.seconds)))
+        return
 
     storage = Storage(StorageConfig(capacity=args.capacity, act_dim=ACT, observation=SPEC))
     payloads = chunk_payloads(args.capacity // STEPS + 8)
