@@ -349,12 +349,14 @@ class Policy(PolicyNetwork):
         """The deterministic action in (-1, 1): the tanh of the mean."""
         return torch.tanh(self(obs)[0])
 
-    def explore(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def explore(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Sampled excitations in [0, 1] and the log-probability of each, taken of the excitation
         as sent (float32, mapped back with `to_tanh_space`), so the learner, computing it from
-        the stored action, gets the same number."""
+        the stored action, gets the same number. `noise`: the standard normal draws to sample
+        with (`l2r.actors.noise`, correlated in time); None draws them here."""
         mean, log_std = self(obs)
-        excitation = to_excitation(torch.tanh(mean + log_std.exp() * torch.randn_like(mean)))
+        noise = torch.randn_like(mean) if noise is None else noise
+        excitation = to_excitation(torch.tanh(mean + log_std.exp() * noise))
         return excitation, tanh_gaussian_log_prob(mean, log_std, to_tanh_space(excitation))
 
 
@@ -382,11 +384,13 @@ class DeterministicPolicy(PolicyNetwork):
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self(obs)
 
-    def explore(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def explore(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Explored excitations in [0, 1], and 0 for each log-probability: TD3 reads none, and an
-        action clipped at a bound has no density to give."""
+        action clipped at a bound has no density to give. `noise`: standard normal draws, as the
+        Gaussian policy's."""
         action = self(obs)
-        action = (action + self.exploration_std * torch.randn_like(action)).clamp(-1.0, 1.0)
+        noise = torch.randn_like(action) if noise is None else noise
+        action = (action + self.exploration_std * noise).clamp(-1.0, 1.0)
         return to_excitation(action), action.new_zeros(len(action))
 
 
@@ -424,11 +428,14 @@ def act(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray],
 
 
 @torch.no_grad()
-def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray]
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray],
+                      noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exploring excitations in [0, 1] and the log-probability of each, float32 (see each kind's
-    `explore`; observations as `act` takes them)."""
-    excitation, log_prob = policy.explore(policy.observation_tensors(obs_batch, next(policy.parameters()).device))
+    `explore`; observations as `act` takes them; `noise`, [n, act_dim] standard normal draws, or
+    None for the policy's own)."""
+    device = next(policy.parameters()).device
+    draws = None if noise is None else torch.as_tensor(noise, dtype=torch.float32, device=device)
+    excitation, log_prob = policy.explore(policy.observation_tensors(obs_batch, device), draws)
     return excitation.cpu().numpy(), log_prob.cpu().numpy()
 
 

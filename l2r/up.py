@@ -49,6 +49,7 @@ from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.actors.actor import registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
+from l2r.actors.noise import COLOURS
 from l2r.best_policy import BestPolicy
 from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.durable import DISK_ERRORS, MB, FileLogHandler, disk_failure, free_bytes
@@ -220,6 +221,10 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
                     help="std of Gaussian noise the actors add to every action value before the env takes it (the "
                          "runner's excitations, then clipped to [0, 1]); replay stores the policy's action (0: off)")
+    rb.add_argument("--exploration-noise", default="white", choices=tuple(COLOURS),
+                    help="the colour of the policy's exploring draws over an episode: white, each step's drawn "
+                         "anew; pink or red, a series whose power falls as 1/f or 1/f^2 (Eberhard et al., 2023), "
+                         "so successive excitations are correlated, as muscles, which low-pass them, can feel")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
@@ -651,6 +656,8 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
         flags += ["--observation-noise", str(args.observation_noise)]
     if args.action_noise:
         flags += ["--action-noise", str(args.action_noise)]
+    if args.exploration_noise != "white":
+        flags += ["--exploration-noise", args.exploration_noise]
     return flags
 
 

@@ -11,6 +11,7 @@ from pydantic import Field, field_validator
 
 from l2r.actors.actor import ActorConfig, main, registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
+from l2r.actors.noise import COLOURS
 from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
 from l2r.families import RUNNER, family_of
@@ -72,6 +73,10 @@ class ActorSettings(DaemonSettings):
                                   "runner's excitations, then clipped to [0, 1]) before the env takes it, drawn anew "
                                   "for each repeat; the experience sent holds the policy's action",
                                   group=ROBUSTNESS, ge=0)
+    exploration_noise: Literal[tuple(COLOURS)] = setting(
+        DEFAULTS.exploration_noise, "the colour of the policy's exploring draws over an episode: white, each step's "
+        "drawn anew; pink or red, a series whose power falls as 1/f or 1/f^2, so successive actions are correlated "
+        "(each draw is still N(0, 1): the policy and its log-probabilities are unchanged)", group=ROBUSTNESS)
     action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps per policy action (0.01 s each on the "
                                  "runner; a camera task already holds each action for 2 suite steps itself, so 1 "
                                  "there trains as DrQ-v2 does)", group=ACTING, ge=1)
@@ -172,7 +177,7 @@ class ActorSettings(DaemonSettings):
             difficulty_schedule=None if self.difficulty_schedule is None else
             DifficultySchedule.parse(self.difficulty_schedule),
             randomize=Randomization.parse(self.randomize or ""), observation_noise=self.observation_noise,
-            action_noise=self.action_noise,
+            action_noise=self.action_noise, exploration_noise=self.exploration_noise,
             chunk_size=self.chunk_size, chunk_delay=self.chunk_delay, seed=self.seed, num_shards=self.num_shards,
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
             torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,

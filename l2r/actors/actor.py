@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import importlib
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ from l2r.actors.curriculum import DifficultySchedule
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
 from l2r.actors.gradients import GradientSender
+from l2r.actors.noise import ColouredNoise
 from l2r.actors.weights import WeightFollower
 from l2r.actors.worlds import EnvList, VectorWorlds, Worlds
 from l2r.config import StartupFailure
@@ -66,6 +68,9 @@ def blew_up(reward: float, info: dict, max_speed: float) -> bool:
 
 # The version of the policy a learner publishes before its first update.
 UNTRAINED = 1
+# Env steps each world's exploration noise series spans (the runner's, Hopper's, a camera task's
+# episode at most): a series covers an episode's actions.
+NOISE_SERIES_STEPS = 1000
 
 
 @dataclass
@@ -97,6 +102,9 @@ class ActorConfig:
     """Std of the Gaussian noise added to every observed value (0: none)."""
     action_noise: float = 0.0
     """Std of the Gaussian noise added to every action value before the env takes it (0: none)."""
+    exploration_noise: str = "white"
+    """The colour of the policy's own exploring draws over an episode (`l2r.actors.noise.COLOURS`):
+    white draws each step's anew; pink and red are correlated in time."""
     action_repeat: int = 3
     random_steps: int = 5_000
     """Uniform random excitations for this many of the actor's first steps (skipped when it
@@ -294,6 +302,9 @@ class Actor:
         self.slots: list[EnvSlot] = []
         seeds = [episode_seed(config, i, 0) for i in range(config.num_envs)]
         self.worlds = make_worlds(config, seeds)
+        self.noise = None if config.evaluate or config.exploration_noise == "white" else ColouredNoise(
+            config.exploration_noise, config.num_envs, self.worlds.action_space.shape[0],
+            math.ceil(NOISE_SERIES_STEPS / config.action_repeat), self.rng)
         self.observation = observation_spec(self.worlds, config.env_id)
         # Photos are images too, but no camera renders them: no frames to count.
         images = any(field.dtype == np.uint8 for field in self.observation.fields.values())
@@ -346,7 +357,8 @@ class Actor:
         uniform = np.full(len(self.slots), uniform_log_prob(act_dim), np.float32)
         if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
-        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked())
+        noise = None if self.noise is None else self.noise.next()
+        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked(), noise)
         bad = ~(np.isfinite(actions).all(axis=1) & np.isfinite(log_probs))
         if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
             log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
@@ -443,6 +455,8 @@ class Actor:
         self.episodes += 1
         slot.episode += 1
         slot.seed = episode_seed(self.config, i, slot.episode)
+        if self.noise is not None:
+            self.noise.reset(i)
         slot.ret, slot.length = 0.0, 0
 
     def begin_episode(self, i: int, slot: EnvSlot, difficulty: int, obs, info: dict) -> None:

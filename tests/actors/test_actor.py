@@ -193,3 +193,21 @@ def test_evaluation_role_announces_and_repeats_its_rounds_exactly_under_the_same
     assert sorted(round_of(3)) == [100, 101, 102, 103]
     assert round_of(8) == round_of(3)
     assert all(round_of(9)[seed] != round_of(3)[seed] for seed in round_of(3))
+
+
+def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
+    # A policy whose mean and std are the same at every observation: what varies is the noise alone.
+    params = policy_state(build_policy(SPEC))
+    params |= {name: np.zeros_like(params[name]) for name in ("head.weight", "head.bias")}
+    peer.latest = Weights(3, params, SPEC)
+    peer.replay_up(True)
+    proc = peer.actor("--exploration-noise", "red", "--seed", "4")
+    try:
+        assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= 12, PROCESS_START_S), "chunks"
+    finally:
+        stop(proc)
+    steps = np.concatenate([c.actions for c in peer.chunks if c.policy_version == 3])
+    assert 0.3 < steps.mean() < 0.7 and steps.std() > 0.03  # N(0, 1) draws through std 0.22 and the tanh
+    within = [np.corrcoef(c.actions[:-1].ravel(), c.actions[1:].ravel())[0, 1]
+              for c in peer.chunks if c.policy_version == 3]
+    assert np.median(within) > 0.6, within  # white draws: about 0

@@ -181,23 +181,24 @@ def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
 
 def test_the_robustness_levers_reach_the_training_actors_alone():
     args, _ = parse_args(["--actors", "2", "--opensim-actors", "1", "--randomize", "mass=0.1,delay=0.5",
-                          "--observation-noise", "0.01", "--action-noise", "0.02",
+                          "--observation-noise", "0.01", "--action-noise", "0.02", "--exploration-noise", "pink",
                           "--difficulty-schedule", "0:0,1000:2"])
     children = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
                 if c.argv[2] == "l2r.actors"}
     port, opensim, evaluator = children["actor-0"], children["actor-1"], children["evaluator-0"]
     for actor in (port, opensim):
         config = actor.actor()
-        assert (config.observation_noise, config.action_noise) == (0.01, 0.02)
+        assert (config.observation_noise, config.action_noise, config.exploration_noise) == (0.01, 0.02, "pink")
         assert str(config.difficulty_schedule) == "0:0,1000:2"
     assert port.actor().randomize == Randomization(mass=0.1, delay=0.5)
     assert not opensim.actor().randomize  # the MuJoCo port's alone
     config = evaluator.actor()
-    assert (config.randomize, config.observation_noise, config.action_noise, config.difficulty_schedule) == (
-        Randomization(), 0.0, 0.0, None)
+    assert (config.randomize, config.observation_noise, config.action_noise, config.exploration_noise,
+            config.difficulty_schedule) == (Randomization(), 0.0, 0.0, "white", None)
     # Off, the actors' command lines are those of before the levers.
     args, _ = parse_args([])
-    assert not {"--randomize", "--observation-noise", "--action-noise", "--difficulty-schedule"} & {
+    assert not {"--randomize", "--observation-noise", "--action-noise", "--exploration-noise",
+                "--difficulty-schedule"} & {
         flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) for flag in c.argv}
 
 
