@@ -530,7 +530,7 @@ def _next_batch(replay: ReplayClient, config: LearnerConfig, stop: threading.Eve
 
 def _check_observations(batch: SampleBatch, config: LearnerConfig, frame_stack: int | None) -> None:
     """ProtocolError unless the batch's observations are what this learner trains on: the vector of
-    its width, or frames of its observation spec stacked `frame_stack` deep."""
+    its width, or frames of its observation spec (the vector's, for a history) stacked `frame_stack` deep."""
     if config.observation is None and frame_stack is None:
         if batch.obs is None or batch.obs.shape[1] != config.obs_dim:
             raise ProtocolError(f"batch of obs {None if batch.obs is None else batch.obs.shape}, this learner trains "
