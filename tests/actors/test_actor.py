@@ -206,8 +206,9 @@ def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
         assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= 12, PROCESS_START_S), "chunks"
     finally:
         stop(proc)
-    steps = np.concatenate([c.actions for c in peer.chunks if c.policy_version == 3])
+    acted = [c.actions for c in peer.chunks if c.policy_version == 3]
+    steps = np.concatenate(acted)
     assert 0.3 < steps.mean() < 0.7 and steps.std() > 0.03  # N(0, 1) draws through std 0.22 and the tanh
-    within = [np.corrcoef(c.actions[:-1].ravel(), c.actions[1:].ravel())[0, 1]
-              for c in peer.chunks if c.policy_version == 3]
-    assert np.median(within) > 0.6, within  # white draws: about 0
+    # (a chunk sent early, at a change of weights, may hold a step or two: too few to correlate)
+    within = [np.corrcoef(a[:-1].ravel(), a[1:].ravel())[0, 1] for a in acted if len(a) >= 8]
+    assert len(within) >= 8 and np.median(within) > 0.6, within  # white draws: about 0
