@@ -3,6 +3,7 @@
     python bench/runner_ab.py --seed 2 --seconds 3600 --arm default= --arm te9=--learner-arg=--target-entropy=-9
     python bench/runner_ab.py --seed 2 --arm rand="--randomize strength=0.05,delay=0.5" --arm hist="--frame-stack 8"
     python bench/runner_ab.py --judge RUN_DIR [RUN_DIR ...]      # judge runs made before
+    python bench/runner_ab.py --plot docs/ab.png RUN_DIR [RUN_DIR ...]   # their evaluations, a panel each
 
 Each arm is the 2-core recipe (`l2r up --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id
 l2r/Run-v0 --eval-episodes 1 --eval-interval 60`) with the arm's flags, all arms started **at
@@ -96,6 +97,30 @@ def judge(run_dir: Path, after_s: float) -> dict:
             **curve_figures(run_dir, after_s), **judged}
 
 
+def plot(run_dirs: list[Path], out: Path) -> None:
+    """Each run's evaluations in both simulators against wall-clock minutes, a panel each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(run_dirs), 1, figsize=(9, 2.6 * len(run_dirs)), sharex=True, squeeze=False)
+    for ax, run_dir in zip(axes[:, 0], run_dirs):
+        for sim, colour in (("port", "tab:orange"), ("opensim", "tab:red")):
+            evals = evaluations(run_dir, SIMULATORS[sim])
+            ax.plot([t / 60 for t, *_ in evals], [d for _, _, d, _ in evals], "o-", color=colour, markersize=3,
+                    linewidth=0.8, label=SIMULATORS[sim])
+        ax.axhline(6.0, color="gray", linestyle=":", linewidth=0.8)
+        ax.set_title(run_dir.name, fontsize=9)
+        ax.set_ylabel("distance (m)")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper left", fontsize=8)
+    axes[-1, 0].set_xlabel("wall-clock minutes (arms run at once, about one core each)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--arm", action="append", default=[], metavar="NAME=FLAGS",
@@ -105,7 +130,13 @@ def main() -> None:
     parser.add_argument("--after", type=float, default=30.0, help="minutes after which OpenSim is held to the port")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs")
     parser.add_argument("--judge", type=Path, nargs="+", metavar="RUN_DIR", help="judge these runs instead")
+    parser.add_argument("--plot", type=Path, metavar="PNG", help="draw the evaluations of the runs given (--judge "
+                        "or positional) instead of judging them")
+    parser.add_argument("runs", type=Path, nargs="*", metavar="RUN_DIR", help="runs to --plot")
     args = parser.parse_args()
+    if args.plot:
+        plot(args.runs or args.judge or [], args.plot)
+        return
     machine = {"machine": f"{cpu_model()}, {os.cpu_count()} CPUs", "cpu_flags": cpu_flags()}
 
     run_dirs, arms = args.judge or [], {}
