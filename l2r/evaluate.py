@@ -20,8 +20,10 @@ from l2r.actors.frame_stack import frame_stack_of
 from l2r.config import CommandParser
 from l2r.families import PIXELS, RUNNER, family_of, score_of
 from l2r.learner.checkpoint import CheckpointError, load_checkpoint
+from l2r.photo.env import GOALS
 from l2r.protocol import ObservationSpec, ProtocolError
 from l2r.sim.wrappers import ActionRepeat
+from l2r.spaces import photo_goals_option
 
 DEFAULT_ACTION_REPEAT = 3  # the runner's recipe's and l2r-actor's; for checkpoints that do not say
 
@@ -52,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "or the task another checkpoint was trained on (`l2r up --env-id`), such as Hopper-v5")
     p.add_argument("--progress-every", type=float, default=10.0, metavar="SECONDS",
                    help="print on stderr how far the episodes have come every this many seconds (0: never)")
+    p.add_argument("--photo-goals", choices=GOALS,
+                   help="the photo tuner's goals: random, looks (another scene's look) or mixed (default: the "
+                        "task's own, random)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of lines")
     return p
 
@@ -92,15 +97,18 @@ class WrongTask(ValueError):
 
 
 def evaluate(policy, episodes: int, seed: int, difficulty: int, action_repeat: int,
-             env_id: str = "l2r/Run-v0", progress_every: float = 0.0) -> list[EpisodeResult]:
+             env_id: str = "l2r/Run-v0", progress_every: float = 0.0,
+             photo_goals: str | None = None) -> list[EpisodeResult]:
     """The results of ``episodes`` deterministic episodes, all stepped as one batch
-    as an evaluator of `l2r up` steps them; progress on stderr every ``progress_every`` seconds (0: none)."""
+    as an evaluator of `l2r up` steps them; progress on stderr every ``progress_every`` seconds (0: none);
+    the photo tuner's goals ``photo_goals`` (None: its own)."""
     progress = Progress(episodes, progress_every)
     trained = (ObservationSpec.from_policy_spec(policy.spec), policy.spec["act_dim"])
     frames = trained[0].fields.get("pixels")
     # A camera task renders frames of the size the policy was trained on (l2r up --image-size).
     image_size = frames.shape[-1] if family_of(env_id) == PIXELS and frames is not None else None
-    envs = [Counted(make_task(env_id, difficulty, image_size=image_size), progress) for _ in range(episodes)]
+    envs = [Counted(make_task(env_id, difficulty, image_size=image_size, photo_goals=photo_goals), progress)
+            for _ in range(episodes)]
     if action_repeat > 1:
         envs = [ActionRepeat(env, action_repeat) for env in envs]
     try:
@@ -124,6 +132,11 @@ def cli(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     try:
+        photo_goals_option(args.env_id, args.photo_goals)
+    except ValueError as e:
+        print(f"l2r eval: --photo-goals {args.photo_goals}: {e}", file=sys.stderr)
+        return 2
+    try:
         checkpoint = load_checkpoint(args.checkpoint)
     except CheckpointError as e:
         print(f"l2r eval: {e}", file=sys.stderr)
@@ -138,7 +151,7 @@ def cli(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         episodes = evaluate(checkpoint.policy(), args.episodes, args.seed, args.difficulty, action_repeat,
-                            args.env_id, args.progress_every)
+                            args.env_id, args.progress_every, args.photo_goals)
     except ImportError as e:  # a simulator that is not installed
         print(f"l2r eval: {e}", file=sys.stderr)
         return 1

@@ -48,6 +48,18 @@ def image_size_option(env_id: str, image_size: int | None) -> dict[str, int]:
     return {"image_size": image_size}
 
 
+def photo_goals_option(env_id: str, goals: str | None) -> dict[str, str]:
+    """The keyword that makes the photo tuner draw its goals as `goals` says (l2r.photo.env.GOALS;
+    none for None); ValueError for another task, which has no goals to draw."""
+    from l2r.photo import TUNE_IDS  # (l2r.photo imports this module)
+
+    if goals is None:
+        return {}
+    if env_id not in TUNE_IDS:
+        raise ValueError(f"goals are the photo tuner's ({', '.join(TUNE_IDS)}), not {env_id}'s")
+    return {"goals": goals}
+
+
 def checked_action(task: str, action: Any, shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarray:
     """`action` as an array of `dtype` clipped to [-1, 1], or a ValueError naming `task` and what is
     wrong with it (not numbers, another shape than `shape`, non-finite entries): what l2r's own

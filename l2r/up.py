@@ -60,6 +60,7 @@ from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import checkpoint_path
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
+from l2r.photo.env import GOALS
 from l2r.protocol import Keys, session_config
 from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values
 from l2r.replay.queue import QueueConfig
@@ -67,7 +68,7 @@ from l2r.replay.snapshot import snapshot_path
 from l2r.run_metrics import RunCounters, RunMetrics
 from l2r.sim import OPENSIM_ID, PORT_ID, randomize_refusal
 from l2r.sim.randomize import Randomization
-from l2r.spaces import image_size_option, task_spaces
+from l2r.spaces import image_size_option, photo_goals_option, task_spaces
 from l2r.supervise import Child, ProcessGroup, last_lines
 
 log = logging.getLogger("l2r.up")
@@ -170,6 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--image-size", type=int, metavar="PIXELS",
                    help="a camera task's frames, pixels a side (default: the task's own, 84 as DrQ-v2's); smaller "
                         "frames render and train faster on a CPU (48: about 4x fewer updates' FLOPs than 84)")
+    a.add_argument("--photo-goals", choices=GOALS,
+                   help="the photo tuner's goals, for its actors and evaluators: random (the crop finished with hidden "
+                        "random parameters), looks (the crop with another scene's look) or mixed (either, with even "
+                        "odds each episode) (default: the task's own, random)")
     a.add_argument("--difficulty", type=int, choices=(0, 1, 2), default=0, help="0 flat, 1 obstacles, 2 obstacles + weak psoas")
     a.add_argument("--evaluators", type=int, default=1,
                    help="evaluator processes: deterministic episodes on fixed seeds for each new policy")
@@ -413,6 +418,10 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         image_size_option(args.env_id, args.image_size)
     except ValueError as e:
         parser.error(f"--image-size {args.image_size}: {e}")
+    try:
+        photo_goals_option(args.env_id, args.photo_goals)
+    except ValueError as e:
+        parser.error(f"--photo-goals {args.photo_goals}: {e}")
     if family_of(args.env_id) != RUNNER:
         try:
             observation, _ = task_spaces(args.env_id, args.image_size)
@@ -602,7 +611,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
               "--difficulty", str(args.difficulty), "--action-repeat", str(recipe["action_repeat"]),
               "--seed", str(args.seed), *(["--device", args.device] if registers_vector_env(args.env_id) else []),
               *([] if family_of(args.env_id) == RUNNER else ["--max-speed", "0"]),  # a runner's speed limit
-              *([] if args.image_size is None else ["--image-size", str(args.image_size)])]
+              *([] if args.image_size is None else ["--image-size", str(args.image_size)]),
+              *([] if args.photo_goals is None else ["--photo-goals", args.photo_goals])]
     reserve = disk_budget.reserve_bytes(run_dir, disk_budget.task_checkpoint_bytes(args.env_id, recipe["hidden"]))
     # MCAP episode logs record the runner's body, or a camera or photo task's images: none for another task
     logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS, PHOTO) else [

@@ -15,10 +15,11 @@ from l2r.actors.noise import COLOURS
 from l2r.config import CommandParser, FilePath, UsageError, load, run_command, setting, settings_parser
 from l2r.durable import MB
 from l2r.families import RUNNER, family_of
+from l2r.photo.env import GOALS
 from l2r.protocol import DaemonSettings, configure_logging
 from l2r.sim import randomize_refusal
 from l2r.sim.randomize import Randomization
-from l2r.spaces import image_size_option
+from l2r.spaces import image_size_option, photo_goals_option
 
 DEFAULTS = ActorConfig()
 ACTING, EXPERIENCE, EVALUATION, LOGS = "acting", "experience", "evaluation role", "episode logs (MCAP)"
@@ -51,6 +52,10 @@ class ActorSettings(DaemonSettings):
         None, "a camera task's frames, pixels a side (default: the task's own, 84 as DrQ-v2's): smaller frames render "
         "and train faster on a CPU; its replay shard and learner take the observation they make (l2r up hands "
         "them over)", group=ACTING, ge=1, metavar="PIXELS")
+    photo_goals: Literal[GOALS] | None = setting(
+        None, "the photo tuner's goals: random (the crop finished with hidden random parameters), looks (the crop "
+        "with another scene's look) or mixed (either, with even odds each episode) (default: the task's own, "
+        "random)", group=ACTING)
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
     difficulty_schedule: str | None = setting(
@@ -153,6 +158,10 @@ class ActorSettings(DaemonSettings):
             image_size_option(self.env_id, self.image_size)
         except ValueError as e:
             raise UsageError(f"--image-size {self.image_size}: {e}") from None
+        try:
+            photo_goals_option(self.env_id, self.photo_goals)
+        except ValueError as e:
+            raise UsageError(f"--photo-goals {self.photo_goals}: {e}") from None
         if self.native_vector_env and (self.observation_noise or self.action_noise):
             raise UsageError(f"--observation-noise and --action-noise wrap single envs, not {self.env_id}'s "
                              "vector env; add --vector-env off")
@@ -172,7 +181,7 @@ class ActorSettings(DaemonSettings):
         return ActorConfig(
             run=self.run, actor_id=actor_id, num_envs=self.num_envs, env_id=self.env_id,
             vector_env={"auto": None, "on": True, "off": False}[self.vector_env],
-            device=self.device, image_size=self.image_size,
+            device=self.device, image_size=self.image_size, photo_goals=self.photo_goals,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
             difficulty_schedule=None if self.difficulty_schedule is None else
             DifficultySchedule.parse(self.difficulty_schedule),

@@ -51,7 +51,7 @@ from l2r.protocol import (
 from l2r.sim import WARP_ID, randomize_refusal  # (importing l2r.sim registers the runner's envs)
 from l2r.sim.randomize import Randomization
 from l2r.sim.wrappers import ActionNoise, ActionRepeat, ObservationNoise
-from l2r.spaces import image_size_option
+from l2r.spaces import image_size_option, photo_goals_option
 
 log = logging.getLogger("l2r.actor")
 
@@ -92,6 +92,8 @@ class ActorConfig:
     observation space (`ObservationSpec.from_space`)."""
     image_size: int | None = None
     """A camera task's frames, pixels a side (None: the task's own, 84)."""
+    photo_goals: str | None = None
+    """The photo tuner's goals (l2r.photo.env.GOALS; None: the task's own, random)."""
     difficulty: int = 0
     difficulty_schedule: DifficultySchedule | None = None
     """Training episodes start at the schedule's difficulty for the actor's env steps (the runner;
@@ -149,16 +151,18 @@ class ActorConfig:
 
 
 def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
-              randomize: Randomization | None = None, image_size: int | None = None) -> gymnasium.Env:
+              randomize: Randomization | None = None, image_size: int | None = None,
+              photo_goals: str | None = None) -> gymnasium.Env:
     """The runner (l2r/...) with its difficulty, seed and randomisation (the MuJoCo bodies' alone),
     or any other gymnasium env with Box actions (a camera task's frames `image_size` pixels a side,
-    None: its own), rescaled so that it takes the policy's [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
+    the photo tuner's goals `photo_goals`, None: its own), rescaled so that it takes the policy's
+    [0, 1] excitations (Hopper-v5's [-1, 1], say)."""
     if randomize and randomize_refusal(env_id):
         raise ValueError(randomize_refusal(env_id))
     if family_of(env_id) == RUNNER:
         options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
         return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
-    env = gymnasium.make(env_id, **image_size_option(env_id, image_size))
+    env = gymnasium.make(env_id, **image_size_option(env_id, image_size), **photo_goals_option(env_id, photo_goals))
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
         bound = env.action_space.dtype.type  # (Python floats would make gymnasium warn of a float64 bound)
         env = RescaleAction(env, bound(0.0), bound(1.0))
@@ -168,7 +172,7 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
 def make_env(config: ActorConfig, seed: int) -> gymnasium.Env:
     """The actor's task (`make_task`) with the noise configured, each action repeated as configured
     (the action noise drawn anew for each repeat)."""
-    env = make_task(config.env_id, config.difficulty, seed, config.randomize, config.image_size)
+    env = make_task(config.env_id, config.difficulty, seed, config.randomize, config.image_size, config.photo_goals)
     if config.action_noise:
         env = ActionNoise(env, config.action_noise)
     if config.observation_noise:

@@ -18,7 +18,7 @@ import numpy as np
 
 from l2r.config import CommandParser
 from l2r.photo import enhance, photos, tune
-from l2r.photo.env import GOALS, PhotoEnhanceEnv, psnr_db
+from l2r.photo.env import GOAL_SETS, PhotoEnhanceEnv, psnr_db
 from l2r.photo.pipeline import NAMES, finish, params_from_actions
 
 OPTIMIZERS = {"cmaes": tune.cmaes, "random": tune.random_search}
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_held_out(c, "also run this policy of l2r/PhotoTune-v0")
     c.add_argument("--budgets", default=",".join(map(str, tune.BUDGETS)), metavar="N,N,...",
                    help=f"the optimisers' query budgets (default: {','.join(map(str, tune.BUDGETS))})")
-    c.add_argument("--goals", choices=GOALS, default="random",
+    c.add_argument("--goals", choices=GOAL_SETS, default="random",
                    help="random: the crop finished with hidden random parameters, which an exact answer reaches; "
                         "looks: the crop with the colour statistics of a crop of another test scene (Reinhard's "
                         "colour transfer in CIELAB), a grade the pipeline can only approach (default: random)")

@@ -8,7 +8,8 @@ running the pipeline (l2r.photo.pipeline) on it with hidden parameters, each act
 uniformly in [-1, 1]; a crop or goal that is itself collapsed (below) is drawn again. With
 `goals="looks"` the goal is instead the crop with another scene's look (`transfer_look`: the
 colour statistics of a crop of a photo of another scene of the same split), a colour grade the
-pipeline can approach but, unlike a random edit, not always reach (as a retoucher's target).
+pipeline can approach but, unlike a random edit, not always reach (as a retoucher's target);
+`goals="mixed"` draws one kind or the other with even odds each episode.
 
 The action is a complete setting of the nine parameters, each in [-1, 1] mapped onto its range,
 not a change to the current one: as in RLPixTuner (`isp_inp_original`), each step runs the
@@ -61,9 +62,11 @@ MAX_PSNR_DB = 100.0
 """PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
 MAX_DRAWS = 100
 VIEWS = ("images", "statistics")
-GOALS = ("random", "looks")
-"""How the tuner's goals are made: the crop finished with hidden random parameters, or the crop
-with another scene's look (`transfer_look`)."""
+GOAL_SETS = ("random", "looks")
+"""The two kinds of goal: the crop finished with hidden random parameters, or the crop with
+another scene's look (`transfer_look`)."""
+GOALS = (*GOAL_SETS, "mixed")
+"""What a tuner's episodes take: one kind, or either with even odds each episode."""
 
 
 def psnr_db(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
@@ -134,7 +137,8 @@ class PhotoTuneEnv(gym.Env):
     sources: photos to crop from instead of the split's, by name ([3, H, W] uint8 or uint16: a
         FiveK folder's, say).
     view: "images" (both images and their statistics) or "statistics" (`image_features` alone).
-    goals: "random" (RLPixTuner's FiveK-Random) or "looks" (another scene's look; the tuner's task alone).
+    goals: "random" (RLPixTuner's FiveK-Random), "looks" (another scene's look; the tuner's task alone)
+        or "mixed" (either, drawn with even odds each episode: a tuner trained on both).
     """
 
     metadata = {"render_modes": []}
@@ -189,7 +193,7 @@ class PhotoTuneEnv(gym.Env):
     def draw(self) -> None:
         """The episode's input, a crop of a photo of the split, and its goal: that crop edited with
         hidden random parameters, or given another scene's look."""
-        if self.goals == "looks":
+        if self.goals == "looks" or (self.goals == "mixed" and self.np_random.random() < 0.5):
             self.photo_name, self.source, self.look, self.goal = self.borrowed_look()
             self.goal_params = None  # no parameters are known to reach it
         else:
@@ -223,7 +227,7 @@ class PhotoTuneEnv(gym.Env):
             name = names[int(self.np_random.integers(len(names)))]
             others = [other for other in names if photos.scene(other) != photos.scene(name)]
             if not others:
-                raise ValueError(f"{self.task}: goals='looks' needs photos of two scenes at least; "
+                raise ValueError(f"{self.task}: goals={self.goals!r} needs photos of two scenes at least; "
                                  f"the photos are {', '.join(names)}")
             look = others[int(self.np_random.integers(len(others)))]
             crop = photos.random_crop(self.photos[name], self.np_random)

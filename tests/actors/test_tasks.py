@@ -11,6 +11,7 @@ from l2r.actors.__main__ import parse_settings
 from l2r.actors.actor import ActorConfig, make_env, observation_spec
 from l2r.config import UsageError
 from l2r.evaluate import WrongTask, evaluate
+from l2r.evaluate import cli as eval_cli
 from l2r.learner.td3 import TD3Config, init_state
 from l2r.policy import build_policy
 from l2r.protocol import ObservationSpec
@@ -68,6 +69,20 @@ def test_a_camera_task_renders_frames_of_the_size_asked_and_l2r_eval_the_size_it
         make_env(ActorConfig(env_id="Hopper-v5", image_size=20), seed=0)
     with pytest.raises(UsageError, match="--image-size 20: an image size is for the camera tasks"):
         parse_settings(["--env-id", "Hopper-v5", "--image-size", "20"])
+
+
+def test_the_photo_tuner_draws_the_goals_asked_for_training_and_l2r_eval():
+    env = make_env(ActorConfig(env_id="l2r/PhotoTuneStats-v0", action_repeat=1, photo_goals="looks"), seed=0)
+    try:
+        assert env.reset(seed=0)[1]["look"] is not None  # another scene's look, not a random edit
+    finally:
+        env.close()
+    policy = init_state(TD3Config(hidden=(8,)), 60, 9, seed=0).actor  # the statistics view: 60 values, 9 actions
+    (result,) = evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id="l2r/PhotoTuneStats-v0",
+                         photo_goals="looks")
+    random_goal = evaluate(policy, episodes=1, seed=0, difficulty=0, action_repeat=1, env_id="l2r/PhotoTuneStats-v0")
+    assert result.psnr_db != random_goal[0].psnr_db  # another goal for the same seed
+    assert eval_cli(["runs/none", "--env-id", "Hopper-v5", "--photo-goals", "looks"]) == 2
 
 
 @pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")

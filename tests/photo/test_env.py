@@ -235,11 +235,22 @@ def test_goals_of_looks_come_from_another_scene_of_the_split_and_repeat_with_the
     assert gymnasium.make("l2r/PhotoTune-v0").reset(seed=0)[1]["look"] is None  # random goals by default
 
 
+def test_mixed_goals_draw_either_kind_by_the_episode_s_seed():
+    mixed = gymnasium.make("l2r/PhotoTune-v0", split="test", goals="mixed").unwrapped
+    kinds = []
+    for seed in range(16):
+        _, info = mixed.reset(seed=seed)
+        kinds.append(info["look"] is not None)
+        assert (mixed.goal_params is None) == kinds[-1]  # a look, or an edit with known parameters
+        assert (mixed.reset(seed=seed)[1]["look"] is not None) == kinds[-1]
+    assert 4 <= sum(kinds) <= 12, kinds
+
+
 def test_looks_are_refused_without_a_second_scene_or_for_the_enhancer():
     pair = {name: photos.load_photo(name) for name in ("motorcycle_left", "motorcycle_right")}  # one scene
     with pytest.raises(ValueError, match="goals='looks' needs photos of two scenes at least"):
         l2r.photo.env.PhotoTuneEnv(sources=pair, goals="looks").reset(seed=0)
-    with pytest.raises(ValueError, match="goals must be one of random, looks, got 'expert'"):
+    with pytest.raises(ValueError, match="goals must be one of random, looks, mixed, got 'expert'"):
         gymnasium.make("l2r/PhotoTune-v0", goals="expert")
     with pytest.raises(ValueError, match="goals must be one of random, got 'looks'"):
         gymnasium.make("l2r/PhotoEnhance-v0", goals="looks")

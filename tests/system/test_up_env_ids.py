@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.config import UsageError
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.families import PIXELS, RUNNER, family_of
@@ -165,11 +166,23 @@ def test_a_camera_task_s_frame_size_reaches_every_daemon():
     assert [actor_settings(children[name]).actor().image_size for name in ("actor-0", "evaluator-0")] == [48, 48]
 
 
+def test_the_photo_tuner_s_goals_reach_its_actors_and_evaluators():
+    args, _ = parse_args(["--env-id", "l2r/PhotoTuneStats-v0", "--algo", "td3", "--photo-goals", "mixed"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
+    assert [actor_settings(children[name]).actor().photo_goals for name in ("actor-0", "evaluator-0")] == ["mixed"] * 2
+    args, _ = parse_args(["--env-id", "l2r/PhotoTuneStats-v0", "--algo", "td3"])
+    flags = {flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) for flag in c.argv}
+    assert "--photo-goals" not in flags
+    with pytest.raises(UsageError, match="--photo-goals looks: goals are the photo tuner's"):
+        actor_settings(["--env-id", "l2r/PhotoEnhanceStats-v0", "--photo-goals", "looks"])
+
+
 def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
     for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0"], "images train with --algo td3 (DrQ-v2), not sac"),
                       (["--env-id", "Nope-v0"], "doesn't exist"),
                       (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo"),
                       (["--env-id", "Hopper-v5", "--image-size", "48"], "--image-size 48: an image size is for the camera tasks"),
+                      (["--env-id", "Hopper-v5", "--photo-goals", "looks"], "--photo-goals looks: goals are the photo tuner's"),
                       (["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "td3", "--image-size", "12"],
                        "the drq encoder takes uint8[C, H, W] images of at least 15 x 15")):
         with pytest.raises(SystemExit) as exit_:
