@@ -15,7 +15,8 @@ What each line holds, from the run's metrics/ and from `l2r eval` afterwards (ar
 - `first_opensim_6m`: minutes and updates at the first OpenSim evaluation of 6 m or more;
 - `best_opensim`, `best_port`: the best evaluation in each simulator (metres, version, minute);
 - `opensim_over_port`: after `--after` minutes (default 30), each OpenSim evaluation over the
-  port's of the nearest version (at most 10 apart, where the port's ran over 1 m): least, median, count;
+  port's of the nearest version (at most `--within` apart, default 10, where the port's ran over
+  1 m): least, median, count;
 - `kept` (learner/best.pt) and `newest` (the run's checkpoint): OpenSim and port distances at
   difficulty 0 (seed 0, `opensim_d0`, `port_d0`) and the mean over seeds 0-19 at difficulty 2;
 - `updates`, `env_steps`, and the temperature and entropy the learner last reported.
@@ -55,13 +56,13 @@ def evaluations(run_dir: Path, env_id: str) -> list[tuple[float, int, float, int
             for r in rows(run_dir / "metrics" / "evaluation.csv") if r["simulator"] == env_id]
 
 
-def curve_figures(run_dir: Path, after_s: float) -> dict:
+def curve_figures(run_dir: Path, after_s: float, within: int) -> dict:
     opensim, port = (evaluations(run_dir, SIMULATORS[s]) for s in ("opensim", "port"))
     first = next(((round(t / 60, 1), u) for t, _, d, u in opensim if d >= 6.0), None)
     ratios = []
     for t, version, distance, _ in opensim:
         near = min(port, key=lambda p: abs(p[1] - version), default=None)
-        if t >= after_s and near and abs(near[1] - version) <= 10 and near[2] > 1.0:
+        if t >= after_s and near and abs(near[1] - version) <= within and near[2] > 1.0:
             ratios.append(distance / near[2])
 
     def best(evals):
@@ -86,7 +87,7 @@ def distance(checkpoint: Path, env_id: str, difficulty: int, episodes: int) -> f
     return round(json.loads(out.stdout)["mean_distance"], 2)
 
 
-def judge(run_dir: Path, after_s: float) -> dict:
+def judge(run_dir: Path, after_s: float, within: int) -> dict:
     policies = {"kept": run_dir / "learner" / "best.pt", "newest": run_dir}
     episodes = {0: 1, 2: OBSTACLE_SEEDS}
     judged = {name: {f"{sim}_d{difficulty}": distance(path, env_id, difficulty, episodes[difficulty])
@@ -94,7 +95,7 @@ def judge(run_dir: Path, after_s: float) -> dict:
               for name, path in policies.items()}
     launch = json.loads((run_dir / "launch.json").read_text())["args"]
     return {"run_dir": str(run_dir), "seed": launch.get("seed"), "seconds": launch.get("seconds"),
-            **curve_figures(run_dir, after_s), **judged}
+            **curve_figures(run_dir, after_s, within), **judged}
 
 
 def plot(run_dirs: list[Path], out: Path) -> None:
@@ -128,6 +129,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--seconds", type=int, default=3600, help="each arm's l2r up --seconds")
     parser.add_argument("--after", type=float, default=30.0, help="minutes after which OpenSim is held to the port")
+    parser.add_argument("--within", type=int, default=10, help="most policy versions between an OpenSim evaluation and "
+                        "the port's it is held to")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs")
     parser.add_argument("--judge", type=Path, nargs="+", metavar="RUN_DIR", help="judge these runs instead")
     parser.add_argument("--plot", type=Path, metavar="PNG", help="draw the evaluations of the runs given (--judge "
@@ -157,7 +160,7 @@ def main() -> None:
         run_dirs = [max(args.runs_dir.glob(f"ab-{name}-s{args.seed}-{started}-*")) for name in arms]
 
     with ThreadPoolExecutor(len(run_dirs)) as pool:
-        results = list(pool.map(lambda d: judge(d, args.after * 60), run_dirs))
+        results = list(pool.map(lambda d: judge(d, args.after * 60, args.within), run_dirs))
     for name, result in zip(arms or [d.name for d in run_dirs], results):
         print(json.dumps({"bench": "runner_ab", "arm": name, "flags": arms.get(name), **result, **machine}))
 
