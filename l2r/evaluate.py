@@ -55,8 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress-every", type=float, default=10.0, metavar="SECONDS",
                    help="print on stderr how far the episodes have come every this many seconds (0: never)")
     p.add_argument("--photo-goals", choices=GOALS,
-                   help="the photo tuner's goals: random, looks (another scene's look) or mixed (default: the "
-                        "task's own, random)")
+                   help="the photo tuner's goals: random, looks (another scene's look) or mixed; unset, the task's "
+                        "own, random")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of lines")
     return p
 
