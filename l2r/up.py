@@ -206,9 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "to 32 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
                         "of an actor's CPU; off sends them raw. Other tasks send the same bytes either way")
     rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
-                              "evaluators run the plain env; --frame-stack, the policy's own, is among the recipe's values); "
-                              "each off by default, what each A/B measured in docs/training.md, \"Levers for "
-                              "robustness\"")
+                              "evaluators run the plain env; --frame-stack, the policy's own, is among the recipe's "
+                              "values); each off by default, what each A/B measured in docs/training.md, \"Levers "
+                              "for robustness\"")
     rb.add_argument("--difficulty-schedule", metavar="STEP:DIFFICULTY,...",
                     help="train on a course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training episode "
                          "starts at the difficulty of the last pair whose step the actor's own env steps have reached, "
