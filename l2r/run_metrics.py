@@ -434,7 +434,7 @@ class RunMetrics:
                 "version": self.version,
                 "policy_lag": max([lag for v in replays + learners if math.isfinite(lag := float(v.get("policy_lag", 0.0)))] or [0.0]),
                 "actor_staleness": max([float(v.get("staleness", 0.0)) for v in actors] or [0.0]),
-                "replay_size": int(total(replays, "size")),
+                "replay_size": int(total(replays, "size") + total(actors, "replay_size")),  # + a colocated ring
                 "episodes": self.before.episodes + self.episodes,
                 "recent_return": mean(self.train, lambda e: e.episode_return),
                 f"recent_{name}": mean(self.train),

@@ -234,6 +234,13 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
                          "(l2r/RunWarp-v0: the worlds and the policy's batched call on the GPU with cuda)")
+    le.add_argument("--colocated", action="store_true",
+                    help="the learner steps the training worlds itself (--actors x --envs-per-actor of them, the "
+                         "actors' env with --difficulty and --randomize) and keeps their transitions on its device: "
+                         "no replay server and no training actors; evaluators as ever (SAC, TD3; vector "
+                         "observations). For l2r/RunWarp-v0 on a GPU (--device cuda): thousands of worlds, big "
+                         "batches, nothing but weights, metrics and episode summaries over Zenoh (docs/training.md, "
+                         "\"Colocated worlds\")")
     le.add_argument("--learner-threads", type=int, default=0,
                     help="torch CPU threads of the learner; 0: the cores left after one per actor or evaluator and "
                          "one per replay shard, at least 1 (oversubscribed threads wait on each other and slow every "
@@ -455,7 +462,24 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--replay-shards is for the replay table of sac and td3; --algo {args.algo} takes its "
                      f"batches from one replay server's queue")
     _check_robustness(parser, args)
+    if args.colocated:
+        _check_colocated(parser, args)
     return args
+
+
+def _check_colocated(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """What the learner's own worlds (--colocated) cannot take: the actors' levers and replay's options."""
+    if args.algo not in ("sac", "td3"):
+        parser.error(f"--colocated trains SAC or TD3 on the learner's own worlds; --algo {args.algo} learns from actors")
+    if family_of(args.env_id) in (PIXELS, PHOTO):
+        parser.error(f"--colocated steps worlds of vector observations, not {args.env_id}'s images")
+    given = [flag for flag, on in (("--opensim-actors", args.opensim_actors), ("--replay-shards", args.replay_shards > 1),
+                                   ("--difficulty-schedule", args.difficulty_schedule),
+                                   ("--observation-noise", args.observation_noise), ("--action-noise", args.action_noise),
+                                   ("--exploration-noise", args.exploration_noise != "white"),
+                                   ("--frame-stack", recipe_of(args).values.get("frame_stack", 1) > 1)) if on]
+    if given:
+        parser.error(f"--colocated: {', '.join(given)} are the actors' and replay's, not the learner's own worlds'")
 
 
 def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -591,7 +615,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
         tables = [["--capacity", str(capacity)] for capacity in shard_capacities(replay_capacity(args), shards)]
         in_flight = []
     # Each shard waits for its share of --min-replay, so that together they wait for about as much as one would.
-    shard_recipe = recipe if shards == 1 else recipe | {"min_replay": -(-recipe["min_replay"] // shards)}
+    shard_recipe = recipe if shards <= 1 else recipe | {"min_replay": -(-recipe["min_replay"] // shards)}
     replay_task, learner_task = task_flags(args.env_id, args.image_size) if family_of(args.env_id) != RUNNER else ([], [])
     children = [Child(replay_name(shard, shards), tier=0, progress=("replay", str(shard), "inserted"),
                       argv=py + ["l2r.replay", *common, *shard_flags(shard, shards), "--listen", loopback(port),
@@ -600,6 +624,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                 for shard, port in enumerate(replay_ports)]
     children.append(Child("learner", tier=1, progress=("learner", "0", "updates"), resume_args=["--resume"],
                           argv=py + ["l2r.learner", *common, "--listen", learner_ep, *to_replay,
+                                     *(colocated_flags(args, recipe) if args.colocated else []),
                                      "--device", args.device, "--algo", args.algo, *in_flight, *learner_task,
                                      *daemon_flags(recipe, LEARNER_FLAGS), *layer_norm_flag(recipe, args.learner_arg),
                                      "--threads", str(learner_threads(args)),
@@ -618,7 +643,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS, PHOTO) else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every),
         "--log-min-free-mb", f"{disk_budget.LOW_FACTOR * reserve / MB:.1f}"]
-    for i in range(args.actors):
+    for i in range(0 if args.colocated else args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
         children.append(Child(f"actor-{i}", tier=2, nice=args.actor_nice, progress=("actor", str(i), "env_steps"),
@@ -630,8 +655,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):
         eval_env = [] if env_id is None else ["--env-id", env_id]
-        # Evaluators take ids after the actors' so their keys never collide.
-        actor_id = args.actors + i
+        # Evaluators take ids after the actors' (the colocated worlds' 0) so their keys never collide.
+        actor_id = (1 if args.colocated else args.actors) + i
         children.append(Child(f"evaluator-{i}", tier=2, nice=args.actor_nice,
                               progress=("evaluator", str(actor_id), "env_steps"),
                               argv=py + ["l2r.actors", *common, *peers, *acting, "--evaluate",
@@ -642,6 +667,17 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          *eval_env, *([] if args.eval_difficulty is None else
                                                       ["--difficulty", str(args.eval_difficulty)])]))
     return children
+
+
+def colocated_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
+    """The learner's flags for the worlds it steps itself (--colocated): the actors' worlds, their
+    warm-up and the replay's capacity."""
+    flags = ["--colocated-env", args.env_id, "--colocated-worlds", str(args.actors * recipe["envs_per_actor"]),
+             "--colocated-capacity", str(replay_capacity(args)),
+             "--colocated-random-steps", str(args.actors * recipe["random_steps"]),
+             "--colocated-min-replay", str(recipe["min_replay"]),
+             "--colocated-difficulty", str(args.difficulty), "--seed", str(args.seed)]
+    return flags + (["--colocated-randomize", args.randomize] if args.randomize else [])
 
 
 def shard_flags(shard: int, shards: int) -> list[str]:
@@ -811,8 +847,11 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     logging.basicConfig(level=getattr(logging, args.log_level), handlers=[file_handler, console], force=True)
     run = run_dir.name
     *replay_ports, learner_port = free_ports(args.replay_shards + 1)
-    write_launch(run_dir, args, argv, launch, {"replay_port": replay_ports[0], "learner_port": learner_port}
-                 | ({"replay_ports": replay_ports} if args.replay_shards > 1 else {}))
+    write_launch(run_dir, args, argv, launch, {"learner_port": learner_port} | (
+        {} if args.colocated else {"replay_port": replay_ports[0]}) | (
+        {"replay_ports": replay_ports} if args.replay_shards > 1 else {}))
+    if args.colocated:  # the learner's own worlds: no replay
+        replay_ports = []
     recipe = recipe_of(args)
     log.info("%s", recipe.describe())
     if recipe.unused:
@@ -838,7 +877,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     shedding = disk_budget.Shedding(run_dir)
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
-        simulators = simulator_of_each_actor(children)
+        simulators = simulator_of_each_actor(children) | ({0: args.env_id} if args.colocated else {})
         metrics = RunMetrics(session, Keys(run), run_dir / "metrics", env_id=args.env_id, simulators=simulators)
         judge = args.eval_env_id[0] if args.eval_env_id else None
         best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, recipe.values["action_repeat"],
@@ -860,7 +899,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
                     if group.finished("learner"):
                         reason[0] = "the learner finished"
                         break
-                    if group.finished("actor-"):
+                    if not args.colocated and group.finished("actor-"):  # (colocated: none to finish)
                         reason[0] = "every actor finished"
                         break
                     spent = budget_spent(args, metrics.counters())

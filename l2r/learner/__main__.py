@@ -25,6 +25,7 @@ from l2r.learner.a3c import A3CConfig  # noqa: E402
 from l2r.learner.acktr import ACKTRConfig  # noqa: E402
 from l2r.learner.algorithms import ON_POLICY  # noqa: E402
 from l2r.learner.checkpoint import CheckpointError  # noqa: E402
+from l2r.learner.colocated import WorldsConfig  # noqa: E402
 from l2r.learner.daemon import LearnerConfig, main  # noqa: E402
 from l2r.learner.distributed import DeviceUnavailable  # noqa: E402
 from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS, PPOConfig  # noqa: E402
@@ -35,6 +36,7 @@ from l2r.learner.td3 import ACTOR_LOSSES, TD3Config  # noqa: E402
 from l2r.learner.trpo import TRPOConfig  # noqa: E402
 from l2r.protocol import DaemonSettings, ObservationSpec, ProtocolError, configure_logging  # noqa: E402
 from l2r.protocol.limits import MAX_FRAME_STACK  # noqa: E402
+from l2r.sim.randomize import Randomization  # noqa: E402
 from l2r.spaces import task_spaces  # noqa: E402
 
 IMAGE_FRAME_STACK, IMAGE_AUGMENT_PAD = 3, 4
@@ -52,6 +54,9 @@ PPO = ("on-policy (with --algo ppo, a2c, a3c or reinforce; with --algo trpo or a
        "setting)")
 NATURAL = "TRPO and ACKTR (natural-gradient steps; with --algo trpo or acktr)"
 OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
+COLOCATED = ("colocated worlds (SAC, TD3: the learner steps a vector env itself and keeps its transitions on its "
+             "device, no replay; l2r.learner.colocated)")
+WORLDS_DEFAULTS = WorldsConfig("")
 
 
 def _defaults(name: str, sac_value=None) -> str:
@@ -105,11 +110,28 @@ class LearnerSettings(DaemonSettings):
     keep_checkpoints: int = setting(3, "checkpoints kept: checkpoint.pt is the newest, checkpoint-<updates>.pt "
                                     "the newest N", group=PROCESS, ge=1)
     action_repeat: int | None = setting(None, "the actors' action repeat; stored in checkpoints so `l2r eval` steps "
-                                        "the env as training did (the learner itself does not use it)",
+                                        "the env as training did (the learner itself uses it only for colocated "
+                                        "worlds)",
                                         group=PROCESS, ge=1)
     metrics_interval: float = setting(5.0, "seconds between metrics reports", group=PROCESS, gt=0)
     max_updates: int = setting(0, "stop after this many updates in total; 0 = until stopped", group=PROCESS, ge=0)
     seed: int | None = setting(None, "torch seed (each rank adds its rank)", group=PROCESS)
+
+    colocated_env: str | None = setting(
+        None, "step this gymnasium env's worlds in the learner's own process and train on their transitions, kept "
+        "on the training device (l2r/RunWarp-v0 on a GPU: thousands of worlds, big batches), instead of batches "
+        "from replay; one step of every world per batch sampled (--update-repeat updates each)", group=COLOCATED)
+    colocated_worlds: int = setting(WORLDS_DEFAULTS.worlds, "worlds stepped at once", group=COLOCATED, ge=1)
+    colocated_capacity: int = setting(WORLDS_DEFAULTS.capacity, "transitions kept on the device; the oldest go first",
+                                      group=COLOCATED, ge=1)
+    colocated_random_steps: int = setting(
+        WORLDS_DEFAULTS.random_steps, "env steps of uniform random actions (all worlds together) before the policy "
+        "acts", group=COLOCATED, ge=0)
+    colocated_min_replay: int = setting(WORLDS_DEFAULTS.min_replay, "transitions kept before the first batch (and at "
+                                        "least --colocated-random-steps and a batch)", group=COLOCATED, ge=0)
+    colocated_difficulty: int = setting(0, "the runner's difficulty (0, 1 or 2)", group=COLOCATED, ge=0, le=2)
+    colocated_randomize: str = setting("", "the runner's per-episode body randomisation, as l2r-actor's --randomize "
+                                       "(e.g. strength=0.05,delay=0.5)", group=COLOCATED, metavar="FIELD=FRACTION,...")
 
     # torchrun's variables, so that each rank it starts knows its place
     world_size: int = setting(1, "number of learners (default: $WORLD_SIZE or 1)", group=PARALLEL, ge=1,
@@ -258,14 +280,16 @@ class LearnerSettings(DaemonSettings):
 
     @cached_property
     def spaces(self) -> tuple[ObservationSpec, int]:
-        """The observation the networks take and the action width: --env-id's, --observation's or the vector's."""
-        if self.env_id is not None:
+        """The observation the networks take and the action width: --env-id's (--colocated-env's), --observation's
+        or the vector's."""
+        env_id = self.env_id or self.colocated_env
+        if env_id is not None:
             if self.observation is not None:
-                raise UsageError("--env-id and --observation both give the observation: give one")
+                raise UsageError(f"--observation and {env_id}'s spaces both give the observation: give one")
             try:
-                return task_spaces(self.env_id)
+                return task_spaces(env_id)
             except ValueError as e:
-                raise UsageError(f"--env-id {self.env_id}: {e}") from None
+                raise UsageError(f"{env_id}: {e}") from None
         if self.observation is None:
             return ObservationSpec.vector(self.obs_dim), self.act_dim
         try:
@@ -305,9 +329,34 @@ class LearnerSettings(DaemonSettings):
         if self.algo in ("trpo", "acktr") and self.world_size > 1:
             raise UsageError(f"--algo {self.algo} runs on one learner: its curvature is not averaged over ranks "
                              "(--world-size 1)")
+        if self.colocated_env is not None:
+            self._check_colocated()
         if self.algo in ON_POLICY and (self.mirror or self.prioritized):
             raise UsageError(f"--mirror and --prioritized are SAC's and TD3's: {self.algo.upper()} learns from the "
                              "actors' own actions, in order (their log-probabilities are of the actions as taken)")
+
+    def _check_colocated(self) -> None:
+        if self.algo not in ("sac", "td3"):
+            raise UsageError(f"--colocated-env trains SAC or TD3 on its worlds' transitions; --algo {self.algo} takes "
+                             "batches from the actors")
+        if self.images or (self.frame_stack or 1) > 1:
+            raise UsageError(f"--colocated-env {self.colocated_env}: colocated worlds give one float32 vector at a "
+                             f"time (observation {self.spaces[0]}, --frame-stack {self.frame_stack or 1})")
+        if self.prioritized or self.world_size > 1:
+            raise UsageError("--colocated-env samples uniformly, on one learner: no --prioritized or --world-size")
+        if self.colocated_randomize:
+            try:
+                Randomization.parse(self.colocated_randomize)
+            except ValueError as e:
+                raise UsageError(f"--colocated-randomize: {e}") from None
+
+    def worlds(self) -> WorldsConfig | None:
+        """The colocated worlds (--colocated-env), or None: batches from replay."""
+        if self.colocated_env is None:
+            return None
+        return WorldsConfig(self.colocated_env, self.colocated_worlds, self.colocated_capacity,
+                            self.colocated_random_steps, self.colocated_min_replay, self.action_repeat or 1, self.colocated_difficulty,
+                            self.colocated_randomize, self.seed or 0)
 
     def _network(self, defaults: SACConfig | PPOConfig | TD3Config) -> dict:
         """The settings both algorithms have, each unset one at the algorithm's default."""
@@ -405,7 +454,8 @@ class LearnerSettings(DaemonSettings):
             priority_beta=self.priority_beta, in_flight=self.in_flight, publish_every=self.publish_every,
             checkpoint_interval=self.checkpoint_interval, keep_checkpoints=self.keep_checkpoints,
             action_repeat=self.action_repeat, metrics_interval=self.metrics_interval,
-            max_updates=self.max_updates, seed=self.seed, world_size=self.world_size, rank=self.rank,
+            max_updates=self.max_updates, seed=self.seed, colocated=self.worlds(), world_size=self.world_size,
+            rank=self.rank,
             dist_url=self.dist_url)
 
 
@@ -423,7 +473,9 @@ def build_parser() -> CommandParser:
         "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
         "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192 "
         "(A2C, REINFORCE, TRPO and ACKTR the same, with --algo a2c, reinforce, trpo or acktr)\n"
-        "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500")
+        "Two data-parallel learners: add --world-size 2 --rank 0|1 --dist-url tcp://127.0.0.1:29500\n"
+        "Colocated worlds, no replay: l2r-learner --algo td3 --device cuda --colocated-env l2r/RunWarp-v0 "
+        "--colocated-worlds 4096 --batch-size 32768 --action-repeat 3 ...")
 
 
 def parse_settings(argv: Sequence[str] | None = None) -> LearnerSettings:

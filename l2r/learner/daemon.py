@@ -10,6 +10,8 @@ REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.re
         on-policy (PPO, A2C, REINFORCE, TRPO, ACKTR; l2r.learner.algorithms.ON_POLICY): one
                   update (PPO's epochs x minibatches, a natural-gradient step) on a batch from the
                   queue table
+    or, colocated (l2r.learner.colocated): one step of worlds this process steps itself -> a batch
+                  sampled on the device from their transitions -> SAC's or TD3's step, as above
     or, for A3C (l2r.learner.a3c), no replay: the actors' gradients in arrival order -> one
                   optimizer step on each (too stale or ill-fitting ones refused, counted)
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
@@ -31,6 +33,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -39,6 +42,7 @@ import zenoh
 from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import a3c, ppo, sac, td3
 from l2r.learner.algorithms import ON_POLICY
+from l2r.learner.colocated import ColocatedExperience, WorldsConfig
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
     save_checkpoint,
@@ -93,6 +97,9 @@ class LearnerConfig:
     max_updates: int = 0
     """Stop (and checkpoint) after this many updates in total; 0 = run until stopped."""
     seed: int | None = None
+    colocated: WorldsConfig | None = None
+    """Worlds this process steps itself, their transitions kept on its device (l2r.learner.colocated),
+    instead of batches from replay."""
     world_size: int = 1
     rank: int = 0
     dist_url: str | None = None
@@ -228,6 +235,8 @@ def _serve(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, conf
                 with GradientInbox(session, keys) as inbox:
                     outlet.publish(state)
                     _learn_from_gradients(config, algo, state, inbox, outlet, metrics_out, stop)
+            elif config.colocated is not None:
+                _learn_colocated(config, algo, state, session, outlet, metrics_out, device, stop)
             else:
                 _learn_from_replay(config, algo, state, session, outlet, metrics_out, device, stop)
             token.undeclare()
@@ -255,8 +264,22 @@ def _learn_from_replay(config: LearnerConfig, algo: AlgorithmConfig, state: Trai
             state.version = newest
         if outlet:
             outlet.publish(state)
-        replay.learner_version = state.version
-        _train(config, algo, state, replay, outlet, metrics_out, device, stop)
+        experience = ReplayExperience(replay, config, stop, STEPS[algorithm_of(algo)][0])
+        experience.learner_version = state.version
+        _train(config, algo, state, experience, outlet, metrics_out, device, stop)
+
+
+def _learn_colocated(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, session: zenoh.Session,
+                     outlet: WeightsOutlet, metrics_out: zenoh.Publisher, device: torch.device,
+                     stop: threading.Event) -> None:
+    """Training on transitions of worlds this process steps itself (l2r.learner.colocated)."""
+    experience = ColocatedExperience(session, Keys(config.run), config.colocated, state.actor, algo.batch_size, device)
+    try:
+        outlet.publish(state)
+        experience.learner_version = state.version
+        _train(config, algo, state, experience, outlet, metrics_out, device, stop)
+    finally:
+        experience.close()
 
 
 def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.device) -> TrainState:
@@ -305,20 +328,20 @@ def _replay_batch(batch: SampleBatch, config: LearnerConfig, device: torch.devic
 
 
 def _replay_step(state: sac.TrainState | td3.TrainState, tensors: sac.Batch, batch: SampleBatch,
-                 algo: SACConfig | TD3Config, replay: ReplayClient, steps: GradientSteps) -> dict[str, torch.Tensor]:
+                 algo: SACConfig | TD3Config, experience: Experience, steps: GradientSteps) -> dict[str, torch.Tensor]:
     """SAC's and TD3's step: update_repeat updates on one batch from the replay table."""
     algorithm = ALGORITHMS[algorithm_of(algo)][1]
     metrics = steps(state, algorithm.prepare(state, tensors, algo))
     if batch.prioritized:
-        replay.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
+        experience.update_priorities(batch, metrics["priorities"].float().cpu().numpy())
     return metrics
 
 
 def _td3_step(state: td3.TrainState, tensors: sac.Batch, batch: SampleBatch, algo: TD3Config,
-              replay: ReplayClient, steps: GradientSteps) -> dict[str, torch.Tensor]:
+              experience: Experience, steps: GradientSteps) -> dict[str, torch.Tensor]:
     """The replay step, then the exploration std the schedule gives at the new update count: set
     here, outside the update, so that no compiled or captured update holds it."""
-    metrics = _replay_step(state, tensors, batch, algo, replay, steps)
+    metrics = _replay_step(state, tensors, batch, algo, experience, steps)
     td3.follow_exploration_schedule(state, algo)
     return metrics
 
@@ -328,7 +351,7 @@ def _queue_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device
 
 
 def _on_policy_step(state: ppo.TrainState, tensors: ppo.Batch, batch: SampleBatch, algo: PPOConfig,
-                    replay: ReplayClient, steps: None) -> dict[str, torch.Tensor]:
+                    experience: Experience, steps: None) -> dict[str, torch.Tensor]:
     """An on-policy algorithm's update (its module's `update`) on one batch from the queue table."""
     return ALGORITHMS[algorithm_of(algo)][1].update(state, tensors, algo)
 
@@ -341,21 +364,66 @@ STEPS = {"sac": (_replay_batch, _replay_step, sac.update, False),
          **{name: (_queue_batch, _on_policy_step, None, True) for name in ON_POLICY}}
 
 
+class Experience(Protocol):
+    """Where the learner's batches come from: the replay shards (`ReplayExperience`), or worlds the
+    learner steps itself (`l2r.learner.colocated.ColocatedExperience`)."""
+
+    learner_version: int
+    """The newest version published, which the batches' policy lag is measured against."""
+
+    def next_batch(self, timeout: float):
+        """The next batch, or None after `timeout` seconds (short, so stop requests are seen)."""
+
+    def to_device(self, batch, device: torch.device):
+        """The batch as the algorithm's tensors on `device`."""
+
+    def update_priorities(self, batch, priorities: np.ndarray) -> None: ...
+
+    def waiting(self) -> str:
+        """What the learner is waiting for, while no batch comes."""
+
+
+class ReplayExperience:
+    """Batches from the replay shards, checked (`_next_batch`), converted by `to_device` (the algorithm's)."""
+
+    def __init__(self, replay: ReplayClient, config: LearnerConfig, stop: threading.Event, to_device):
+        self.replay, self._config, self._stop, self._to_device = replay, config, stop, to_device
+
+    @property
+    def learner_version(self) -> int:
+        return self.replay.learner_version
+
+    @learner_version.setter
+    def learner_version(self, version: int) -> None:
+        self.replay.learner_version = version
+
+    def next_batch(self, timeout: float) -> SampleBatch | None:
+        return _next_batch(self.replay, self._config, self._stop, timeout)
+
+    def to_device(self, batch: SampleBatch, device: torch.device):
+        return self._to_device(batch, self._config, device)
+
+    def update_priorities(self, batch: SampleBatch, priorities: np.ndarray) -> None:
+        self.replay.update_priorities(batch, priorities)
+
+    def waiting(self) -> str:
+        return f"waiting for replay (shards alive: {self.replay.shards}, not-ready replies: {self.replay.waits})"
+
+
 class Staging:
-    """Batches from replay, each converted and copied to the training device while the update
-    before it runs. On CUDA an update runs on the device after the host has queued it, so the
-    host takes the next batch meanwhile (pinned memory, a copy that does not wait for the device);
-    on CPU the update has run by then, and the conversion is all that comes ahead.
+    """Batches from the experience, each converted and copied to the training device while the
+    update before it runs. On CUDA an update runs on the device after the host has queued it, so
+    the host takes the next batch meanwhile (pinned memory, a copy that does not wait for the
+    device; colocated worlds take their step); on CPU the update has run by then, and the
+    conversion is all that comes ahead.
 
     Waiting is counted only while the device has nothing to do: with no batch ready, the update
-    in flight is finished first, then the wait for replay is timed. At most two updates are
+    in flight is finished first, then the wait for a batch is timed. At most two updates are
     queued on the device, so the host never runs far ahead of it.
     """
 
-    def __init__(self, replay: ReplayClient, config: LearnerConfig, stop: threading.Event, to_device,
-                 device: torch.device, meter: Meter):
-        self._replay, self._config, self._stop, self._to_device = replay, config, stop, to_device
-        self._device, self._meter = device, meter
+    def __init__(self, experience: Experience, device: torch.device, meter: Meter):
+        self._experience, self._device, self._meter = experience, device, meter
         self._staged: tuple[SampleBatch, object] | None = None
         self._in_flight: deque[torch.cuda.Event] = deque()
 
@@ -364,7 +432,7 @@ class Staging:
         if self._staged is None:
             self._finish(0)
             asked = time.monotonic()
-            batch = _next_batch(self._replay, self._config, self._stop, timeout=0.5)
+            batch = self._experience.next_batch(timeout=0.5)
             self._meter.waited += time.monotonic() - asked
             self._stage(batch)
         self._finish(1)
@@ -372,15 +440,15 @@ class Staging:
         return staged
 
     def ahead(self) -> None:
-        """After an update is queued: stage the next batch if replay has one ready."""
+        """After an update is queued: stage the next batch if one is ready."""
         if self._device.type == "cuda":
             self._in_flight.append(torch.cuda.Event())
             self._in_flight[-1].record()
-        self._stage(_next_batch(self._replay, self._config, self._stop, timeout=0.0))
+        self._stage(self._experience.next_batch(timeout=0.0))
 
     def _stage(self, batch: SampleBatch | None) -> None:
         if batch is not None:
-            self._staged = batch, self._to_device(batch, self._config, self._device)
+            self._staged = batch, self._experience.to_device(batch, self._device)
 
     def _finish(self, keep: int) -> None:
         """Wait until at most `keep` updates are still running on the device."""
@@ -388,14 +456,14 @@ class Staging:
             self._in_flight.popleft().synchronize()
 
 
-def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, replay: ReplayClient,
+def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, experience: Experience,
            outlet: WeightsOutlet | None, metrics_out: zenoh.Publisher, device: torch.device,
            stop: threading.Event) -> None:
-    to_device, step, update, publish_each_batch = STEPS[algorithm_of(algo)]
+    _, step, update, publish_each_batch = STEPS[algorithm_of(algo)]
     steps = update and GradientSteps(update, algo, config.compile, device, algo.update_repeat,
                                      policy_delay=getattr(algo, "policy_delay", None))
     meter = Meter()
-    staging = Staging(replay, config, stop, to_device, device, meter)
+    staging = Staging(experience, device, meter)
     last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None
     while True:
         staged = staging.take()
@@ -403,7 +471,7 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
             now = time.monotonic()
             waiting_since = waiting_since or now
             if now - waiting_since > 10.0:
-                log.info("waiting for replay (shards alive: %s, not-ready replies: %d)", replay.shards, replay.waits)
+                log.info("%s", experience.waiting())
                 waiting_since = now
             if now - meter.since >= config.metrics_interval:  # rates of zero are news too
                 _report(config, algo, state, meter.report(now), metrics_out)
@@ -414,7 +482,7 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
             return
         batch, tensors = staged
         updates_before = state.updates
-        metrics = step(state, tensors, batch, algo, replay, steps)
+        metrics = step(state, tensors, batch, algo, experience, steps)
         lag = float(state.version - np.mean(batch.policy_versions))
         meter.add(metrics, state.updates - updates_before, len(batch.actions), lag)
 
@@ -427,7 +495,7 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, repl
                 raise Diverged(f"weights hold NaN or infinity after {state.updates} updates")
             if outlet:
                 outlet.publish(state)
-                replay.learner_version = state.version
+                experience.learner_version = state.version
             last_publish = state.updates
         # After a publication, so that PPO's next batch is asked for once the actors have its weights.
         staging.ahead()

@@ -1,0 +1,263 @@
+"""Colocated experience: the learner steps its own worlds, and their transitions stay on its device.
+
+The actors' path sends each transition over Zenoh to the replay shards and takes batches back:
+right for envs stepped on CPUs anywhere, costly for thousands of worlds stepped on the learner's
+own GPU (`l2r/RunWarp-v0`), where training in the manner of FastTD3 wants many worlds and big
+batches. Here the learner's process steps a vector env with its newest policy, keeps the
+transitions in a ring of tensors on the training device and samples its batches there; weights,
+metrics and episode summaries leave over Zenoh as before, so evaluators, `l2r up`'s metrics and
+its choice of `best.pt` work unchanged. The worlds report as an actor (`actor_id`: its stats and
+episodes).
+
+Every batch the learner takes comes after one step of every world (the learner's
+`update_repeat` sets the updates per step), the first `random_steps` env steps with uniform
+random excitations, as the actors warm up; the first batch once the ring holds `min_replay`. On a GPU the worlds step while the device runs the
+update before (the learner's staging); what crosses to the device is the observations the env
+computed on the host, once a step.
+
+    experience = ColocatedExperience(session, keys, WorldsConfig("l2r/RunWarp-v0", 4096), state.actor, ...)
+    batch = experience.next_batch(timeout=0.5)   # steps the worlds, then samples the ring
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from dataclasses import dataclass
+
+import gymnasium
+import numpy as np
+import torch
+import zenoh
+from gymnasium.vector import AutoresetMode
+
+from l2r.actors.actor import make_task
+from l2r.families import RUNNER, family_of
+from l2r.learner.sac import Batch
+from l2r.policy import PolicyNetwork, to_tanh_space
+from l2r.protocol import EPISODE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode
+from l2r.sim import WARP_ID
+from l2r.sim.randomize import Randomization
+
+log = logging.getLogger("l2r.learner.colocated")
+STATS_INTERVAL = 2.0  # seconds between the worlds' stats, as an actor's
+
+
+@dataclass(frozen=True)
+class WorldsConfig:
+    """The worlds a colocated learner steps (`l2r-learner --colocated-env ...`)."""
+
+    env_id: str
+    worlds: int = 1024
+    capacity: int = 1_000_000
+    """Transitions the ring on the device holds; the oldest go first."""
+    random_steps: int = 10_000
+    """Env steps (all worlds together) of uniform random excitations before the policy acts."""
+    min_replay: int = 10_000
+    """Transitions in the ring before the first batch (and at least random_steps and a batch)."""
+    action_repeat: int = 1
+    difficulty: int = 0
+    randomize: str = ""
+    """The runner's per-episode body randomisation (`l2r.sim.randomize`, the actors' --randomize)."""
+    seed: int = 0
+    actor_id: int = 0
+    """The actor id its stats and episode summaries go out under (no actor of the run may share it)."""
+
+
+def make_vector_env(config: WorldsConfig, device: torch.device) -> gymnasium.vector.VectorEnv:
+    """The worlds, each resetting within the step that ends its episode: the env id's own vector
+    env (`l2r/RunWarp-v0` on the training device: Warp's "cuda" or "cpu"), else gymnasium's
+    SyncVectorEnv of the actors' single envs (`make_task`: actions rescaled to the policy's [0, 1]).
+    ValueError for an observation other than one vector."""
+    randomize = Randomization.parse(config.randomize) if config.randomize else None
+    if gymnasium.spec(config.env_id).vector_entry_point is not None:
+        kwargs: dict = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
+        if config.env_id == WARP_ID:
+            kwargs |= {"device": "cuda" if device.type == "cuda" else "cpu", "randomize": randomize}
+        env = gymnasium.make_vec(config.env_id, num_envs=config.worlds, vectorization_mode="vector_entry_point",
+                                 **kwargs)
+    else:
+        env = gymnasium.vector.SyncVectorEnv(
+            [functools.partial(make_task, config.env_id, config.difficulty, config.seed + w, randomize)
+             for w in range(config.worlds)], autoreset_mode=AutoresetMode.SAME_STEP)
+    space = env.single_observation_space
+    if env.metadata.get("autoreset_mode") != AutoresetMode.SAME_STEP:
+        env.close()
+        raise ValueError(f"{config.env_id}: its vector env does not reset a world in the step that ends it")
+    if not (isinstance(space, gymnasium.spaces.Box) and len(space.shape) == 1):
+        env.close()
+        raise ValueError(f"{config.env_id}: colocated worlds take a vector observation, this env's is {space}")
+    return env
+
+
+class DeviceReplay:
+    """Transitions in a ring of tensors on one device, sampled uniformly; actions are kept in the
+    policy's (-1, 1) space, as batches carry them. The policy version of each row stays on the
+    host, for the policy lag the learner reports."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device):
+        self.capacity, self.device = capacity, device
+        self.obs = torch.zeros((capacity, obs_dim), device=device)
+        self.next_obs = torch.zeros((capacity, obs_dim), device=device)
+        self.action = torch.zeros((capacity, act_dim), device=device)
+        self.reward = torch.zeros(capacity, device=device)
+        self.terminated = torch.zeros(capacity, device=device)
+        self.versions = np.zeros(capacity, np.int64)
+        self.size = self.cursor = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: torch.Tensor, action: torch.Tensor, reward: torch.Tensor, next_obs: torch.Tensor,
+            terminated: torch.Tensor, version: int) -> None:
+        """Rows of one step of every world; with more rows than the ring holds, the newest."""
+        n = min(len(obs), self.capacity)
+        rows = torch.arange(self.cursor, self.cursor + n, device=self.device) % self.capacity
+        for field, values in ((self.obs, obs), (self.next_obs, next_obs), (self.action, action),
+                              (self.reward, reward), (self.terminated, terminated)):
+            field[rows] = values[len(values) - n:]
+        self.versions[(self.cursor + np.arange(n)) % self.capacity] = version
+        self.cursor = (self.cursor + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> tuple[Batch, np.ndarray]:
+        """A uniform batch (with replacement) and each row's policy version. The rows are drawn on
+        the host and sent as one small copy: the device never waits for the host's draws."""
+        rows = rng.integers(0, self.size, batch_size)
+        index = torch.from_numpy(rows).to(self.device, non_blocking=True)
+        batch = Batch(self.obs[index], self.action[index], self.reward[index], self.next_obs[index],
+                      self.terminated[index])
+        return batch, self.versions[rows]
+
+
+@dataclass
+class DeviceSample:
+    """A batch sampled on the device, with what the learner's loop reads of a replay batch."""
+
+    tensors: Batch
+    policy_versions: np.ndarray
+    prioritized: bool = False
+
+    @property
+    def actions(self) -> torch.Tensor:
+        return self.tensors.action
+
+
+class ColocatedExperience:
+    """The learner's experience from worlds it steps itself: see the module docstring."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, config: WorldsConfig, policy: PolicyNetwork,
+                 batch_size: int, device: torch.device):
+        self.config, self.policy, self.batch_size, self.device = config, policy, batch_size, device
+        self.env = make_vector_env(config, device)
+        obs_dim, act_dim = self.env.single_observation_space.shape[0], self.env.single_action_space.shape[0]
+        if (obs_dim, act_dim) != (policy.spec["obs_dim"], policy.spec["act_dim"]):
+            self.env.close()
+            raise ValueError(f"{config.env_id} has {obs_dim} observations and {act_dim} actions, the learner's "
+                             f"networks {policy.spec['obs_dim']} and {policy.spec['act_dim']}")
+        self.replay = DeviceReplay(config.capacity, obs_dim, act_dim, device)
+        self._first_batch = min(max(batch_size, config.min_replay, config.random_steps), config.capacity)
+        self.rng = np.random.default_rng(config.seed)
+        self.learner_version = 0
+        n = config.worlds
+        obs, info = self.env.reset(seed=config.seed)
+        self.obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        self.returns, self.lengths = np.zeros(n), np.zeros(n, np.int64)
+        self.start_x = self._distances(info)
+        self.steps = self.episodes = 0
+        self._rate_steps, self._rate_time, self._next_stats = 0, time.monotonic(), 0.0
+        self._summaries = session.declare_publisher(keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
+        self._stats = session.declare_publisher(keys.stats("actor", config.actor_id), **STATS_QOS.publisher())
+        self._token = session.liveliness().declare_token(keys.alive("actor", config.actor_id))
+        log.info("stepping %d worlds of %s on %s, %d transitions kept on %s", n, config.env_id,
+                 getattr(self.env.unwrapped, "device", "the host"), config.capacity, device)
+
+    # -- what the learner's loop calls --------------------------------------------------------
+
+    def next_batch(self, timeout: float) -> DeviceSample | None:
+        """Step every world once, then a batch from the ring (None while it holds too few)."""
+        self._step_worlds()
+        if len(self.replay) < self._first_batch:
+            return None
+        batch, versions = self.replay.sample(self.batch_size, self.rng)
+        return DeviceSample(batch, versions)
+
+    @staticmethod
+    def to_device(batch: DeviceSample, device: torch.device) -> Batch:
+        return batch.tensors
+
+    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
+        raise ValueError("colocated worlds sample uniformly: no priorities")
+
+    def waiting(self) -> str:
+        return f"filling the ring on the device: {len(self.replay)} of {self._first_batch} transitions"
+
+    def close(self) -> None:
+        self._publish_stats()
+        self._token.undeclare()
+        self.env.close()
+
+    # -- the worlds ---------------------------------------------------------------------------
+
+    def _step_worlds(self) -> None:
+        n, version = self.config.worlds, self.learner_version
+        with torch.no_grad():
+            if self.steps < self.config.random_steps:
+                excitation = torch.rand((n, self.replay.action.shape[1]), device=self.device)
+            else:
+                excitation = self.policy.explore(self.obs)[0]
+        actions = excitation.cpu().numpy()
+        reward, terminated, truncated, ended = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        final_obs, final_distance = None, np.zeros(n)
+        for _ in range(self.config.action_repeat):  # a world that ends within the repeats takes no more reward
+            obs, step_reward, step_terminated, step_truncated, info = self.env.step(actions)
+            running = ~ended
+            reward[running] += step_reward[running]
+            done = running & (step_terminated | step_truncated)
+            terminated |= done & step_terminated
+            truncated |= done & step_truncated
+            if done.any():
+                last = np.stack(info["final_obs"][done]) if info["final_obs"].dtype == object else info["final_obs"][done]
+                final_obs = obs.copy() if final_obs is None else final_obs
+                final_obs[done] = last
+                final_distance[done] = self._distances(info["final_info"])[done]
+            ended |= done
+        self.lengths += 1
+        self.returns += reward
+        next_obs = torch.as_tensor(obs if final_obs is None else final_obs, dtype=torch.float32, device=self.device)
+        self.replay.add(self.obs, to_tanh_space(excitation), torch.as_tensor(reward, dtype=torch.float32, device=self.device),
+                        next_obs, torch.as_tensor(terminated, dtype=torch.float32, device=self.device), version)
+        self.obs = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        self.steps += n
+        if ended.any():
+            self._episodes_ended(np.flatnonzero(ended), final_distance, self._distances(info), version)
+        if time.monotonic() >= self._next_stats:
+            self._publish_stats()
+
+    def _episodes_ended(self, worlds: np.ndarray, final_distance: np.ndarray, new_start: np.ndarray,
+                        version: int) -> None:
+        now = time.time()
+        for w in worlds.tolist():
+            self._summaries.put(encode(EpisodeSummary(
+                actor_id=self.config.actor_id, env_id=w, episode_return=float(self.returns[w]),
+                distance=float(final_distance[w] - self.start_x[w]), length=int(self.lengths[w]),
+                policy_version=version, difficulty=self.config.difficulty, seed=self.config.seed + w, time=now)))
+        self.episodes += len(worlds)
+        self.returns[worlds], self.lengths[worlds] = 0.0, 0
+        self.start_x[worlds] = new_start[worlds]
+
+    def _distances(self, info: dict) -> np.ndarray:
+        """Each world's x (the runner's `info["distance"]`; 0 for a task without one)."""
+        distance = info.get("distance")
+        return np.zeros(self.config.worlds) if distance is None else np.asarray(distance, np.float64).copy()
+
+    def _publish_stats(self) -> None:
+        now = time.monotonic()
+        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
+        self._rate_steps, self._rate_time, self._next_stats = self.steps, now, now + STATS_INTERVAL
+        values = {"env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
+                  "policy_version": self.learner_version, "newest_version": self.learner_version,
+                  "random_phase": int(self.steps < self.config.random_steps), "num_envs": self.config.worlds,
+                  "replay_size": len(self.replay)}
+        self._stats.put(encode(Stats("actor", str(self.config.actor_id), time.time(), values)))
