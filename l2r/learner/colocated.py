@@ -11,9 +11,11 @@ episodes).
 
 Every batch the learner takes comes after one step of every world (the learner's
 `update_repeat` sets the updates per step), the first `random_steps` env steps with uniform
-random excitations, as the actors warm up; the first batch once the ring holds `min_replay`. On a GPU the worlds step while the device runs the
-update before (the learner's staging); what crosses to the device is the observations the env
-computed on the host, once a step.
+random excitations, as the actors warm up; the first batch once the ring holds `min_replay`.
+Stepping and updating take turns: a step's policy call needs the weights the update before it
+writes, so on a GPU it waits for that update. What crosses between host and
+device per step is the observations the env computed on the host and the excitations. The ring
+is not checkpointed: a resumed learner fills it again before its first batch.
 
     experience = ColocatedExperience(session, keys, WorldsConfig("l2r/RunWarp-v0", 4096), state.actor, ...)
     batch = experience.next_batch(timeout=0.5)   # steps the worlds, then samples the ring
