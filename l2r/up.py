@@ -470,14 +470,15 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
 def _check_colocated(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """What the learner's own worlds (--colocated) cannot take: the actors' levers and replay's options."""
     if args.algo not in ("sac", "td3"):
-        parser.error(f"--colocated trains SAC or TD3 on the learner's own worlds; --algo {args.algo} learns from actors")
+        parser.error(f"--colocated trains SAC or TD3 on the learner's own worlds; --algo {args.algo} learns from "
+                     "actors")
     if family_of(args.env_id) in (PIXELS, PHOTO):
         parser.error(f"--colocated steps worlds of vector observations, not {args.env_id}'s images")
-    given = [flag for flag, on in (("--opensim-actors", args.opensim_actors), ("--replay-shards", args.replay_shards > 1),
-                                   ("--difficulty-schedule", args.difficulty_schedule),
-                                   ("--observation-noise", args.observation_noise), ("--action-noise", args.action_noise),
-                                   ("--exploration-noise", args.exploration_noise != "white"),
-                                   ("--frame-stack", recipe_of(args).values.get("frame_stack", 1) > 1)) if on]
+    levers = {"--opensim-actors": args.opensim_actors, "--replay-shards": args.replay_shards > 1,
+              "--difficulty-schedule": args.difficulty_schedule, "--observation-noise": args.observation_noise,
+              "--action-noise": args.action_noise, "--exploration-noise": args.exploration_noise != "white",
+              "--frame-stack": recipe_of(args).values.get("frame_stack", 1) > 1}
+    given = [flag for flag, on in levers.items() if on]
     if given:
         parser.error(f"--colocated: {', '.join(given)} are the actors' and replay's, not the learner's own worlds'")
 
@@ -566,8 +567,8 @@ def task_flags(env_id: str, image_size: int | None = None) -> tuple[list[str], l
 
 
 def learner_threads(args: argparse.Namespace) -> int:
-    return args.learner_threads or max(1, (os.cpu_count() or 1) - args.actors - len(evaluator_env_ids(args))
-                                       - args.replay_shards)
+    others = len(evaluator_env_ids(args)) + (0 if args.colocated else args.actors + args.replay_shards)
+    return args.learner_threads or max(1, (os.cpu_count() or 1) - others)
 
 
 def recipe_of(args: argparse.Namespace) -> Recipe:

@@ -120,7 +120,8 @@ class LearnerSettings(DaemonSettings):
     colocated_env: str | None = setting(
         None, "step this gymnasium env's worlds in the learner's own process and train on their transitions, kept "
         "on the training device (l2r/RunWarp-v0 on a GPU: thousands of worlds, big batches), instead of batches "
-        "from replay; one step of every world per batch sampled (--update-repeat updates each)", group=COLOCATED)
+        "from replay; one step of every world per batch sampled (--update-repeat updates each)", group=COLOCATED,
+        metavar="ENV_ID")
     colocated_worlds: int = setting(WORLDS_DEFAULTS.worlds, "worlds stepped at once", group=COLOCATED, ge=1)
     colocated_capacity: int = setting(WORLDS_DEFAULTS.capacity, "transitions kept on the device; the oldest go first",
                                       group=COLOCATED, ge=1)
@@ -355,8 +356,8 @@ class LearnerSettings(DaemonSettings):
         if self.colocated_env is None:
             return None
         return WorldsConfig(self.colocated_env, self.colocated_worlds, self.colocated_capacity,
-                            self.colocated_random_steps, self.colocated_min_replay, self.action_repeat or 1, self.colocated_difficulty,
-                            self.colocated_randomize, self.seed or 0)
+                            self.colocated_random_steps, self.colocated_min_replay, self.action_repeat or 1,
+                            self.colocated_difficulty, self.colocated_randomize, self.seed or 0)
 
     def _network(self, defaults: SACConfig | PPOConfig | TD3Config) -> dict:
         """The settings both algorithms have, each unset one at the algorithm's default."""
@@ -455,8 +456,7 @@ class LearnerSettings(DaemonSettings):
             checkpoint_interval=self.checkpoint_interval, keep_checkpoints=self.keep_checkpoints,
             action_repeat=self.action_repeat, metrics_interval=self.metrics_interval,
             max_updates=self.max_updates, seed=self.seed, colocated=self.worlds(), world_size=self.world_size,
-            rank=self.rank,
-            dist_url=self.dist_url)
+            rank=self.rank, dist_url=self.dist_url)
 
 
 def build_parser() -> CommandParser:

@@ -164,7 +164,7 @@ class ColocatedExperience:
         self.learner_version = 0
         n = config.worlds
         obs, info = self.env.reset(seed=config.seed)
-        self.obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        self.obs = self._tensor(obs)
         self.returns, self.lengths = np.zeros(n), np.zeros(n, np.int64)
         self.start_x = self._distances(info)
         self.steps = self.episodes = 0
@@ -220,17 +220,16 @@ class ColocatedExperience:
             terminated |= done & step_terminated
             truncated |= done & step_truncated
             if done.any():
-                last = np.stack(info["final_obs"][done]) if info["final_obs"].dtype == object else info["final_obs"][done]
+                last = info["final_obs"][done]  # a SyncVectorEnv's: an object array of each world's
                 final_obs = obs.copy() if final_obs is None else final_obs
-                final_obs[done] = last
+                final_obs[done] = np.stack(last) if last.dtype == object else last
                 final_distance[done] = self._distances(info["final_info"])[done]
             ended |= done
         self.lengths += 1
         self.returns += reward
-        next_obs = torch.as_tensor(obs if final_obs is None else final_obs, dtype=torch.float32, device=self.device)
-        self.replay.add(self.obs, to_tanh_space(excitation), torch.as_tensor(reward, dtype=torch.float32, device=self.device),
-                        next_obs, torch.as_tensor(terminated, dtype=torch.float32, device=self.device), version)
-        self.obs = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        self.replay.add(self.obs, to_tanh_space(excitation), self._tensor(reward),
+                        self._tensor(obs if final_obs is None else final_obs), self._tensor(terminated), version)
+        self.obs = self._tensor(obs)
         self.steps += n
         if ended.any():
             self._episodes_ended(np.flatnonzero(ended), final_distance, self._distances(info), version)
@@ -248,6 +247,9 @@ class ColocatedExperience:
         self.episodes += len(worlds)
         self.returns[worlds], self.lengths[worlds] = 0.0, 0
         self.start_x[worlds] = new_start[worlds]
+
+    def _tensor(self, values: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(values, dtype=torch.float32, device=self.device)
 
     def _distances(self, info: dict) -> np.ndarray:
         """Each world's x (the runner's `info["distance"]`; 0 for a task without one)."""

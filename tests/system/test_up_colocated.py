@@ -52,7 +52,8 @@ def test_a_colocated_job_trains_evaluates_and_reports_its_worlds_as_actor_0(tmp_
     try:
         run_dir = wait_for(lambda: next(tmp_path.glob(f"{name}-*"), None), timeout=60)
         assert run_dir, "no run directory"
-        assert wait_for(lambda: rows(run_dir / "metrics" / "episodes.csv") and rows(run_dir / "metrics" / "evaluation.csv")
+        metrics = run_dir / "metrics"
+        assert wait_for(lambda: rows(metrics / "episodes.csv") and rows(metrics / "evaluation.csv")
                         and (run_dir / "learner" / "best.pt").exists(), timeout=240), "no episodes or evaluations"
         proc.send_signal(signal.SIGTERM)
     finally:
