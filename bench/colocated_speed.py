@@ -4,8 +4,8 @@ Three loops over the same worlds, in this process, one after another, each for `
 - ``actor``: a real `Actor` (the actors' path) stepping them as one vector env with uniform random
   excitations (its warm-up): physics, chunks encoded and put on a Zenoh session nobody joins; no
   policy call (the baseline: what the actors' path costs per env step before any learning);
-- ``worlds``: `ColocatedExperience` stepping them with its policy and storing the transitions in
-  its ring on the device, no update (the colocated path's own cost per env step);
+- ``worlds``: the colocated worlds (`colocated_experience`) stepped with the policy, their
+  transitions stored in the ring on the device, no update (the colocated path's own cost per env step);
 - ``training``: the same with TD3's (or SAC's) update on a batch from the ring after each step of
   every world, as the learner runs it (`--update-repeat` updates a step, compiled as the learner
   would on the device).
@@ -32,7 +32,7 @@ import zenoh
 
 from l2r.actors.actor import Actor, ActorConfig
 from l2r.learner import sac, td3
-from l2r.learner.colocated import ColocatedExperience, WorldsConfig
+from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.steps import GradientSteps, resolve_mode
 from l2r.protocol import Keys, session_config
 
@@ -72,8 +72,8 @@ def colocated_rates(args: argparse.Namespace, session: zenoh.Session, train: boo
     state = module.init_state(algo, 41, 18, device)
     worlds = WorldsConfig(args.env_id, args.worlds, capacity=args.capacity, random_steps=0,
                           min_replay=args.batch_size, action_repeat=args.action_repeat)
-    experience = ColocatedExperience(session, Keys(f"bench-{free_port()}"), worlds, state.actor, args.batch_size,
-                                     device)
+    experience = colocated_experience(session, Keys(f"bench-{free_port()}"), worlds, state.actor, args.batch_size,
+                                      device, on_policy=False)
     steps = GradientSteps(module.update, algo, resolve_mode(args.compile, device), device, algo.update_repeat,
                           policy_delay=getattr(algo, "policy_delay", None))
 
@@ -85,13 +85,13 @@ def colocated_rates(args: argparse.Namespace, session: zenoh.Session, train: boo
     try:
         while len(experience.replay) < 2 * args.batch_size or (train and state.updates < 10):  # and compiled
             step()
-        env_steps, updates, started = experience.steps, state.updates, time.perf_counter()
+        env_steps, updates, started = experience.worlds.steps, state.updates, time.perf_counter()
         while time.perf_counter() - started < args.seconds:
             step()
         if device.type == "cuda":
             torch.cuda.synchronize()
         elapsed = time.perf_counter() - started
-        return (experience.steps - env_steps) / elapsed, (state.updates - updates) / elapsed
+        return (experience.worlds.steps - env_steps) / elapsed, (state.updates - updates) / elapsed
     finally:
         experience.close()
 

@@ -237,8 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--colocated", action="store_true",
                     help="the learner steps the training worlds itself (--actors x --envs-per-actor of them, the "
                          "actors' env with --difficulty and --randomize) and keeps their transitions on its device: "
-                         "no replay server and no training actors; evaluators as ever (SAC, TD3; vector "
-                         "observations). For l2r/RunWarp-v0 on a GPU (--device cuda): thousands of worlds, big "
+                         "no replay server and no training actors; evaluators as ever (every --algo but a3c; "
+                         "vector observations). For l2r/RunWarp-v0 on a GPU (--device cuda): thousands of worlds, big "
                          "batches, nothing but weights, metrics and episode summaries over Zenoh (docs/training.md, "
                          "\"Colocated worlds\")")
     le.add_argument("--learner-threads", type=int, default=0,
@@ -469,9 +469,8 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
 
 def _check_colocated(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """What the learner's own worlds (--colocated) cannot take: the actors' levers and replay's options."""
-    if args.algo not in ("sac", "td3"):
-        parser.error(f"--colocated trains SAC or TD3 on the learner's own worlds; --algo {args.algo} learns from "
-                     "actors")
+    if args.algo == "a3c":
+        parser.error("--colocated trains on the learner's own worlds; --algo a3c learns from the actors' gradients")
     if family_of(args.env_id) in (PIXELS, PHOTO):
         parser.error(f"--colocated steps worlds of vector observations, not {args.env_id}'s images")
     levers = {"--opensim-actors": args.opensim_actors, "--replay-shards": args.replay_shards > 1,

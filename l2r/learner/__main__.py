@@ -54,8 +54,8 @@ PPO = ("on-policy (with --algo ppo, a2c, a3c or reinforce; with --algo trpo or a
        "setting)")
 NATURAL = "TRPO and ACKTR (natural-gradient steps; with --algo trpo or acktr)"
 OFF_POLICY, TD3 = "SAC and TD3 (with --algo sac or td3)", "TD3 (with --algo td3)"
-COLOCATED = ("colocated worlds (SAC, TD3: the learner steps a vector env itself and keeps its transitions on its "
-             "device, no replay; l2r.learner.colocated)")
+COLOCATED = ("colocated worlds (the learner steps a vector env itself and keeps its transitions on its device, no "
+             "replay; every --algo but a3c; l2r.learner.colocated)")
 WORLDS_DEFAULTS = WorldsConfig("")
 
 
@@ -120,16 +120,17 @@ class LearnerSettings(DaemonSettings):
     colocated_env: str | None = setting(
         None, "step this gymnasium env's worlds in the learner's own process and train on their transitions, kept "
         "on the training device (l2r/RunWarp-v0 on a GPU: thousands of worlds, big batches), instead of batches "
-        "from replay; one step of every world per batch sampled (--update-repeat updates each)", group=COLOCATED,
+        "from replay: SAC and TD3 take one step of every world per batch sampled (--update-repeat updates each), "
+        "the on-policy algorithms a rollout of every world of --batch-size transitions in all", group=COLOCATED,
         metavar="ENV_ID")
     colocated_worlds: int = setting(WORLDS_DEFAULTS.worlds, "worlds stepped at once", group=COLOCATED, ge=1)
     colocated_capacity: int = setting(WORLDS_DEFAULTS.capacity, "transitions kept on the device; the oldest go first",
                                       group=COLOCATED, ge=1)
     colocated_random_steps: int = setting(
         WORLDS_DEFAULTS.random_steps, "env steps of uniform random actions (all worlds together) before the policy "
-        "acts", group=COLOCATED, ge=0)
+        "acts (SAC, TD3)", group=COLOCATED, ge=0)
     colocated_min_replay: int = setting(WORLDS_DEFAULTS.min_replay, "transitions kept before the first batch (and at "
-                                        "least --colocated-random-steps and a batch)", group=COLOCATED, ge=0)
+                                        "least --colocated-random-steps and a batch; SAC, TD3)", group=COLOCATED, ge=0)
     colocated_difficulty: int = setting(0, "the runner's difficulty (0, 1 or 2)", group=COLOCATED, ge=0, le=2)
     colocated_randomize: str = setting("", "the runner's per-episode body randomisation, as l2r-actor's --randomize "
                                        "(e.g. strength=0.05,delay=0.5)", group=COLOCATED, metavar="FIELD=FRACTION,...")
@@ -337,9 +338,9 @@ class LearnerSettings(DaemonSettings):
                              "actors' own actions, in order (their log-probabilities are of the actions as taken)")
 
     def _check_colocated(self) -> None:
-        if self.algo not in ("sac", "td3"):
-            raise UsageError(f"--colocated-env trains SAC or TD3 on its worlds' transitions; --algo {self.algo} takes "
-                             "batches from the actors")
+        if self.algo == "a3c":
+            raise UsageError("--colocated-env trains on its worlds' transitions; --algo a3c takes the actors' "
+                             "gradients")
         if self.images or (self.frame_stack or 1) > 1:
             raise UsageError(f"--colocated-env {self.colocated_env}: colocated worlds give one float32 vector at a "
                              f"time (observation {self.spaces[0]}, --frame-stack {self.frame_stack or 1})")

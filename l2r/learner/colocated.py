@@ -2,23 +2,27 @@
 
 The actors' path sends each transition over Zenoh to the replay shards and takes batches back:
 right for envs stepped on CPUs anywhere, costly for thousands of worlds stepped on the learner's
-own GPU (`l2r/RunWarp-v0`), where training in the manner of FastTD3 wants many worlds and big
-batches. Here the learner's process steps a vector env with its newest policy, keeps the
-transitions in a ring of tensors on the training device and samples its batches there; weights,
-metrics and episode summaries leave over Zenoh as before, so evaluators, `l2r up`'s metrics and
-its choice of `best.pt` work unchanged. The worlds report as an actor (`actor_id`: its stats and
-episodes).
+own GPU (`l2r/RunWarp-v0`), where PPO and off-policy training in the manner of FastTD3 want many
+worlds and big batches. Here the learner's process steps a vector env with its newest policy
+(`ColocatedWorlds`) and keeps the transitions on the training device; weights, metrics and
+episode summaries leave over Zenoh as before, so evaluators, `l2r up`'s metrics and its choice of
+`best.pt` work unchanged. The worlds report as an actor (`actor_id`: its stats and episodes).
 
-Every batch the learner takes comes after one step of every world (the learner's
-`update_repeat` sets the updates per step), the first `random_steps` env steps with uniform
-random excitations, as the actors warm up; the first batch once the ring holds `min_replay`.
+- SAC and TD3 (`ColocatedReplay`): every batch comes after one step of every world (the
+  learner's `update_repeat` sets the updates per step), sampled from a ring of transitions on
+  the device; the first `random_steps` env steps take uniform random excitations, as the actors
+  warm up, and the first batch waits for `min_replay` transitions. The ring is not
+  checkpointed: a resumed learner fills it again.
+- The on-policy algorithms (`ColocatedRollouts`): every batch is a rollout of the newest policy,
+  batch_size / worlds steps of every world, laid world after world as the queue table lays its
+  pieces of trajectories.
+
 Stepping and updating take turns: a step's policy call needs the weights the update before it
-writes, so on a GPU it waits for that update. What crosses between host and
-device per step is the observations the env computed on the host and the excitations. The ring
-is not checkpointed: a resumed learner fills it again before its first batch.
+writes, so on a GPU it waits for that update. What crosses between host and device per step is
+the observations the env computed on the host and the excitations.
 
-    experience = ColocatedExperience(session, keys, WorldsConfig("l2r/RunWarp-v0", 4096), state.actor, ...)
-    batch = experience.next_batch(timeout=0.5)   # steps the worlds, then samples the ring
+    experience = colocated_experience(session, keys, WorldsConfig("l2r/RunWarp-v0", 4096), state.actor, ...)
+    batch = experience.next_batch(timeout=0.5)   # steps the worlds, then a batch of their transitions
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from gymnasium.vector import AutoresetMode
 
 from l2r.actors.actor import make_task
 from l2r.families import RUNNER, family_of
+from l2r.learner import ppo
 from l2r.learner.sac import Batch
 from l2r.policy import PolicyNetwork, to_tanh_space
 from l2r.protocol import EPISODE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode
@@ -55,7 +60,8 @@ class WorldsConfig:
     capacity: int = 1_000_000
     """Transitions the ring on the device holds; the oldest go first."""
     random_steps: int = 10_000
-    """Env steps (all worlds together) of uniform random excitations before the policy acts."""
+    """Env steps (all worlds together) of uniform random excitations before the policy acts
+    (SAC, TD3: an on-policy algorithm learns from its own policy's actions alone)."""
     min_replay: int = 10_000
     """Transitions in the ring before the first batch (and at least random_steps and a batch)."""
     action_repeat: int = 1
@@ -135,9 +141,9 @@ class DeviceReplay:
 
 @dataclass
 class DeviceSample:
-    """A batch sampled on the device, with what the learner's loop reads of a replay batch."""
+    """A batch on the device, with what the learner's loop reads of a replay batch."""
 
-    tensors: Batch
+    tensors: Batch | ppo.Batch
     policy_versions: np.ndarray
     prioritized: bool = False
 
@@ -146,71 +152,59 @@ class DeviceSample:
         return self.tensors.action
 
 
-class ColocatedExperience:
-    """The learner's experience from worlds it steps itself: see the module docstring."""
+@dataclass
+class WorldsStep:
+    """One step of every world, as tensors on the device (rows: worlds)."""
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    """In the policy's (-1, 1) space."""
+    log_prob: torch.Tensor
+    """Of the action under the policy that took it (the warm-up's: meaningless)."""
+    reward: torch.Tensor
+    next_obs: torch.Tensor
+    """The observation after the step; an ended episode's last."""
+    terminated: torch.Tensor
+    ended: torch.Tensor
+    """1.0 where the world's episode ended, terminated or truncated."""
+
+
+class ColocatedWorlds:
+    """A vector env's worlds stepped with the learner's policy; their episode summaries and stats
+    go out as an actor's."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, config: WorldsConfig, policy: PolicyNetwork,
-                 batch_size: int, device: torch.device):
-        self.config, self.policy, self.batch_size, self.device = config, policy, batch_size, device
+                 device: torch.device):
+        self.config, self.policy, self.device = config, policy, device
         self.env = make_vector_env(config, device)
-        obs_dim, act_dim = self.env.single_observation_space.shape[0], self.env.single_action_space.shape[0]
-        if (obs_dim, act_dim) != (policy.spec["obs_dim"], policy.spec["act_dim"]):
+        self.obs_dim, self.act_dim = self.env.single_observation_space.shape[0], self.env.single_action_space.shape[0]
+        if (self.obs_dim, self.act_dim) != (policy.spec["obs_dim"], policy.spec["act_dim"]):
             self.env.close()
-            raise ValueError(f"{config.env_id} has {obs_dim} observations and {act_dim} actions, the learner's "
-                             f"networks {policy.spec['obs_dim']} and {policy.spec['act_dim']}")
-        self.replay = DeviceReplay(config.capacity, obs_dim, act_dim, device)
-        self._first_batch = min(max(batch_size, config.min_replay, config.random_steps), config.capacity)
-        self.rng = np.random.default_rng(config.seed)
-        self.learner_version = 0
+            raise ValueError(f"{config.env_id} has {self.obs_dim} observations and {self.act_dim} actions, the "
+                             f"learner's networks {policy.spec['obs_dim']} and {policy.spec['act_dim']}")
         n = config.worlds
         obs, info = self.env.reset(seed=config.seed)
         self.obs = self._tensor(obs)
         self.returns, self.lengths = np.zeros(n), np.zeros(n, np.int64)
         self.start_x = self._distances(info)
         self.steps = self.episodes = 0
+        self.stats_extra: dict[str, float] = {}
         self._rate_steps, self._rate_time, self._next_stats = 0, time.monotonic(), 0.0
         self._summaries = session.declare_publisher(keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
         self._stats = session.declare_publisher(keys.stats("actor", config.actor_id), **STATS_QOS.publisher())
         self._token = session.liveliness().declare_token(keys.alive("actor", config.actor_id))
-        log.info("stepping %d worlds of %s on %s, %d transitions kept on %s", n, config.env_id,
-                 getattr(self.env.unwrapped, "device", "the host"), config.capacity, device)
 
-    # -- what the learner's loop calls --------------------------------------------------------
-
-    def next_batch(self, timeout: float) -> DeviceSample | None:
-        """Step every world once, then a batch from the ring (None while it holds too few)."""
-        self._step_worlds()
-        if len(self.replay) < self._first_batch:
-            return None
-        batch, versions = self.replay.sample(self.batch_size, self.rng)
-        return DeviceSample(batch, versions)
-
-    @staticmethod
-    def to_device(batch: DeviceSample, device: torch.device) -> Batch:
-        return batch.tensors
-
-    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
-        raise ValueError("colocated worlds sample uniformly: no priorities")
-
-    def waiting(self) -> str:
-        return f"filling the ring on the device: {len(self.replay)} of {self._first_batch} transitions"
-
-    def close(self) -> None:
-        self._publish_stats()
-        self._token.undeclare()
-        self.env.close()
-
-    # -- the worlds ---------------------------------------------------------------------------
-
-    def _step_worlds(self) -> None:
-        n, version = self.config.worlds, self.learner_version
+    def step(self, version: int, explore: bool = True) -> WorldsStep:
+        """Every world one action (repeated `action_repeat` times): the policy's exploring one, or
+        with `explore` False a uniform random one."""
+        n = self.config.worlds
         with torch.no_grad():
-            if self.steps < self.config.random_steps:
-                excitation = torch.rand((n, self.replay.action.shape[1]), device=self.device)
+            if explore:
+                excitation, log_prob = self.policy.explore(self.obs)
             else:
-                excitation = self.policy.explore(self.obs)[0]
+                excitation, log_prob = torch.rand((n, self.act_dim), device=self.device), torch.zeros(n, device=self.device)
         actions = excitation.cpu().numpy()
-        reward, terminated, truncated, ended = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        reward, terminated, ended = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
         final_obs, final_distance = None, np.zeros(n)
         for _ in range(self.config.action_repeat):  # a world that ends within the repeats takes no more reward
             obs, step_reward, step_terminated, step_truncated, info = self.env.step(actions)
@@ -218,7 +212,6 @@ class ColocatedExperience:
             reward[running] += step_reward[running]
             done = running & (step_terminated | step_truncated)
             terminated |= done & step_terminated
-            truncated |= done & step_truncated
             if done.any():
                 last = info["final_obs"][done]  # a SyncVectorEnv's: an object array of each world's
                 final_obs = obs.copy() if final_obs is None else final_obs
@@ -227,14 +220,30 @@ class ColocatedExperience:
             ended |= done
         self.lengths += 1
         self.returns += reward
-        self.replay.add(self.obs, to_tanh_space(excitation), self._tensor(reward),
-                        self._tensor(obs if final_obs is None else final_obs), self._tensor(terminated), version)
+        step = WorldsStep(self.obs, to_tanh_space(excitation), log_prob, self._tensor(reward),
+                          self._tensor(obs if final_obs is None else final_obs), self._tensor(terminated),
+                          self._tensor(ended))
         self.obs = self._tensor(obs)
         self.steps += n
         if ended.any():
             self._episodes_ended(np.flatnonzero(ended), final_distance, self._distances(info), version)
         if time.monotonic() >= self._next_stats:
-            self._publish_stats()
+            self.publish_stats(version)
+        return step
+
+    def publish_stats(self, version: int) -> None:
+        now = time.monotonic()
+        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
+        self._rate_steps, self._rate_time, self._next_stats = self.steps, now, now + STATS_INTERVAL
+        values = {"env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
+                  "policy_version": version, "newest_version": version, "num_envs": self.config.worlds,
+                  **self.stats_extra}
+        self._stats.put(encode(Stats("actor", str(self.config.actor_id), time.time(), values)))
+
+    def close(self, version: int) -> None:
+        self.publish_stats(version)
+        self._token.undeclare()
+        self.env.close()
 
     def _episodes_ended(self, worlds: np.ndarray, final_distance: np.ndarray, new_start: np.ndarray,
                         version: int) -> None:
@@ -256,12 +265,87 @@ class ColocatedExperience:
         distance = info.get("distance")
         return np.zeros(self.config.worlds) if distance is None else np.asarray(distance, np.float64).copy()
 
-    def _publish_stats(self) -> None:
-        now = time.monotonic()
-        rate = (self.steps - self._rate_steps) / max(now - self._rate_time, 1e-9)
-        self._rate_steps, self._rate_time, self._next_stats = self.steps, now, now + STATS_INTERVAL
-        values = {"env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
-                  "policy_version": self.learner_version, "newest_version": self.learner_version,
-                  "random_phase": int(self.steps < self.config.random_steps), "num_envs": self.config.worlds,
-                  "replay_size": len(self.replay)}
-        self._stats.put(encode(Stats("actor", str(self.config.actor_id), time.time(), values)))
+
+class ColocatedReplay:
+    """SAC's and TD3's experience from the worlds: one step of every world, then a batch sampled
+    from the ring on the device (see the module docstring)."""
+
+    def __init__(self, worlds: ColocatedWorlds, batch_size: int):
+        config = worlds.config
+        self.worlds, self.batch_size = worlds, batch_size
+        self.replay = DeviceReplay(config.capacity, worlds.obs_dim, worlds.act_dim, worlds.device)
+        self._first_batch = min(max(batch_size, config.min_replay, config.random_steps), config.capacity)
+        self.rng = np.random.default_rng(config.seed)
+        self.learner_version = 0
+        log.info("stepping %d worlds of %s on %s, %d transitions kept on %s", config.worlds, config.env_id,
+                 getattr(worlds.env.unwrapped, "device", "the host"), config.capacity, worlds.device)
+
+    def next_batch(self, timeout: float) -> DeviceSample | None:
+        """Step every world once, then a batch from the ring (None while it holds too few)."""
+        worlds, version = self.worlds, self.learner_version
+        warming_up = worlds.steps < worlds.config.random_steps
+        worlds.stats_extra = {"replay_size": len(self.replay), "random_phase": int(warming_up)}
+        step = worlds.step(version, explore=not warming_up)
+        self.replay.add(step.obs, step.action, step.reward, step.next_obs, step.terminated, version)
+        if len(self.replay) < self._first_batch:
+            return None
+        return DeviceSample(*self.replay.sample(self.batch_size, self.rng))
+
+    @staticmethod
+    def to_device(batch: DeviceSample, device: torch.device) -> Batch:
+        return batch.tensors
+
+    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
+        raise ValueError("colocated worlds sample uniformly: no priorities")
+
+    def waiting(self) -> str:
+        return f"filling the ring on the device: {len(self.replay)} of {self._first_batch} transitions"
+
+    def close(self) -> None:
+        self.worlds.close(self.learner_version)
+
+
+class ColocatedRollouts:
+    """An on-policy algorithm's experience from the worlds: each batch a rollout of the newest
+    policy, ceil(batch_size / worlds) steps of every world, laid world after world; a row's
+    `ends` marks an episode's end and each world's last row (the piece ends there)."""
+
+    def __init__(self, worlds: ColocatedWorlds, batch_size: int):
+        self.worlds, self.length = worlds, -(-batch_size // worlds.config.worlds)
+        self.learner_version = 0
+        log.info("stepping %d worlds of %s on %s, rollouts of %d steps of each", worlds.config.worlds,
+                 worlds.config.env_id, getattr(worlds.env.unwrapped, "device", "the host"), self.length)
+
+    def next_batch(self, timeout: float) -> DeviceSample:
+        steps = [self.worlds.step(self.learner_version) for _ in range(self.length)]
+
+        def laid(field: str) -> torch.Tensor:  # (step, world, ...) to world after world
+            stacked = torch.stack([getattr(step, field) for step in steps], dim=1)
+            return stacked.reshape(-1, *stacked.shape[2:])
+
+        piece_end = torch.zeros(len(steps[0].ended), self.length, device=self.worlds.device)
+        piece_end[:, -1] = 1.0
+        batch = ppo.Batch(laid("obs"), laid("action"), laid("reward"), laid("next_obs"), laid("terminated"),
+                          torch.maximum(laid("ended"), piece_end.reshape(-1)), laid("log_prob"))
+        return DeviceSample(batch, np.full(len(batch.reward), self.learner_version))
+
+    @staticmethod
+    def to_device(batch: DeviceSample, device: torch.device) -> ppo.Batch:
+        return batch.tensors
+
+    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
+        raise ValueError("on-policy rollouts have no priorities")
+
+    def waiting(self) -> str:
+        return "stepping the worlds"
+
+    def close(self) -> None:
+        self.worlds.close(self.learner_version)
+
+
+def colocated_experience(session: zenoh.Session, keys: Keys, config: WorldsConfig, policy: PolicyNetwork,
+                         batch_size: int, device: torch.device, on_policy: bool) -> ColocatedReplay | ColocatedRollouts:
+    """The learner's experience from worlds it steps itself: rollouts for an on-policy algorithm,
+    a ring of transitions for SAC and TD3."""
+    worlds = ColocatedWorlds(session, keys, config, policy, device)
+    return ColocatedRollouts(worlds, batch_size) if on_policy else ColocatedReplay(worlds, batch_size)

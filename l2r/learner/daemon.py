@@ -10,8 +10,9 @@ REINFORCE are PPO's update at their settings: `l2r.learner.a2c`, `l2r.learner.re
         on-policy (PPO, A2C, REINFORCE, TRPO, ACKTR; l2r.learner.algorithms.ON_POLICY): one
                   update (PPO's epochs x minibatches, a natural-gradient step) on a batch from the
                   queue table
-    or, colocated (l2r.learner.colocated): one step of worlds this process steps itself -> a batch
-                  sampled on the device from their transitions -> SAC's or TD3's step, as above
+    or, colocated (l2r.learner.colocated): worlds this process steps itself -> SAC, TD3: one step of
+                  every world, a batch sampled on the device from their transitions; on-policy: a
+                  rollout of every world -> the algorithm's step, as above
     or, for A3C (l2r.learner.a3c), no replay: the actors' gradients in arrival order -> one
                   optimizer step on each (too stale or ill-fitting ones refused, counted)
         -> weights (new version) published and kept for queries: SAC and TD3 every K updates,
@@ -42,7 +43,7 @@ import zenoh
 from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import a3c, ppo, sac, td3
 from l2r.learner.algorithms import ON_POLICY
-from l2r.learner.colocated import ColocatedExperience, WorldsConfig
+from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
     save_checkpoint,
@@ -273,7 +274,8 @@ def _learn_colocated(config: LearnerConfig, algo: AlgorithmConfig, state: TrainS
                      outlet: WeightsOutlet, metrics_out: zenoh.Publisher, device: torch.device,
                      stop: threading.Event) -> None:
     """Training on transitions of worlds this process steps itself (l2r.learner.colocated)."""
-    experience = ColocatedExperience(session, Keys(config.run), config.colocated, state.actor, algo.batch_size, device)
+    experience = colocated_experience(session, Keys(config.run), config.colocated, state.actor, algo.batch_size,
+                                      device, on_policy=algorithm_of(algo) in ON_POLICY)
     try:
         outlet.publish(state)
         experience.learner_version = state.version
@@ -366,7 +368,7 @@ STEPS = {"sac": (_replay_batch, _replay_step, sac.update, False),
 
 class Experience(Protocol):
     """Where the learner's batches come from: the replay shards (`ReplayExperience`), or worlds the
-    learner steps itself (`l2r.learner.colocated.ColocatedExperience`)."""
+    learner steps itself (`l2r.learner.colocated`)."""
 
     learner_version: int
     """The newest version published, which the batches' policy lag is measured against."""

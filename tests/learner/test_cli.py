@@ -28,7 +28,7 @@ def test_help_explains_and_exits_zero(capsys):
     (["--algo", "trpo", "--world-size", "2"], "--algo trpo runs on one learner"),
     (["--algo", "acktr", "--layer-norm"], "ACKTR's K-FAC covers Linear layers alone"),
     (["--algo", "trpo", "--line-search-shrink", "1"], "--line-search-shrink 1: should be less than 1"),
-    (["--colocated-env", "Pendulum-v1", "--algo", "ppo"], "--colocated-env trains SAC or TD3 on its worlds'"),
+    (["--colocated-env", "Pendulum-v1", "--algo", "a3c"], "--algo a3c takes the actors' gradients"),
     (["--colocated-env", "Pendulum-v1", "--prioritized"], "--colocated-env samples uniformly, on one learner"),
     (["--colocated-env", "Pendulum-v1", "--frame-stack", "2"], "colocated worlds give one float32 vector at a time"),
     (["--colocated-env", "Pendulum-v1", "--colocated-randomize", "speed=0.1"],

@@ -13,7 +13,7 @@ import torch
 import zenoh
 
 from l2r.learner.checkpoint import load_checkpoint
-from l2r.learner.colocated import ColocatedExperience, DeviceReplay, WorldsConfig
+from l2r.learner.colocated import DeviceReplay, WorldsConfig, colocated_experience
 from l2r.policy import Policy, default_spec
 from l2r.protocol import EpisodeSummary, Keys, Stats, decode, session_config
 from tests.conftest import free_port, wait_for
@@ -83,7 +83,8 @@ def test_colocated_worlds_store_each_step_with_an_ended_episode_s_last_observati
     heard = Heard(session, run)
     config = WorldsConfig("Pendulum-v1", worlds=worlds, capacity=1000, random_steps=30, min_replay=0,
                           action_repeat=2, seed=5)
-    experience = ColocatedExperience(session, Keys(run), config, small_policy(3, 1), batch_size=8, device=CPU)
+    experience = colocated_experience(session, Keys(run), config, small_policy(3, 1), batch_size=8, device=CPU,
+                                      on_policy=False)
     batches = [experience.next_batch(timeout=0.0) for _ in range(110)]
     experience.close()
 
@@ -112,8 +113,9 @@ def test_colocated_runner_worlds_on_warp_s_cpu_device_end_in_falls_that_cut_the_
     heard = Heard(session, run)
     config = WorldsConfig("l2r/RunWarp-v0", worlds=2, capacity=4000, random_steps=10_000, min_replay=0,
                           action_repeat=3, seed=1)
-    experience = ColocatedExperience(session, Keys(run), config, small_policy(41, 18), batch_size=8, device=CPU)
-    assert experience.env.unwrapped.device.is_cpu
+    experience = colocated_experience(session, Keys(run), config, small_policy(41, 18), batch_size=8, device=CPU,
+                                      on_policy=False)
+    assert experience.worlds.env.unwrapped.device.is_cpu
     for _ in range(200):
         experience.next_batch(timeout=0.0)
     experience.close()
@@ -124,14 +126,38 @@ def test_colocated_runner_worlds_on_warp_s_cpu_device_end_in_falls_that_cut_the_
     assert all(s.length < 200 and -2 < s.distance < 2 for s in heard.episodes), heard.episodes
 
 
+def test_on_policy_rollouts_lay_each_world_s_steps_end_to_end_with_the_log_probs_of_the_policy_that_acted(session):
+    """Rollouts of 10 steps of 3 Pendulum-v1 worlds (batch 30), one action a step: world after
+    world, each piece ending at its last row; the next rollout goes on where this one stopped."""
+    run, worlds, length = f"test-colocated-rollouts-{uuid.uuid4().hex[:8]}", 3, 10
+    policy = small_policy(3, 1)
+    config = WorldsConfig("Pendulum-v1", worlds=worlds, seed=2)
+    experience = colocated_experience(session, Keys(run), config, policy, batch_size=30, device=CPU, on_policy=True)
+    experience.learner_version = 4
+    first, second = experience.next_batch(timeout=0.0), experience.next_batch(timeout=0.0)
+    experience.close()
+
+    batch = first.tensors
+    assert batch.obs.shape == (30, 3) and first.policy_versions.tolist() == [4] * 30
+    obs, next_obs = batch.obs.reshape(worlds, length, 3), batch.next_obs.reshape(worlds, length, 3)
+    assert torch.equal(next_obs[:, :-1], obs[:, 1:])  # no episode ends within 10 of its 200 steps
+    assert batch.ends.reshape(worlds, length)[:, -1].tolist() == [1.0] * worlds and batch.ends.sum() == worlds
+    assert not batch.terminated.any()
+    assert torch.equal(second.tensors.obs.reshape(worlds, length, 3)[:, 0], next_obs[:, -1])
+    with torch.no_grad():
+        log_prob, _ = policy.evaluate(batch.obs, batch.action)
+    assert torch.allclose(log_prob, batch.behaviour_log_prob, atol=1e-4)
+
+
 @pytest.mark.slow
-def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes_and_checkpoints(tmp_path):
+@pytest.mark.parametrize("algo", ["td3", "ppo"])
+def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes_and_checkpoints(algo, tmp_path):
     run, endpoint = f"test-colocated-{uuid.uuid4().hex[:8]}", f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(session_config(connect=[endpoint]))
     heard, watcher = Heard(session, run), WeightsWatcher(session, run)
     learner = Daemon("l2r.learner", ["--run", run, "--listen", endpoint, "--run-dir", str(tmp_path / "run"),
                                      "--device", "cpu", "--threads", "1", "--hidden", "32,32", "--batch-size", "64",
-                                     "--publish-every", "20", "--metrics-interval", "1", "--algo", "td3",
+                                     "--publish-every", "20", "--metrics-interval", "1", "--algo", algo,
                                      "--colocated-env", "Pendulum-v1", "--colocated-worlds", "4",
                                      "--colocated-min-replay", "200", "--colocated-random-steps", "100",
                                      "--action-repeat", "2"],
@@ -145,6 +171,9 @@ def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes
     log = learner.log()
     assert "stepping 4 worlds of Pendulum-v1" in log and "rejected" not in log
     saved = load_checkpoint(tmp_path / "run")
-    assert saved.algo == "td3" and saved.updates >= 80 and saved.action_repeat == 2
+    assert saved.algo == algo and saved.version >= 5 and saved.action_repeat == 2
     assert all(e.length == 100 and e.actor_id == 0 for e in heard.episodes)
     assert heard.stats and heard.stats[-1]["env_steps"] >= 400
+    # The batches' policy lag: a rollout is the newest policy's; a ring holds older ones too.
+    lags = [m["policy_lag"] for m in watcher.metrics if m["updates_per_s"] > 0]
+    assert lags and (max(lags) == 0 if algo == "ppo" else max(lags) > 0), lags

@@ -31,7 +31,7 @@ def test_the_learner_takes_the_actors_worlds_and_the_evaluators_the_ids_after_th
 
 
 @pytest.mark.parametrize("argv, error", [
-    (["--algo", "ppo"], "--colocated trains SAC or TD3 on the learner's own worlds; --algo ppo learns from actors"),
+    (["--algo", "a3c"], "--colocated trains on the learner's own worlds; --algo a3c learns from the actors' gradients"),
     (["--opensim-actors", "1"], "--colocated: --opensim-actors are the actors' and replay's"),
     (["--exploration-noise", "pink", "--frame-stack", "4"], "--colocated: --exploration-noise, --frame-stack are"),
     (["--env-id", "l2r/PhotoTuneStats-v0", "--algo", "td3"], "--colocated steps worlds of vector observations"),
