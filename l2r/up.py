@@ -670,13 +670,14 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
 
 
 def colocated_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
-    """The learner's flags for the worlds it steps itself (--colocated): the actors' worlds, their
-    warm-up and the replay's capacity."""
+    """The learner's flags for the worlds it steps itself (--colocated): the actors' worlds, and for
+    SAC and TD3 their warm-up and the replay's capacity (an on-policy recipe has neither)."""
     flags = ["--colocated-env", args.env_id, "--colocated-worlds", str(args.actors * recipe["envs_per_actor"]),
-             "--colocated-capacity", str(replay_capacity(args)),
-             "--colocated-random-steps", str(args.actors * recipe["random_steps"]),
-             "--colocated-min-replay", str(recipe["min_replay"]),
              "--colocated-difficulty", str(args.difficulty), "--seed", str(args.seed)]
+    if args.algo not in ON_POLICY:
+        flags += ["--colocated-capacity", str(replay_capacity(args)),
+                  "--colocated-random-steps", str(args.actors * recipe["random_steps"]),
+                  "--colocated-min-replay", str(recipe["min_replay"])]
     return flags + (["--colocated-randomize", args.randomize] if args.randomize else [])
 
 

@@ -30,6 +30,14 @@ def test_the_learner_takes_the_actors_worlds_and_the_evaluators_the_ids_after_th
     assert [actor_settings(c.argv[3:]).actor_id for c in children[1:]] == [1, 2]
 
 
+def test_an_on_policy_learner_takes_the_worlds_without_a_warm_up_or_a_ring():
+    args, _ = parse_args(["--colocated", "--algo", "ppo", "--envs-per-actor", "16"])  # its recipe has no min_replay
+    argv = plan_children(args, "run", Path("runs/x"), [], 7448)[0].argv[3:]
+    learner = learner_settings(argv)
+    assert learner.algo == "ppo" and learner.learner().colocated.worlds == 16
+    assert not {"--colocated-capacity", "--colocated-random-steps", "--colocated-min-replay"} & set(argv)
+
+
 @pytest.mark.parametrize("argv, error", [
     (["--algo", "a3c"], "--colocated trains on the learner's own worlds; --algo a3c learns from the actors' gradients"),
     (["--opensim-actors", "1"], "--colocated: --opensim-actors are the actors' and replay's"),
