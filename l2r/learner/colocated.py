@@ -38,13 +38,14 @@ import torch
 import zenoh
 from gymnasium.vector import AutoresetMode
 
-from l2r.actors.actor import make_task
+from l2r.actors.actor import make_task, registers_vector_env
 from l2r.families import RUNNER, family_of
 from l2r.learner import ppo
 from l2r.learner.sac import Batch
 from l2r.policy import PolicyNetwork, to_tanh_space
 from l2r.protocol import EPISODE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode
 from l2r.sim import WARP_ID
+from l2r.sim.env import STEP_SECONDS
 from l2r.sim.randomize import Randomization
 
 log = logging.getLogger("l2r.learner.colocated")
@@ -69,6 +70,9 @@ class WorldsConfig:
     randomize: str = ""
     """The runner's per-episode body randomisation (`l2r.sim.randomize`, the actors' --randomize)."""
     seed: int = 0
+    max_speed: float = 20.0
+    """The runner's pelvis speed (m/s) above which a step is a simulation blow-up, as the actors'
+    --max-speed (0: off; other tasks have none)."""
     actor_id: int = 0
     """The actor id its stats and episode summaries go out under (no actor of the run may share it)."""
 
@@ -79,7 +83,7 @@ def make_vector_env(config: WorldsConfig, device: torch.device) -> gymnasium.vec
     SyncVectorEnv of the actors' single envs (`make_task`: actions rescaled to the policy's [0, 1]).
     ValueError for an observation other than one vector."""
     randomize = Randomization.parse(config.randomize) if config.randomize else None
-    if gymnasium.spec(config.env_id).vector_entry_point is not None:
+    if registers_vector_env(config.env_id):
         kwargs: dict = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
         if config.env_id == WARP_ID:
             kwargs |= {"device": "cuda" if device.type == "cuda" else "cpu", "randomize": randomize}
@@ -183,11 +187,13 @@ class ColocatedWorlds:
             raise ValueError(f"{config.env_id} has {self.obs_dim} observations and {self.act_dim} actions, the "
                              f"learner's networks {policy.spec['obs_dim']} and {policy.spec['act_dim']}")
         n = config.worlds
+        self.max_speed = config.max_speed if family_of(config.env_id) == RUNNER else 0.0
         obs, info = self.env.reset(seed=config.seed)
-        self.obs = self._tensor(obs)
+        self.host_obs, self.obs = obs, self._tensor(obs)
         self.returns, self.lengths = np.zeros(n), np.zeros(n, np.int64)
         self.start_x = self._distances(info)
-        self.steps = self.episodes = 0
+        self.x = self.start_x.copy()
+        self.steps = self.episodes = self.blowups = 0
         self.stats_extra: dict[str, float] = {}
         self._rate_steps, self._rate_time, self._next_stats = 0, time.monotonic(), 0.0
         self._summaries = session.declare_publisher(keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
@@ -205,28 +211,35 @@ class ColocatedWorlds:
                 excitation, log_prob = torch.rand((n, self.act_dim), device=self.device), torch.zeros(n, device=self.device)
         actions = excitation.cpu().numpy()
         reward, terminated, ended = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
-        final_obs, final_distance = None, np.zeros(n)
+        inner_steps, next_obs, x_before = np.zeros(n, np.int64), None, self.x.copy()
         for _ in range(self.config.action_repeat):  # a world that ends within the repeats takes no more reward
             obs, step_reward, step_terminated, step_truncated, info = self.env.step(actions)
             running = ~ended
             reward[running] += step_reward[running]
+            inner_steps[running] += 1
+            self.x[running] = self._distances(info)[running]
             done = running & (step_terminated | step_truncated)
             terminated |= done & step_terminated
             if done.any():
                 last = info["final_obs"][done]  # a SyncVectorEnv's: an object array of each world's
-                final_obs = obs.copy() if final_obs is None else final_obs
-                final_obs[done] = np.stack(last) if last.dtype == object else last
-                final_distance[done] = self._distances(info["final_info"])[done]
+                next_obs = obs.copy() if next_obs is None else next_obs
+                next_obs[done] = np.stack(last) if last.dtype == object else last
+                self.x[done] = self._distances(info["final_info"])[done]
             ended |= done
+        next_obs = obs if next_obs is None else next_obs
+        blown = self._blown_up(reward, next_obs, inner_steps)
+        if blown.any():  # as an actor stores one: a terminal step without reward, from where it was
+            next_obs, reward = next_obs.copy(), reward.copy()
+            next_obs[blown], reward[blown], terminated[blown], ended[blown] = self.host_obs[blown], 0.0, True, True
+            self.x[blown] = x_before[blown]
         self.lengths += 1
         self.returns += reward
-        step = WorldsStep(self.obs, to_tanh_space(excitation), log_prob, self._tensor(reward),
-                          self._tensor(obs if final_obs is None else final_obs), self._tensor(terminated),
-                          self._tensor(ended))
-        self.obs = self._tensor(obs)
+        step = WorldsStep(self.obs, to_tanh_space(excitation), log_prob, self._tensor(reward), self._tensor(next_obs),
+                          self._tensor(terminated), self._tensor(ended))
+        self.host_obs, self.obs = obs, self._tensor(obs)
         self.steps += n
         if ended.any():
-            self._episodes_ended(np.flatnonzero(ended), final_distance, self._distances(info), version)
+            self._episodes_ended(np.flatnonzero(ended), self._distances(info), version)
         if time.monotonic() >= self._next_stats:
             self.publish_stats(version)
         return step
@@ -237,6 +250,7 @@ class ColocatedWorlds:
         self._rate_steps, self._rate_time, self._next_stats = self.steps, now, now + STATS_INTERVAL
         values = {"env_steps": self.steps, "env_steps_per_s": rate, "episodes": self.episodes,
                   "policy_version": version, "newest_version": version, "num_envs": self.config.worlds,
+                  "blowups": self.blowups,
                   **self.stats_extra}
         self._stats.put(encode(Stats("actor", str(self.config.actor_id), time.time(), values)))
 
@@ -245,17 +259,30 @@ class ColocatedWorlds:
         self._token.undeclare()
         self.env.close()
 
-    def _episodes_ended(self, worlds: np.ndarray, final_distance: np.ndarray, new_start: np.ndarray,
-                        version: int) -> None:
+    def _blown_up(self, reward: np.ndarray, next_obs: np.ndarray, inner_steps: np.ndarray) -> np.ndarray:
+        """The worlds whose step blew up: an observation not finite, or (the runner) the pelvis
+        faster than `max_speed` (the actors' check); counted, and logged now and then."""
+        blown = ~np.isfinite(next_obs).all(axis=1)
+        if self.max_speed:
+            blown |= np.abs(reward) > self.max_speed * STEP_SECONDS * inner_steps
+        for _ in range(int(blown.sum())):
+            self.blowups += 1
+            if self.blowups == 1 or self.blowups % 100 == 0:
+                log.warning("simulation blow-up; the episode ended before it (%d so far)", self.blowups)
+        return blown
+
+    def _episodes_ended(self, worlds: np.ndarray, new_start: np.ndarray, version: int) -> None:
+        """Summaries of the episodes that ended, each world's distance the x it had reached; the
+        next episodes start from `new_start` (a blown-up world's env goes on from where it is)."""
         now = time.time()
         for w in worlds.tolist():
             self._summaries.put(encode(EpisodeSummary(
                 actor_id=self.config.actor_id, env_id=w, episode_return=float(self.returns[w]),
-                distance=float(final_distance[w] - self.start_x[w]), length=int(self.lengths[w]),
+                distance=float(self.x[w] - self.start_x[w]), length=int(self.lengths[w]),
                 policy_version=version, difficulty=self.config.difficulty, seed=self.config.seed + w, time=now)))
         self.episodes += len(worlds)
         self.returns[worlds], self.lengths[worlds] = 0.0, 0
-        self.start_x[worlds] = new_start[worlds]
+        self.start_x[worlds] = self.x[worlds] = new_start[worlds]
 
     def _tensor(self, values: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(values, dtype=torch.float32, device=self.device)

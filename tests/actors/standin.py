@@ -99,3 +99,17 @@ class InstantWorlds(gymnasium.vector.VectorEnv):
 
 
 gymnasium.register("InstantWorlds-v0", vector_entry_point=InstantWorlds)
+
+
+class Diverging(StandIn):
+    """A stand-in whose physics blows up at its 7th step: a NaN observation that ends the episode
+    (as `l2r/RunWarp-v0` ends a world whose state turns non-finite)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        if self._t == 7:
+            return np.full_like(obs, np.nan), 0.0, True, truncated, info
+        return obs, reward, terminated, truncated, info
+
+
+gymnasium.register("Diverging-v0", entry_point=Diverging)

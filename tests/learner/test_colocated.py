@@ -105,6 +105,27 @@ def test_colocated_worlds_store_each_step_with_an_ended_episode_s_last_observati
     assert heard.stats[-1]["episodes"] == worlds and heard.stats[-1]["num_envs"] == worlds
 
 
+def test_a_step_that_blows_up_is_stored_as_a_terminal_step_without_reward_from_where_the_world_was(session):
+    """Stand-ins whose 7th step returns NaN observations: the ring holds no NaN, each blow-up is
+    a terminal row whose next observation is its own, and the stats count them."""
+    run = f"test-colocated-nan-{uuid.uuid4().hex[:8]}"
+    heard = Heard(session, run)
+    config = WorldsConfig("tests.actors.standin:Diverging-v0", worlds=2, capacity=100, random_steps=100, min_replay=0)
+    experience = colocated_experience(session, Keys(run), config, small_policy(41, 18), batch_size=4, device=CPU,
+                                      on_policy=False)
+    for _ in range(10):
+        experience.next_batch(timeout=0.0)
+    experience.close()
+
+    replay = experience.replay
+    assert torch.isfinite(replay.obs[:20]).all() and torch.isfinite(replay.next_obs[:20]).all()
+    blown = replay.terminated[:20].reshape(10, 2)
+    assert blown[6].tolist() == [1.0, 1.0] and blown.sum() == 2
+    assert torch.equal(replay.next_obs[12:14], replay.obs[12:14]) and replay.reward[12:14].tolist() == [0.0, 0.0]
+    assert wait_for(lambda: heard.stats and heard.stats[-1]["blowups"] == 2 and len(heard.episodes) == 2)
+    assert all(e.length == 7 for e in heard.episodes)
+
+
 def test_colocated_runner_worlds_on_warp_s_cpu_device_end_in_falls_that_cut_the_bootstrap(session):
     """l2r/RunWarp-v0 (kernels cached by make setup): random excitations fell each runner within
     its 1000 steps; each fall is one terminated row and one episode summary, its distance the
