@@ -9,9 +9,8 @@ flag of its own name that replaces the recipe's value.
 
 The settings span the three daemons: the replay server's (`REPLAY_FLAGS`), the actors'
 (`ACTOR_SETTINGS`) and the learner's (every other one, an `l2r-learner` flag of the same name).
-Left out, and the same in every recipe of an algorithm: the temperature is learnt towards an
-entropy of -act-dim, PPO and REINFORCE standardise their advantages per minibatch and A2C does
-not; `--learner-arg` sets those.
+Left out, and the same in every recipe of an algorithm: PPO and REINFORCE standardise their
+advantages per minibatch and A2C does not; `--learner-arg` sets that.
 
 The learner's own defaults (`SACConfig`, `TD3Config`, `PPOConfig`, `A2CConfig`, `A3CConfig`, `ReinforceConfig`)
 stay the 2017 reference solution's, CleanRL's, Stable-Baselines3's and Spinning Up's; `l2r up`
@@ -28,27 +27,36 @@ from l2r.families import PHOTO, PIXELS, RUNNER, STANDARD, family_of
 from l2r.learner.ppo import LAG_CORRECTIONS, OPTIMIZERS
 from l2r.learner.td3 import ACTOR_LOSSES
 from l2r.policy import ACTIVATIONS
+from l2r.sim import randomize_refusal
 
 Value = bool | int | float | str
+
+# The body drawn anew each episode on the runner's MuJoCo envs (the actors' --randomize): what the
+# A/Bs of docs/training.md ran.
+RUNNER_RANDOMIZATION = ("strength=0.05,tendon_slack=0.02,fiber_length=0.02,mass=0.05,contact_stiffness=0.2,"
+                        "contact_damping=0.2,friction=0.2,delay=0.5")
 
 RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # Tuned on the runner on a 2-core CPU (docs/training.md, "The recipe"): rewards of 0.01-0.03 m
     # a step scaled up, a cool start, the body's symmetry and running statistics doing the rest.
     # No warm-up: every runner figure was measured with actors acting with the learner's untrained
     # policy from its first publication on (until 2026-11-26 that first policy ended any warm-up).
+    # Since 2026-11-27 each episode's body is drawn anew and the entropy target is half SAC's: on
+    # three seeds the two together learnt each time and kept 12-15 m in OpenSim where randomisation
+    # alone learnt on two and kept a median of 6.4 m (docs/training.md, "Levers for robustness").
     (RUNNER, "sac"): dict(
         hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
-        reward_scale=10.0, initial_alpha=0.1, update_repeat=1, publish_every=50,
+        reward_scale=10.0, initial_alpha=0.1, target_entropy_per_action=-0.5, update_repeat=1, publish_every=50,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
-        random_steps=0, envs_per_actor=4, action_repeat=3, frame_stack=1,
+        random_steps=0, envs_per_actor=4, action_repeat=3, frame_stack=1, randomize=RUNNER_RANDOMIZATION,
     ),
     # Stable-Baselines3's and CleanRL's SAC for MuJoCo tasks: raw observations, learning from 5,000
     # steps on, one gradient step per env step (samples-per-insert = batch-size / update-repeat,
     # held both ways), the actor acting with each new policy.
     (STANDARD, "sac"): dict(
         hidden="256,256", activation="relu", layer_norm=False, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
-        reward_scale=1.0, initial_alpha=1.0, update_repeat=1, publish_every=1,
+        reward_scale=1.0, initial_alpha=1.0, target_entropy_per_action=-1.0, update_repeat=1, publish_every=1,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=5_000, samples_per_insert=256.0, hold_actors=True,
         random_steps=5_000, envs_per_actor=1, action_repeat=1, frame_stack=1,
@@ -223,6 +231,10 @@ RECIPES[PHOTO, "ppo"] = {**RECIPES[STANDARD, "ppo"], "batch_size": 512, "minibat
 # gradient more than 4 versions behind the learner's is refused.
 RECIPES |= {(family, "a3c"): {**RECIPES[family, "a2c"], "batch_size": 5, "max_gradient_staleness": 4}
             for family in (RUNNER, STANDARD)}
+# The runner's other recipes keep the body fixed (randomisation measured with SAC alone), and say so.
+for (family, algo), table in RECIPES.items():
+    if family == RUNNER:
+        table.setdefault("randomize", "")
 
 # What each setting is, for its `l2r up` flag's help.
 SETTINGS: dict[str, str] = {
@@ -286,6 +298,13 @@ SETTINGS: dict[str, str] = {
     "hold_actors": "with --samples-per-insert, the replay server holds the actors back while they are ahead of the "
                    "learner, so the ratio holds both ways (SAC, TD3)",
     "random_steps": "uniform random steps of each actor before it uses the policy (warm-up)",
+    "randomize": "a new body each episode on the l2r/Run-v0 and l2r/RunWarp-v0 actors (not the --opensim-actors): "
+                 "each named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
+                 "(per muscle), mass (per segment), contact_stiffness, contact_damping, friction (the ground); "
+                 "delay=P: the probability that an episode's excitations act one physics step late; '' (an empty "
+                 "value): none (l2r-actor --help says more; the runner alone)",
+    "target_entropy_per_action": "SAC's entropy target per action dimension, towards which the temperature is "
+                                 "learnt (-1: SAC's -act-dim; a --learner-arg=--target-entropy wins) (SAC)",
     "envs_per_actor": "environments per actor, batched in one policy call",
     "action_repeat": "0.01 s environment steps per action on the runner, environment steps per action on another "
                      "task (stored in checkpoints for `l2r eval`)",
@@ -300,11 +319,15 @@ CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_co
                                        "optimizer": OPTIMIZERS, "encoder": tuple(IMAGE_VIEWS),
                                        "actor_loss": ACTOR_LOSSES}
 
+# Settings added to the recipes after runs were made, each with the value those runs trained with:
+# a run whose launch.json recorded a recipe without one resumes with that value (l2r up --resume).
+ADDED_SINCE: dict[str, Value] = {"randomize": "", "target_entropy_per_action": -1.0}
+
 # The replay server's settings, under their l2r-replay flags.
 REPLAY_FLAGS = {"min_replay": "--min-size", "samples_per_insert": "--samples-per-insert",
                 "hold_actors": "--hold-actors"}
 # The actors' settings (l2r up hands each to the processes that need it).
-ACTOR_SETTINGS = ("random_steps", "envs_per_actor", "action_repeat")
+ACTOR_SETTINGS = ("random_steps", "envs_per_actor", "action_repeat", "randomize")
 # Settings that read the runner's body (its x coordinates, its legs): off on any other task.
 RUNNER_BODY = ("relative_x", "mirror")
 
@@ -345,12 +368,14 @@ def resolve(env_id: str, algo: str, family: str | None, flags: Mapping[str, Valu
         values[name], origins[name] = (value, "recipe") if given is None else (given, "flag")
         if name in RUNNER_BODY and values[name] and family_of(env_id) != RUNNER:
             values[name], origins[name] = False, f"off on {env_id}, the runner's alone"
+        if name == "randomize" and values[name] and origins[name] == "recipe" and randomize_refusal(env_id):
+            values[name], origins[name] = "", f"off on {env_id}, the MuJoCo runner's alone"
     unused = tuple(name for name, value in flags.items() if value is not None and name not in table)
     return Recipe(f"{family}/{algo}", values, origins, unused)
 
 
 def _shown(value: Value) -> str:
-    if isinstance(value, bool):
+    if isinstance(value, bool) or value == "":
         return "on" if value else "off"
     return f"{value:,}" if isinstance(value, int) else f"{value:g}" if isinstance(value, float) else value
 

@@ -62,7 +62,9 @@ from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.photo.env import GOALS
 from l2r.protocol import Keys, session_config
-from l2r.recipes import ACTOR_SETTINGS, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values
+from l2r.recipes import (
+    ACTOR_SETTINGS, ADDED_SINCE, CHOICES, RECIPES, REPLAY_FLAGS, SETTINGS, Recipe, resolve, shown_values,
+)
 from l2r.replay.queue import QueueConfig
 from l2r.replay.snapshot import snapshot_path
 from l2r.run_metrics import RunCounters, RunMetrics
@@ -110,6 +112,9 @@ def free_ports(count: int) -> list[int]:
             s.close()
 
 
+METAVARS = {"randomize": "NAME=FRACTION,..."}  # recipe settings of text whose form a metavar says
+
+
 def _recipe_flag(name: str, text: str) -> dict:
     """add_argument's options for a setting of the recipes: no default (the recipe's), the type of
     the recipes' values, a switch with a --no- form for on/off ones."""
@@ -117,7 +122,8 @@ def _recipe_flag(name: str, text: str) -> dict:
     options = {"help": f"{text}; unset, the recipe's: {shown_values(name)}", "choices": CHOICES.get(name)}
     if kind is bool:
         return options | {"action": argparse.BooleanOptionalAction}
-    return options | {"type": kind} | ({"metavar": "N" if kind is int else "X"} if kind in (int, float) else {})
+    metavar = {int: "N", float: "X"}.get(kind) or METAVARS.get(name)
+    return options | {"type": kind} | ({"metavar": metavar} if metavar else {})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -206,20 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "to 32 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
                         "of an actor's CPU; off sends them raw. Other tasks send the same bytes either way")
     rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
-                              "evaluators run the plain env; --frame-stack, the policy's own, is among the recipe's "
-                              "values); each off by default, what each A/B measured in docs/training.md, \"Levers "
-                              "for robustness\"")
+                              "evaluators run the plain env; --randomize, on in runner/sac, and --frame-stack, the "
+                              "policy's own, are among the recipe's values); each off by default, what each A/B "
+                              "measured in docs/training.md, \"Levers for robustness\"")
     rb.add_argument("--difficulty-schedule", metavar="STEP:DIFFICULTY,...",
                     help="train on a course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training episode "
                          "starts at the difficulty of the last pair whose step the actor's own env steps have reached, "
                          "in place of --difficulty (the evaluators keep --difficulty, or --eval-difficulty). Unset: --difficulty "
                          "throughout")
-    rb.add_argument("--randomize", metavar="NAME=FRACTION,...",
-                    help="draw a new body each episode on the l2r/Run-v0 and l2r/RunWarp-v0 actors (not the "
-                         "--opensim-actors): each named factor uniform in 1 +- FRACTION (at most 0.5): strength, tendon_slack, fiber_length "
-                         "(per muscle), mass (per segment), contact_stiffness, contact_damping, friction (the ground); "
-                         "delay=P: the probability that an episode's excitations act one physics step late. E.g. "
-                         "strength=0.1,mass=0.1,friction=0.2,delay=0.5 (l2r-actor --help says more). Unset: off")
     rb.add_argument("--observation-noise", type=float, default=0.0, metavar="STD",
                     help="std of Gaussian noise the actors add to every observed value, in its own units (m, rad, "
                          "m/s, rad/s on the runner); replay stores the noisy observations (0: off)")
@@ -352,6 +352,10 @@ def _launch(parser: argparse.ArgumentParser, given: argparse.Namespace) -> tuple
         print(f"l2r up: warning: {launch_path} stores no flags (an older l2r wrote it): the flags given and the "
               f"defaults apply", file=sys.stderr)
     stored = {k: v for k, v in launch.get("args", {}).items() if k in vars(given) and k not in NOT_REUSED}
+    recorded = launch.get("recipe", {}).get("values", {})
+    for name, before in ADDED_SINCE.items():  # a run from before a setting trained without it: so it goes on
+        if name not in recorded and stored.get(name) is None:
+            stored[name] = before
     if "args" in launch and "recipe" not in launch["args"]:
         # From before recipes, when every task trained with the runner's: the same job goes on.
         stored["recipe"] = RUNNER
@@ -485,8 +489,8 @@ def _check_colocated(parser: argparse.ArgumentParser, args: argparse.Namespace) 
 def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """The robustness levers' values, and that the task takes them."""
     try:
-        if args.randomize is not None and Randomization.parse(args.randomize) and randomize_refusal(args.env_id):
-            parser.error(f"--randomize: {randomize_refusal(args.env_id)}")
+        if args.randomize and Randomization.parse(args.randomize) and randomize_refusal(args.env_id):
+            parser.error(f"--randomize: {randomize_refusal(args.env_id)}")  # as given; the recipe's is off there
         if args.difficulty_schedule is not None:
             DifficultySchedule.parse(args.difficulty_schedule)
             if family_of(args.env_id) != RUNNER:
@@ -678,7 +682,8 @@ def colocated_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
         flags += ["--colocated-capacity", str(replay_capacity(args)),
                   "--colocated-random-steps", str(args.actors * recipe["random_steps"]),
                   "--colocated-min-replay", str(recipe["min_replay"])]
-    return flags + (["--colocated-randomize", args.randomize] if args.randomize else [])
+    randomize = recipe.get("randomize")
+    return flags + (["--colocated-randomize", randomize] if randomize else [])
 
 
 def shard_flags(shard: int, shards: int) -> list[str]:
@@ -697,8 +702,11 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
     flags = []
     if args.difficulty_schedule is not None:
         flags += ["--difficulty-schedule", args.difficulty_schedule]
-    if args.randomize and not opensim:
-        flags += ["--randomize", args.randomize]
+    recipe = recipe_of(args)
+    randomize = recipe.values.get("randomize")
+    # The recipe's randomisation only where the actors' env takes it (an --actor-arg may give them OpenSim).
+    if randomize and not opensim and (recipe.origins["randomize"] == "flag" or not randomize_refusal(actors_env_id(args))):
+        flags += ["--randomize", randomize]
     if args.observation_noise:
         flags += ["--observation-noise", str(args.observation_noise)]
     if args.action_noise:
@@ -706,6 +714,17 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
     if args.exploration_noise != "white":
         flags += ["--exploration-noise", args.exploration_noise]
     return flags
+
+
+def actors_env_id(args: argparse.Namespace) -> str:
+    """The training actors' env: --env-id, or the last one an --actor-arg gives them."""
+    env_id, words = args.env_id, iter(args.actor_arg)
+    for word in words:
+        if word == "--env-id":
+            env_id = next(words, env_id)
+        elif word.startswith("--env-id="):
+            env_id = word.split("=", 1)[1]
+    return env_id
 
 
 def simulator_of_each_actor(children: list[Child]) -> dict[int, str]:

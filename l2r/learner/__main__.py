@@ -179,7 +179,10 @@ class LearnerSettings(DaemonSettings):
         "else float32 (PPO runs float32: its ratios compare the learner's log-probabilities with the actors')",
         group=OFF_POLICY)
 
-    target_entropy: float | None = setting(None, "entropy target of alpha tuning (default: -act-dim)", group=SAC)
+    target_entropy: float | None = setting(None, "entropy target of alpha tuning (default: "
+                                           "--target-entropy-per-action x act-dim)", group=SAC)
+    target_entropy_per_action: float = setting(-1.0, "the entropy target per action dimension, where "
+                                               "--target-entropy is not given (-1: SAC's -act-dim)", group=SAC)
     initial_alpha: float = setting(SAC_DEFAULTS.initial_alpha, "starting temperature", group=SAC, gt=0)
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
 
@@ -374,7 +377,8 @@ class LearnerSettings(DaemonSettings):
             return SACConfig(
                 **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self._given("lr", SAC_DEFAULTS.actor_lr),
                 critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
-                update_repeat=self.update_repeat, target_entropy=self.target_entropy,
+                update_repeat=self.update_repeat,
+                target_entropy=self._given("target_entropy", self.target_entropy_per_action * self.spaces[1]),
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
                 precision=self.precision, frame_stack=self.frame_stack or 1)
         except ValueError as e:  # a combination SACConfig refuses

@@ -9,7 +9,7 @@ import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
-from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, SETTINGS, STANDARD
+from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, RUNNER_RANDOMIZATION, SETTINGS, STANDARD
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r import disk_budget
 from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
@@ -100,14 +100,33 @@ def reached(children: dict[str, list[str]], recipe: dict) -> dict:
     values |= {"layer_norm": learner.algorithm().layer_norm, "min_replay": replay.min_size,
                "samples_per_insert": replay.samples_per_insert, "hold_actors": replay.hold_actors,
                "random_steps": actor.random_steps, "envs_per_actor": actor.num_envs,
-               "action_repeat": actor.action_repeat}
+               "action_repeat": actor.action_repeat, "randomize": actor.randomize or ""}
     assert learner.action_repeat == actor.action_repeat  # the learner stores it for l2r eval
     return {name: values[name] for name in recipe}
 
 
+# The levers runner/sac took on 2026-11-27, off: the runner then trains as it did before recipes.
+SINCE_RECIPES = {"sac": ["--randomize", "", "--target-entropy-per-action", "-1"], "ppo": []}
+
+
 @pytest.mark.parametrize("algo", ["sac", "ppo"])
 def test_the_runner_trains_as_before_recipes(algo):
-    assert_same_settings(planned("--algo", algo, "--learner-threads", "1"), BEFORE["l2r/Run-v0", algo])
+    assert_same_settings(planned("--algo", algo, "--learner-threads", "1", *SINCE_RECIPES[algo]),
+                         BEFORE["l2r/Run-v0", algo])
+
+
+def test_runner_sac_draws_a_body_each_episode_on_the_port_alone_and_halves_the_entropy_target():
+    children = planned("--algo", "sac")
+    assert actor_settings(children["actor-0"]).randomize == RUNNER_RANDOMIZATION
+    assert actor_settings(children["evaluator-0"]).randomize is None  # the evaluators run the plain env
+    assert learner_settings(children["learner"]).sac().target_entropy == -9.0  # -0.5 x 18 excitations
+    assert learner_settings(planned("--algo", "sac", "--learner-arg=--target-entropy=-4")["learner"]).sac(
+        ).target_entropy == -4.0
+    assert actor_settings(planned("--randomize", "")["actor-0"]).randomize in (None, "")
+    on_opensim = parse_args(["--env-id", "l2r/RunOpenSim-v0"])[0]
+    assert recipe_of(on_opensim).values["randomize"] == "" and "off on l2r/RunOpenSim-v0" in recipe_of(
+        on_opensim).origins["randomize"]
+    assert actor_settings(planned("--algo", "ppo")["actor-0"]).randomize in (None, "")  # measured with SAC alone
 
 
 @pytest.mark.parametrize("family, algo", RECIPES)
@@ -116,7 +135,9 @@ def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, a
     # PPO takes no images: the photo family's PPO recipe is for its statistics views.
     photo = "l2r/PhotoTune-v0" if algo == "td3" else "l2r/PhotoEnhanceStats-v0"
     env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: photo, STANDARD: "Walker2d-v5"}[family]
-    assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == recipe
+    # Randomisation is the MuJoCo runner's: off on OpenSim (the test above has it on l2r/Run-v0).
+    expected = recipe | ({"randomize": ""} if family == RUNNER else {})
+    assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == expected
 
 
 def test_a_td3_job_samples_the_replay_table_as_sac_does_with_a_td3_learner():
@@ -154,7 +175,7 @@ def test_an_a3c_job_s_actors_send_gradients_of_five_step_rollouts_to_an_a3c_lear
 def test_recipe_forces_a_family_but_the_runner_s_body_options_stay_on_the_runner():
     assert reached(planned("--recipe", "standard"), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"]
     on_hopper = reached(planned("--env-id", "Hopper-v5", "--recipe", "runner"), RECIPES[RUNNER, "sac"])
-    assert on_hopper == RECIPES[RUNNER, "sac"] | {"relative_x": False, "mirror": False}
+    assert on_hopper == RECIPES[RUNNER, "sac"] | {"relative_x": False, "mirror": False, "randomize": ""}
 
 
 def test_a_flag_replaces_one_value_and_launch_json_says_where_each_came_from(tmp_path):
@@ -214,6 +235,20 @@ def test_a_run_resumes_with_the_recipe_it_resolved_and_the_flags_it_was_given(tm
     write_launch(tmp_path, args, argv, launch, {})
     resumed = planned("--resume", str(tmp_path))
     assert reached(resumed, RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"] | {"batch_size": 64}
+
+
+def test_a_run_recorded_before_a_setting_was_added_resumes_with_the_value_it_trained_with(tmp_path):
+    args, launch = parse_args([])
+    write_launch(tmp_path, args, [], launch, {})
+    record = json.loads((tmp_path / "launch.json").read_text())
+    for name in ("randomize", "target_entropy_per_action"):  # as l2r up recorded runner/sac before 2026-11-27
+        del record["recipe"]["values"][name]
+    (tmp_path / "launch.json").write_text(json.dumps(record))
+    resumed = planned("--resume", str(tmp_path))
+    assert actor_settings(resumed["actor-0"]).randomize in (None, "")
+    assert learner_settings(resumed["learner"]).sac().target_entropy == -18.0
+    given = planned("--resume", str(tmp_path), "--randomize", "mass=0.1")  # a flag given again still wins
+    assert actor_settings(given["actor-0"]).randomize == "mass=0.1"
 
 
 def test_actors_log_episodes_of_the_runner_and_of_camera_tasks_alone():
