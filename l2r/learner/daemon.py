@@ -43,11 +43,11 @@ import zenoh
 from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import a3c, ppo, sac, td3
 from l2r.learner.algorithms import ON_POLICY
-from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.checkpoint import (
     ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
     save_checkpoint,
 )
+from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
 from l2r.learner.ppo import PPOConfig
 from l2r.learner.sac import SACConfig
