@@ -705,7 +705,8 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
     recipe = recipe_of(args)
     randomize = recipe.values.get("randomize")
     # The recipe's randomisation only where the actors' env takes it (an --actor-arg may give them OpenSim).
-    if randomize and not opensim and (recipe.origins["randomize"] == "flag" or not randomize_refusal(actors_env_id(args))):
+    takes_it = recipe.origins.get("randomize") == "flag" or not randomize_refusal(actors_env_id(args))
+    if randomize and not opensim and takes_it:
         flags += ["--randomize", randomize]
     if args.observation_noise:
         flags += ["--observation-noise", str(args.observation_noise)]
