@@ -41,9 +41,9 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # a step scaled up, a cool start, the body's symmetry and running statistics doing the rest.
     # No warm-up: every runner figure was measured with actors acting with the learner's untrained
     # policy from its first publication on (until 2026-11-26 that first policy ended any warm-up).
-    # Since 2026-11-27 each episode's body is drawn anew and the entropy target is half SAC's: on
-    # three seeds the two together learnt each time and kept 12-15 m in OpenSim where randomisation
-    # alone learnt on two and kept a median of 6.4 m (docs/training.md, "Levers for robustness").
+    # Since 2026-11-27 each episode's body is drawn anew and the entropy target is half SAC's: the
+    # two together learnt on each of three seeds and kept 14.0-15.1 m in OpenSim; randomisation
+    # alone kept 6.4 and 15.8 m on two of them (docs/training.md, "Levers for robustness").
     (RUNNER, "sac"): dict(
         hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
         reward_scale=10.0, initial_alpha=0.1, target_entropy_per_action=-0.5, update_repeat=1, publish_every=50,
