@@ -778,8 +778,9 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
 # What the default recipe reached on a 2-core CPU (docs/training.md, "The recipe"), for short runs to say.
 LONGER_RUN_SECONDS = 1800
 LONGER_RUN = ("a longer run: l2r up --seconds 7200 --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id "
-              "l2r/Run-v0 on 2 CPU cores kept a policy that runs 13.7 m in OpenSim and 13.5 m in the port (found at "
-              "27 minutes); later policies ran 24-29 m in the port but 1-3 m in OpenSim (docs/training.md)")
+              "l2r/Run-v0; on 2 CPU cores shared by two runs, three 60-minute runs of the runner/sac recipe kept "
+              "policies that run 14.0-15.1 m in OpenSim, newer ones often falling sooner there than in the port "
+              "(docs/training.md)")
 
 
 def eval_command(checkpoint: Path | str, env_id: str) -> str:
