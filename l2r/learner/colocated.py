@@ -208,7 +208,8 @@ class ColocatedWorlds:
             if explore:
                 excitation, log_prob = self.policy.explore(self.obs)
             else:
-                excitation, log_prob = torch.rand((n, self.act_dim), device=self.device), torch.zeros(n, device=self.device)
+                excitation = torch.rand((n, self.act_dim), device=self.device)
+                log_prob = torch.zeros(n, device=self.device)
         actions = excitation.cpu().numpy()
         reward, terminated, ended = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
         inner_steps, next_obs, x_before = np.zeros(n, np.int64), None, self.x.copy()

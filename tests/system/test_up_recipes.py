@@ -134,7 +134,8 @@ def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, a
     recipe = RECIPES[family, algo]
     # PPO takes no images: the photo family's PPO recipe is for its statistics views.
     photo = "l2r/PhotoTune-v0" if algo == "td3" else "l2r/PhotoEnhanceStats-v0"
-    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: photo, STANDARD: "Walker2d-v5"}[family]
+    env_id = {RUNNER: "l2r/RunOpenSim-v0", PIXELS: "l2r/dmc-walker-walk-v0", PHOTO: photo,
+              STANDARD: "Walker2d-v5"}[family]
     # Randomisation is the MuJoCo runner's: off on OpenSim (the test above has it on l2r/Run-v0).
     expected = recipe | ({"randomize": ""} if family == RUNNER else {})
     assert reached(planned("--env-id", env_id, "--algo", algo), recipe) == expected
