@@ -1,7 +1,7 @@
 """A/B runs of the runner's recipe, judged by OpenSim: one JSON line per arm.
 
-    python bench/runner_ab.py --seed 2 --seconds 3600 --arm default= --arm te9=--learner-arg=--target-entropy=-9
-    python bench/runner_ab.py --seed 2 --arm rand="--randomize strength=0.05,delay=0.5" --arm hist="--frame-stack 8"
+    python bench/runner_ab.py --seed 2 --seconds 3600 --arm recipe= --arm hist="--frame-stack 8"
+    python bench/runner_ab.py --seed 2 --arm recipe= --arm before="--randomize '' --target-entropy-per-action -1"
     python bench/runner_ab.py --judge RUN_DIR [RUN_DIR ...]      # judge runs made before
     python bench/runner_ab.py --plot docs/ab.png RUN_DIR [RUN_DIR ...]   # their evaluations, a panel each
 
