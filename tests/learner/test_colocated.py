@@ -184,8 +184,11 @@ def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes
                                      "--action-repeat", "2"],
                      tmp_path / "learner.log")
     try:
-        watcher.wait(lambda v: v and v[-1] >= 5, 90, "version 5", learner)
+        # A metrics report of training too: a fast learner reaches version 5 before its first report.
+        watcher.wait(lambda v: v and v[-1] >= 5 and any(m["updates_per_s"] > 0 for m in watcher.metrics), 90,
+                     "version 5 and a report of training", learner)
         assert wait_for(lambda: heard.episodes, timeout=60), learner.log()
+        assert wait_for(lambda: heard.stats and heard.stats[-1]["env_steps"] >= 400, timeout=30), heard.stats[-1:]
         assert learner.stop(signal.SIGTERM) == 0, learner.log()
     finally:
         session.close()
@@ -194,7 +197,6 @@ def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes
     saved = load_checkpoint(tmp_path / "run")
     assert saved.algo == algo and saved.version >= 5 and saved.action_repeat == 2
     assert all(e.length == 100 and e.actor_id == 0 for e in heard.episodes)
-    assert heard.stats and heard.stats[-1]["env_steps"] >= 400
     # The batches' policy lag: a rollout is the newest policy's; a ring holds older ones too.
     lags = [m["policy_lag"] for m in watcher.metrics if m["updates_per_s"] > 0]
     assert lags and (max(lags) == 0 if algo == "ppo" else max(lags) > 0), lags
