@@ -209,12 +209,23 @@ def make_worlds(config: ActorConfig, seeds: list[int]) -> Worlds:
     if not registers_vector_env(config.env_id):
         envs = [functools.partial(make_env, config, seed) for seed in seeds]
         return VectorWorlds(gymnasium.vector.SyncVectorEnv(envs, autoreset_mode=AutoresetMode.DISABLED))
-    options = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
-    if config.env_id == WARP_ID:  # its worlds on the actor's device, each reset with the actor's seed and options
-        options |= {"device": config.device, "autoreset_mode": AutoresetMode.DISABLED}
-        options |= {"randomize": config.randomize} if config.randomize else {}
-    return VectorWorlds(gymnasium.make_vec(config.env_id, num_envs=config.num_envs,
-                                           vectorization_mode="vector_entry_point", **options), config.action_repeat)
+    # l2r/RunWarp-v0's worlds on the actor's device, each reset with the actor's seed and options
+    env = make_vector_task(config.env_id, config.num_envs, config.difficulty, config.randomize, config.device,
+                           AutoresetMode.DISABLED)
+    return VectorWorlds(env, config.action_repeat)
+
+
+def make_vector_task(env_id: str, num_envs: int, difficulty: int = 0, randomize: Randomization | None = None,
+                     device: str | None = None,
+                     autoreset_mode: AutoresetMode = AutoresetMode.SAME_STEP) -> gymnasium.vector.VectorEnv:
+    """The vector env an id registers of its own (`registers_vector_env`), as `make_task` makes a
+    single one: the runner's with its difficulty, and `l2r/RunWarp-v0`'s worlds on the Warp
+    `device` with the randomisation and the autoreset mode given."""
+    options = {"difficulty": difficulty} if family_of(env_id) == RUNNER else {}
+    if env_id == WARP_ID:
+        options |= {"device": device, "autoreset_mode": autoreset_mode}
+        options |= {"randomize": randomize} if randomize else {}
+    return gymnasium.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **options)
 
 
 class ObservationError(RuntimeError):

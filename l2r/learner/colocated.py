@@ -38,13 +38,12 @@ import torch
 import zenoh
 from gymnasium.vector import AutoresetMode
 
-from l2r.actors.actor import make_task, registers_vector_env
+from l2r.actors.actor import make_task, make_vector_task, registers_vector_env
 from l2r.families import RUNNER, family_of
 from l2r.learner import ppo
 from l2r.learner.sac import Batch
 from l2r.policy import PolicyNetwork, to_tanh_space
 from l2r.protocol import EPISODE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode
-from l2r.sim import WARP_ID
 from l2r.sim.env import STEP_SECONDS
 from l2r.sim.randomize import Randomization
 
@@ -84,11 +83,8 @@ def make_vector_env(config: WorldsConfig, device: torch.device) -> gymnasium.vec
     ValueError for an observation other than one vector."""
     randomize = Randomization.parse(config.randomize) if config.randomize else None
     if registers_vector_env(config.env_id):
-        kwargs: dict = {"difficulty": config.difficulty} if family_of(config.env_id) == RUNNER else {}
-        if config.env_id == WARP_ID:
-            kwargs |= {"device": "cuda" if device.type == "cuda" else "cpu", "randomize": randomize}
-        env = gymnasium.make_vec(config.env_id, num_envs=config.worlds, vectorization_mode="vector_entry_point",
-                                 **kwargs)
+        env = make_vector_task(config.env_id, config.worlds, config.difficulty, randomize,
+                               "cuda" if device.type == "cuda" else "cpu")
     else:
         env = gymnasium.vector.SyncVectorEnv(
             [functools.partial(make_task, config.env_id, config.difficulty, config.seed + w, randomize)
@@ -294,17 +290,35 @@ class ColocatedWorlds:
         return np.zeros(self.config.worlds) if distance is None else np.asarray(distance, np.float64).copy()
 
 
-class ColocatedReplay:
+class WorldsExperience:
+    """What both kinds of experience from the worlds share: their batches are on the device
+    already, sampled uniformly or in order (no priorities), and closing closes the worlds."""
+
+    def __init__(self, worlds: ColocatedWorlds):
+        self.worlds, self.learner_version = worlds, 0
+
+    @staticmethod
+    def to_device(batch: DeviceSample, device: torch.device) -> Batch | ppo.Batch:
+        return batch.tensors
+
+    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
+        raise ValueError("colocated worlds take no priorities")
+
+    def close(self) -> None:
+        self.worlds.close(self.learner_version)
+
+
+class ColocatedReplay(WorldsExperience):
     """SAC's and TD3's experience from the worlds: one step of every world, then a batch sampled
     from the ring on the device (see the module docstring)."""
 
     def __init__(self, worlds: ColocatedWorlds, batch_size: int):
+        super().__init__(worlds)
         config = worlds.config
-        self.worlds, self.batch_size = worlds, batch_size
+        self.batch_size = batch_size
         self.replay = DeviceReplay(config.capacity, worlds.obs_dim, worlds.act_dim, worlds.device)
         self._first_batch = min(max(batch_size, config.min_replay, config.random_steps), config.capacity)
         self.rng = np.random.default_rng(config.seed)
-        self.learner_version = 0
         log.info("stepping %d worlds of %s on %s, %d transitions kept on %s", config.worlds, config.env_id,
                  getattr(worlds.env.unwrapped, "device", "the host"), config.capacity, worlds.device)
 
@@ -319,28 +333,18 @@ class ColocatedReplay:
             return None
         return DeviceSample(*self.replay.sample(self.batch_size, self.rng))
 
-    @staticmethod
-    def to_device(batch: DeviceSample, device: torch.device) -> Batch:
-        return batch.tensors
-
-    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
-        raise ValueError("colocated worlds sample uniformly: no priorities")
-
     def waiting(self) -> str:
         return f"filling the ring on the device: {len(self.replay)} of {self._first_batch} transitions"
 
-    def close(self) -> None:
-        self.worlds.close(self.learner_version)
 
-
-class ColocatedRollouts:
+class ColocatedRollouts(WorldsExperience):
     """An on-policy algorithm's experience from the worlds: each batch a rollout of the newest
     policy, ceil(batch_size / worlds) steps of every world, laid world after world; a row's
     `ends` marks an episode's end and each world's last row (the piece ends there)."""
 
     def __init__(self, worlds: ColocatedWorlds, batch_size: int):
-        self.worlds, self.length = worlds, -(-batch_size // worlds.config.worlds)
-        self.learner_version = 0
+        super().__init__(worlds)
+        self.length = -(-batch_size // worlds.config.worlds)
         log.info("stepping %d worlds of %s on %s, rollouts of %d steps of each", worlds.config.worlds,
                  worlds.config.env_id, getattr(worlds.env.unwrapped, "device", "the host"), self.length)
 
@@ -357,18 +361,8 @@ class ColocatedRollouts:
                           torch.maximum(laid("ended"), piece_end.reshape(-1)), laid("log_prob"))
         return DeviceSample(batch, np.full(len(batch.reward), self.learner_version))
 
-    @staticmethod
-    def to_device(batch: DeviceSample, device: torch.device) -> ppo.Batch:
-        return batch.tensors
-
-    def update_priorities(self, batch: DeviceSample, priorities: np.ndarray) -> None:
-        raise ValueError("on-policy rollouts have no priorities")
-
     def waiting(self) -> str:
         return "stepping the worlds"
-
-    def close(self) -> None:
-        self.worlds.close(self.learner_version)
 
 
 def colocated_experience(session: zenoh.Session, keys: Keys, config: WorldsConfig, policy: PolicyNetwork,
