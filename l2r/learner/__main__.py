@@ -341,6 +341,9 @@ class LearnerSettings(DaemonSettings):
                              "actors' own actions, in order (their log-probabilities are of the actions as taken)")
 
     def _check_colocated(self) -> None:
+        if self.env_id not in (None, self.colocated_env):
+            raise UsageError(f"--env-id {self.env_id} and --colocated-env {self.colocated_env}: the networks take the "
+                             "colocated worlds' spaces; give one env")
         if self.algo == "a3c":
             raise UsageError("--colocated-env trains on its worlds' transitions; --algo a3c takes the actors' "
                              "gradients")
