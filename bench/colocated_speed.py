@@ -35,6 +35,7 @@ from l2r.learner import sac, td3
 from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.steps import GradientSteps, resolve_mode
 from l2r.protocol import Keys, session_config
+from l2r.spaces import task_spaces
 
 sys.path.insert(0, str(Path(__file__).parent))
 from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
@@ -69,7 +70,8 @@ def colocated_rates(args: argparse.Namespace, session: zenoh.Session, train: boo
     device = torch.device(args.device)
     algo = config_type(batch_size=args.batch_size, update_repeat=args.update_repeat,
                        hidden=tuple(int(h) for h in args.hidden.split(",")))
-    state = module.init_state(algo, 41, 18, device)
+    observation, act_dim = task_spaces(args.env_id)
+    state = module.init_state(algo, observation.vector_width, act_dim, device)
     worlds = WorldsConfig(args.env_id, args.worlds, capacity=args.capacity, random_steps=0,
                           min_replay=args.batch_size, action_repeat=args.action_repeat)
     experience = colocated_experience(session, Keys(f"bench-{free_port()}"), worlds, state.actor, args.batch_size,
