@@ -184,6 +184,11 @@ class LearnerSettings(DaemonSettings):
     target_entropy_per_action: float = setting(-1.0, "the entropy target per action dimension, where "
                                                "--target-entropy is not given (-1: SAC's -act-dim)", group=SAC)
     initial_alpha: float = setting(SAC_DEFAULTS.initial_alpha, "starting temperature", group=SAC, gt=0)
+    critics: int = setting(SAC_DEFAULTS.critics, "Q networks trained side by side on each batch (2: SAC's twin "
+                           "critics; more: an ensemble)", group=SAC, ge=1)
+    critics_in_min: int | None = setting(None, "how many of the critics, drawn at random each time, the Bellman "
+                                         "target and the actor's loss take the least of (default: all; REDQ's "
+                                         "target: 2 of 10)", group=SAC, ge=1)
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
 
     n_step: int = setting(TD3_DEFAULTS.n_step, "steps summed into each sampled reward before the bootstrap "
@@ -382,7 +387,8 @@ class LearnerSettings(DaemonSettings):
                 critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
                 update_repeat=self.update_repeat,
                 target_entropy=self._given("target_entropy", self.target_entropy_per_action * self.spaces[1]),
-                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, mirror=self.mirror,
+                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, critics=self.critics,
+                critics_in_min=self._given("critics_in_min", self.critics), mirror=self.mirror,
                 precision=self.precision, frame_stack=self.frame_stack or 1)
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None

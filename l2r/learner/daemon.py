@@ -308,6 +308,9 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
             or saved.config.layer_norm != algo.layer_norm or saved.config.activation != algo.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
                               f"{state.actor.spec}: use the same architecture flags, or a new run directory")
+    if getattr(saved.config, "critics", None) != getattr(algo, "critics", None):
+        raise CheckpointError(f"{saved.path} holds {saved.config.critics} critics, the settings ask for {algo.critics}: "
+                              "use the same --critics, or a new run directory")
     if getattr(saved.config, "optimizer", None) != getattr(algo, "optimizer", None):
         raise CheckpointError(f"{saved.path} holds the state of {saved.config.optimizer}, the settings ask for "
                               f"{algo.optimizer}: use the same --optimizer, or a new run directory")

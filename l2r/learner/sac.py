@@ -6,7 +6,7 @@ of the target critics. The learner daemon and the tests call this same function,
 through `steps.GradientSteps`, which counts the updates and may compile the update or capture it
 as a CUDA graph: so it never reads a value back to the host and branches only on the config.
 
-Where the speed comes from: both critics run as one batched network; the actor loss
+Where the speed comes from: the critics run as one batched network; the actor loss
 differentiates the critics with respect to the action only (their weights are detached, so no
 weight gradients are computed there); hidden-layer matmuls run in bfloat16 where the hardware
 does it natively (`precision`); the optimizers use the fused Adam kernels; and nothing here
@@ -51,7 +51,7 @@ class SACConfig:
     actor_lr: float = 3e-4
     """Adam learning rate of the policy."""
     critic_lr: float = 3e-4
-    """Adam learning rate of the twin critics."""
+    """Adam learning rate of the critics."""
     alpha_lr: float = 3e-4
     """Adam learning rate of log(alpha), the entropy temperature."""
     batch_size: int = 640
@@ -66,6 +66,12 @@ class SACConfig:
     """Multiplier on rewards before the Bellman target (per-step rewards here are ~0.01-0.03 m)."""
     update_repeat: int = 3
     """Gradient steps taken on each sampled batch (the reference solution's 3)."""
+    critics: int = 2
+    """Q networks trained side by side on each batch, each towards the same target: SAC's twin
+    critics, or an ensemble (the 2017 finalists' PKU team trained ensembles; REDQ's 10)."""
+    critics_in_min: int = 2
+    """How many of the critics, drawn anew at each use, the Bellman target and the actor's loss
+    take the least of: all of them is SAC's clipped double Q; REDQ's target takes 2 of 10."""
     target_entropy: float | None = None
     """Entropy the temperature steers towards; None means -act_dim."""
     initial_alpha: float = 0.1
@@ -92,6 +98,8 @@ class SACConfig:
         check_off_policy(self)
         if self.batch_size < 1 or self.update_repeat < 1 or self.initial_alpha <= 0:
             raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
+        if not 1 <= self.critics_in_min <= self.critics:
+            raise ValueError(f"need 1 <= critics_in_min <= critics, got {self.critics_in_min} of {self.critics}")
         if not 1 <= self.frame_stack <= MAX_FRAME_STACK:
             raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK}, got {self.frame_stack}")
 
@@ -208,7 +216,7 @@ def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torc
         torch.manual_seed(seed)
     actor = Policy(policy_spec(config, obs_dim, act_dim, frame_stack=config.frame_stack)).to(device)
     critic = TwinCritic(obs_dim * config.frame_stack, act_dim, config.hidden, config.activation,
-                        config.layer_norm).to(device)
+                        config.layer_norm, n=config.critics).to(device)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     log_alpha = torch.tensor(math.log(config.initial_alpha), device=device, requires_grad=True)
     target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
@@ -300,11 +308,11 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     # 1. Soft Bellman target. Only a real termination cuts the bootstrap; a time limit does not.
     with torch.no_grad(), state.autocast():
         next_action, next_log_prob = state.actor.sample(batch.next_obs)
-        next_q = state.target_critic(critic_next_obs, next_action).min(0).values
+        next_q = least_of_drawn(state.target_critic(critic_next_obs, next_action), config)
         next_value = next_q - alpha * next_log_prob
         target = config.reward_scale * batch.reward + config.gamma * (1.0 - batch.terminated) * next_value
 
-    # 2. Twin critic loss (importance-weighted under prioritized replay) and step.
+    # 2. Critic loss, each critic towards the same target (importance-weighted under prioritized replay), and step.
     with state.autocast():
         q = state.critic(critic_obs, batch.action)
     td_error = q - target
@@ -318,7 +326,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     # 3. Actor loss against the updated critics; their weights are detached (only dQ/da is needed).
     with state.autocast():
         action, log_prob = state.actor.sample(batch.obs)
-        q_pi = state.critic(critic_obs, action, detach_weights=True).min(0).values
+        q_pi = least_of_drawn(state.critic(critic_obs, action, detach_weights=True), config)
     actor_loss = (alpha * log_prob - q_pi).mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()
@@ -345,6 +353,14 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
         "target_mean": target.mean(), "entropy": -log_prob.mean(),
         "priorities": td_error.detach().abs().mean(0),
     }
+
+
+def least_of_drawn(q: torch.Tensor, config: SACConfig) -> torch.Tensor:
+    """The least, per sample, of `config.critics_in_min` of the critics' values q (critics, batch),
+    drawn at random (all of them when it is all of them): a draw on the device, so no host sync."""
+    if config.critics_in_min < config.critics:
+        q = q[torch.rand(config.critics, device=q.device).argsort()[:config.critics_in_min]]
+    return q.min(0).values
 
 
 def broadcast_state(state: TrainState) -> None:

@@ -2,12 +2,16 @@
 
 import copy
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
-from l2r.learner.sac import Batch, SACConfig, TwinCritic, batch_from_numpy, init_state, update
+from l2r.config import EXIT_CANNOT_START
+from l2r.learner.__main__ import cli
+from l2r.learner.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from l2r.learner.sac import Batch, SACConfig, TwinCritic, batch_from_numpy, init_state, least_of_drawn, update
 from l2r.policy import act, build_policy, default_spec, load_policy_state, policy_state
 
 OBS, ACT = 5, 3
@@ -72,6 +76,41 @@ def test_soft_bellman_target_bootstraps_with_the_entropy_bonus_unless_terminated
     expected = 1.0 + 0.5 * 10.0 - entropy_term
     assert abs(entropy_term) > 0.01, "the entropy term must matter at the tolerance below"
     assert float(truncated["target_mean"]) == pytest.approx(expected, rel=1e-5)
+
+
+def constant_critics(state, values) -> None:
+    """Make critic i output values[i] everywhere (last layer zero, bias the value), online and target."""
+    with torch.no_grad():
+        for critic in (state.critic, state.target_critic):
+            critic.weights[-1].zero_()
+            critic.biases[-1].copy_(torch.tensor(values, dtype=torch.float32).reshape(-1, 1, 1))
+
+
+def test_an_ensemble_trains_every_critic_towards_the_least_of_the_drawn_ones():
+    everyone = small_config(critics=4, critics_in_min=4, gamma=0.5, reward_scale=1.0, initial_alpha=1e-9,
+                            autotune_alpha=False)
+    state = init_state(everyone, OBS, ACT, seed=2)
+    assert state.critic.weights[0].shape[0] == 4 and state.target_critic.weights[0].shape[0] == 4
+    trained = copy.deepcopy(state)
+    update(trained, random_batch(), everyone)
+    assert all(not torch.equal(old[i], new[i]) for old, new in zip(state.critic.weights, trained.critic.weights)
+               for i in range(4))
+    constant_critics(state, [10.0, 20.0, 30.0, 40.0])
+    metrics = update(copy.deepcopy(state), random_batch(reward=1.0), everyone)
+    assert float(metrics["target_mean"]) == pytest.approx(1.0 + 0.5 * 10.0, rel=1e-5)  # r + gamma * least of all
+
+    # One drawn at a time: each update's target bootstraps from one critic, a different one from draw to draw.
+    one = replace(everyone, critics_in_min=1)
+    targets = {round(float(update(copy.deepcopy(state), random_batch(reward=1.0), one)["target_mean"]), 3)
+               for _ in range(40)}
+    assert targets == {6.0, 11.0, 16.0, 21.0}
+
+
+def test_least_of_drawn_takes_the_least_of_a_random_subset():
+    q = torch.tensor([[3.0, 0.0], [1.0, 5.0], [2.0, 9.0]])  # (critics, batch)
+    assert least_of_drawn(q, small_config(critics=3, critics_in_min=3)).tolist() == [1.0, 0.0]
+    pairs = {tuple(least_of_drawn(q, small_config(critics=3, critics_in_min=2)).tolist()) for _ in range(60)}
+    assert pairs == {(1.0, 0.0), (2.0, 0.0), (1.0, 5.0)}  # the least of each of the three pairs
 
 
 def test_target_critics_follow_by_polyak_averaging():
@@ -164,3 +203,17 @@ def test_auto_precision_is_float32_on_cuda_even_where_it_has_bfloat16(monkeypatc
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
     assert not bfloat16_pays(torch.device("cuda"))
     assert bfloat16_pays(torch.device("cpu")) == torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+def test_an_ensembles_checkpoint_restores_every_critic_and_a_learner_of_other_critics_refuses_it(tmp_path, capsys):
+    config = small_config(critics=5, critics_in_min=2)
+    state = init_state(config, OBS, ACT, seed=7)
+    update(state, random_batch(), config)
+    save_checkpoint(checkpoint_path(tmp_path), state, config, OBS, ACT)
+    saved = load_checkpoint(tmp_path)
+    assert saved.config == config
+    assert all(torch.equal(a, b) for a, b in zip(state.critic.parameters(), saved.restore().critic.parameters()))
+    argv = ["--run", "x", "--run-dir", str(tmp_path), "--resume", "--device", "cpu", "--obs-dim", str(OBS),
+            "--act-dim", str(ACT), "--hidden", "32,32", "--connect", "tcp/127.0.0.1:9"]
+    assert cli(argv) == EXIT_CANNOT_START
+    assert "holds 5 critics, the settings ask for 2: use the same --critics" in capsys.readouterr().err
