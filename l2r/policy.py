@@ -429,13 +429,14 @@ def act(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray],
 
 @torch.no_grad()
 def act_with_log_prob(policy: PolicyNetwork, obs_batch: np.ndarray | Mapping[str, np.ndarray],
-                      noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      noise: np.ndarray | None = None, explore=None) -> tuple[np.ndarray, np.ndarray]:
     """Exploring excitations in [0, 1] and the log-probability of each, float32 (see each kind's
     `explore`; observations as `act` takes them; `noise`, [n, act_dim] standard normal draws, or
-    None for the policy's own)."""
+    None for the policy's own; `explore`, what explores in place of `policy.explore`, called
+    alike, e.g. with perturbed weights: l2r.actors.parameter_noise)."""
     device = next(policy.parameters()).device
     draws = None if noise is None else torch.as_tensor(noise, dtype=torch.float32, device=device)
-    excitation, log_prob = policy.explore(policy.observation_tensors(obs_batch, device), draws)
+    excitation, log_prob = (explore or policy.explore)(policy.observation_tensors(obs_batch, device), draws)
     return excitation.cpu().numpy(), log_prob.cpu().numpy()
 
 

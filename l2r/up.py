@@ -230,6 +230,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the colour of the policy's exploring draws over an episode: white, each step's drawn "
                          "anew; pink or red, a series whose power falls as 1/f or 1/f^2 (Eberhard et al., 2023), "
                          "so successive excitations are correlated, as muscles, which low-pass them, can feel")
+    rb.add_argument("--parameter-noise", type=float, default=0.0, metavar="DISTANCE",
+                    help="explore in parameter space: each training env's policy weights perturbed for each "
+                         "episode, the perturbation's std adapted so its actions lie this RMS distance from the "
+                         "policy's in (-1, 1) action space, e.g. 0.2 (Plappert et al., 2018; reason8's runner); "
+                         "SAC and TD3 (0: off)")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
@@ -480,6 +485,7 @@ def _check_colocated(parser: argparse.ArgumentParser, args: argparse.Namespace) 
     levers = {"--opensim-actors": args.opensim_actors, "--replay-shards": args.replay_shards > 1,
               "--difficulty-schedule": args.difficulty_schedule, "--observation-noise": args.observation_noise,
               "--action-noise": args.action_noise, "--exploration-noise": args.exploration_noise != "white",
+              "--parameter-noise": args.parameter_noise,
               "--frame-stack": recipe_of(args).values.get("frame_stack", 1) > 1}
     given = [flag for flag, on in levers.items() if on]
     if given:
@@ -503,6 +509,11 @@ def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace)
         parser.error("--observation-noise and --action-noise are standard deviations, at least 0")
     if args.observation_noise and family_of(args.env_id) != RUNNER and task_spaces(args.env_id)[0].vector_width is None:
         parser.error(f"--observation-noise is for vector observations, not {args.env_id}'s")
+    if args.parameter_noise < 0:
+        parser.error("--parameter-noise is a distance, at least 0")
+    if args.parameter_noise and args.algo in ON_POLICY:
+        parser.error(f"--parameter-noise: {args.algo.upper()} needs the log-probabilities of its own policy, not of "
+                     "perturbed copies (SAC and TD3 take it)")
 
 
 def make_run_dir(args: argparse.Namespace) -> Path:
@@ -714,6 +725,8 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
         flags += ["--action-noise", str(args.action_noise)]
     if args.exploration_noise != "white":
         flags += ["--exploration-noise", args.exploration_noise]
+    if args.parameter_noise:
+        flags += ["--parameter-noise", str(args.parameter_noise)]
     return flags
 
 

@@ -82,6 +82,12 @@ class ActorSettings(DaemonSettings):
         DEFAULTS.exploration_noise, "the colour of the policy's exploring draws over an episode: white, each step's "
         "drawn anew; pink or red, a series whose power falls as 1/f or 1/f^2, so successive actions are correlated "
         "(each draw is still N(0, 1): the policy and its log-probabilities are unchanged)", group=ROBUSTNESS)
+    parameter_noise: float = setting(DEFAULTS.parameter_noise, "explore in parameter space: each env's policy "
+                                     "weights perturbed by Gaussian noise for each episode, its std adapted so the "
+                                     "perturbed actions lie this RMS distance from the policy's, in its (-1, 1) "
+                                     "action space (Plappert et al., 2018); off-policy learners only: the "
+                                     "log-probabilities sent are the perturbed policy's (0: off)",
+                                     group=ROBUSTNESS, ge=0)
     action_repeat: int = setting(DEFAULTS.action_repeat, "environment steps per policy action (0.01 s each on the "
                                  "runner; a camera task already holds each action for 2 suite steps itself, so 1 "
                                  "there trains as DrQ-v2 does)", group=ACTING, ge=1)
@@ -187,6 +193,7 @@ class ActorSettings(DaemonSettings):
             DifficultySchedule.parse(self.difficulty_schedule),
             randomize=Randomization.parse(self.randomize or ""), observation_noise=self.observation_noise,
             action_noise=self.action_noise, exploration_noise=self.exploration_noise,
+            parameter_noise=self.parameter_noise,
             chunk_size=self.chunk_size, chunk_delay=self.chunk_delay, seed=self.seed, num_shards=self.num_shards,
             evaluate=self.evaluate, eval_episodes=self.eval_episodes, eval_interval=self.eval_interval,
             torch_threads=self.torch_threads, max_steps=self.max_steps, stats_interval=self.stats_interval,

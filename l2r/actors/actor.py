@@ -38,6 +38,7 @@ from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
 from l2r.actors.gradients import GradientSender
 from l2r.actors.noise import ColouredNoise
+from l2r.actors.parameter_noise import ParameterNoise
 from l2r.actors.weights import WeightFollower
 from l2r.actors.worlds import EnvList, VectorWorlds, Worlds
 from l2r.config import StartupFailure
@@ -107,6 +108,9 @@ class ActorConfig:
     exploration_noise: str = "white"
     """The colour of the policy's own exploring draws over an episode (`l2r.actors.noise.COLOURS`):
     white draws each step's anew; pink and red are correlated in time."""
+    parameter_noise: float = 0.0
+    """Exploration in parameter space (`l2r.actors.parameter_noise`): each world's policy weights
+    perturbed for each episode, the std adapted to this RMS distance of the actions (0: off)."""
     action_repeat: int = 3
     random_steps: int = 5_000
     """Uniform random excitations for this many of the actor's first steps (skipped when it
@@ -320,6 +324,8 @@ class Actor:
         self.noise = None if config.evaluate or config.exploration_noise == "white" else ColouredNoise(
             config.exploration_noise, config.num_envs, self.worlds.action_space.shape[0],
             math.ceil(NOISE_SERIES_STEPS / config.action_repeat), self.rng)
+        self.parameter_noise = None if config.evaluate or not config.parameter_noise else ParameterNoise(
+            config.parameter_noise, config.num_envs, seed=int(self.rng.integers(2**63)))
         self.observation = observation_spec(self.worlds, config.env_id)
         # Photos are images too, but no camera renders them: no frames to count.
         images = any(field.dtype == np.uint8 for field in self.observation.fields.values())
@@ -373,7 +379,9 @@ class Actor:
         if self.acting_randomly:
             return self.rng.random((len(self.slots), act_dim), dtype=np.float32), uniform
         noise = None if self.noise is None else self.noise.next()
-        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked(), noise)
+        explore = None if self.parameter_noise is None else functools.partial(self.parameter_noise.explore,
+                                                                               self.weights.policy)
+        actions, log_probs = act_with_log_prob(self.weights.policy, self.stacks.stacked(), noise, explore)
         bad = ~(np.isfinite(actions).all(axis=1) & np.isfinite(log_probs))
         if bad.any():  # a diverged policy must not crash the actor: step those envs randomly
             log.warning("policy v%d produced non-finite actions for %d env(s); using random ones",
@@ -472,6 +480,8 @@ class Actor:
         slot.seed = episode_seed(self.config, i, slot.episode)
         if self.noise is not None:
             self.noise.reset(i)
+        if self.parameter_noise is not None:
+            self.parameter_noise.reset(i)
         slot.ret, slot.length = 0.0, 0
 
     def begin_episode(self, i: int, slot: EnvSlot, difficulty: int, obs, info: dict) -> None:

@@ -212,3 +212,19 @@ def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
     # (a chunk sent early, at a change of weights, may hold a step or two: too few to correlate)
     within = [np.corrcoef(a[:-1].ravel(), a[1:].ravel())[0, 1] for a in acted if len(a) >= 8]
     assert len(within) >= 8 and np.median(within) > 0.6, within  # white draws: about 0
+
+
+def test_parameter_noise_moves_the_actions_of_a_policy_that_does_not_explore_itself(peer):
+    # A policy whose every action is 0.5 with a std of e^-20: what moves them is the perturbation alone.
+    params = policy_state(build_policy(SPEC))
+    params |= {name: np.zeros_like(params[name]) for name in ("head.weight", "head.bias")}
+    params["head.bias"][len(params["head.bias"]) // 2:] = -10.0  # log-std rows: the bound's minimum
+    peer.latest = Weights(3, params, SPEC)
+    peer.replay_up(True)
+    proc = peer.actor("--parameter-noise", "0.2", "--seed", "4")
+    try:
+        assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= 4, PROCESS_START_S), "chunks"
+    finally:
+        stop(proc)
+    steps = np.concatenate([c.actions for c in peer.chunks if c.policy_version == 3])
+    assert np.abs(steps - 0.5).mean() > 0.01, np.abs(steps - 0.5).mean()  # without the noise: below 1e-6

@@ -41,6 +41,8 @@ def test_an_on_policy_learner_takes_the_worlds_without_a_warm_up_or_a_ring():
 @pytest.mark.parametrize("argv, error", [
     (["--algo", "a3c"], "--colocated trains on the learner's own worlds; --algo a3c learns from the actors' gradients"),
     (["--opensim-actors", "1"], "--colocated: --opensim-actors are the actors' and replay's"),
+    (["--exploration-noise", "pink", "--parameter-noise", "0.2"],
+     "--colocated: --exploration-noise, --parameter-noise are"),
     (["--exploration-noise", "pink", "--frame-stack", "4"], "--colocated: --exploration-noise, --frame-stack are"),
     (["--env-id", "l2r/PhotoTuneStats-v0", "--algo", "td3"], "--colocated steps worlds of vector observations"),
 ])

@@ -196,30 +196,32 @@ def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
 def test_the_robustness_levers_reach_the_training_actors_alone():
     args, _ = parse_args(["--actors", "2", "--opensim-actors", "1", "--randomize", "mass=0.1,delay=0.5",
                           "--observation-noise", "0.01", "--action-noise", "0.02", "--exploration-noise", "pink",
-                          "--difficulty-schedule", "0:0,1000:2"])
+                          "--difficulty-schedule", "0:0,1000:2", "--parameter-noise", "0.2"])
     children = {c.name: actor_settings(c.argv[3:]) for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
                 if c.argv[2] == "l2r.actors"}
     port, opensim, evaluator = children["actor-0"], children["actor-1"], children["evaluator-0"]
     for actor in (port, opensim):
         config = actor.actor()
-        assert (config.observation_noise, config.action_noise, config.exploration_noise) == (0.01, 0.02, "pink")
+        assert (config.observation_noise, config.action_noise, config.exploration_noise,
+                config.parameter_noise) == (0.01, 0.02, "pink", 0.2)
         assert str(config.difficulty_schedule) == "0:0,1000:2"
     assert port.actor().randomize == Randomization(mass=0.1, delay=0.5)
     assert not opensim.actor().randomize  # the MuJoCo port's alone
     config = evaluator.actor()
     assert (config.randomize, config.observation_noise, config.action_noise, config.exploration_noise,
-            config.difficulty_schedule) == (Randomization(), 0.0, 0.0, "white", None)
+            config.difficulty_schedule, config.parameter_noise) == (Randomization(), 0.0, 0.0, "white", None, 0.0)
     # Off, the actors' command lines are those of before the levers (runner/sac randomises: said off here).
     args, _ = parse_args(["--randomize", ""])
     assert not {"--randomize", "--observation-noise", "--action-noise", "--exploration-noise",
-                "--difficulty-schedule"} & {
+                "--difficulty-schedule", "--parameter-noise"} & {
         flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) for flag in c.argv}
 
 
 @pytest.mark.parametrize("argv", [
     ["--randomize", "mass=0.7"], ["--randomize", "speed=0.1"], ["--difficulty-schedule", "5:1"],
     ["--observation-noise", "-1"], ["--env-id", "Hopper-v5", "--randomize", "mass=0.1"],
-    ["--env-id", "Hopper-v5", "--difficulty-schedule", "0:1"],
+    ["--env-id", "Hopper-v5", "--difficulty-schedule", "0:1"], ["--parameter-noise", "-0.1"],
+    ["--algo", "ppo", "--parameter-noise", "0.2"],
 ])
 def test_bad_robustness_levers_are_refused_in_one_line(argv, capsys):
     with pytest.raises(SystemExit):
