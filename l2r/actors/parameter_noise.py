@@ -19,6 +19,7 @@ learners, whose ratios need the plain policy's, do not take this noise.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Mapping
 
@@ -38,26 +39,10 @@ LOG_EVERY = 100
 """Adaptations between log lines of the std and the distance."""
 
 
-class _Explore(nn.Module):
-    """The policy's `explore` as a module's forward, so `torch.func.functional_call` can run it with other weights."""
-
-    def __init__(self, policy: PolicyNetwork):
-        super().__init__()
-        self.policy = policy
-
-    def forward(self, obs, draws: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.policy.explore(obs, draws)
-
-
-class _MeanAction(_Explore):
-    def forward(self, obs, draws: torch.Tensor) -> torch.Tensor:
-        return self.policy.mean_action(obs)
-
-
-def perturbed_parameters(policy: PolicyNetwork) -> dict[str, torch.Tensor]:
-    """The parameters that are perturbed, by name: each Linear's of the trunk and the head."""
-    return {name: p for name, p in policy.named_parameters()
-            if name.startswith(("trunk.", "head.")) and isinstance(policy.get_submodule(name.rsplit(".", 1)[0]), nn.Linear)}
+def perturbed_layers(policy: PolicyNetwork) -> dict[str, nn.Linear]:
+    """The layers that are perturbed, by name: each Linear of the trunk, and the head."""
+    return {name: m for name, m in policy.named_modules()
+            if (name == "head" or name.startswith("trunk.")) and isinstance(m, nn.Linear)}
 
 
 class ParameterNoise:
@@ -69,7 +54,8 @@ class ParameterNoise:
         self.distance, self.num_envs = distance, num_envs
         self.std = INITIAL_STD
         self.generator = torch.Generator().manual_seed(seed)
-        self.noise: dict[str, torch.Tensor] = {}  # name -> (num_envs, *shape), drawn at each world's episode start
+        self.noise: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        """Each perturbed layer's weight and bias noise, (num_envs, *shape), drawn at each world's episode start."""
         self._fresh = set(range(num_envs))  # worlds whose next call draws their perturbation
         self._calls = 0
         self.last_distance = float("nan")
@@ -83,52 +69,52 @@ class ParameterNoise:
     def explore(self, policy: PolicyNetwork, obs: torch.Tensor | Mapping[str, torch.Tensor],
                 draws: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Each world's exploring excitation and its log-probability under its perturbed policy, as
-        `policy.explore` gives them for one policy; `draws`: the policy's own standard normal draws,
-        [num_envs, act_dim], or None to draw them here."""
-        params = perturbed_parameters(policy)
-        self._draw_fresh(params, policy.spec["act_dim"])
-        if draws is None:
-            draws = torch.randn(self.num_envs, policy.spec["act_dim"], generator=self.generator).to(obs_device(obs))
-        worlds = {f"policy.{name}": p.detach() + self.noise[name] for name, p in params.items()}
-        excitation, log_prob = self._per_world(_Explore(policy), worlds, obs, draws)
+        `policy.explore` gives them for one policy; row i of `obs` is world i's; `draws`: the
+        policy's own standard normal draws, [num_envs, act_dim], or None to draw them here."""
+        layers = perturbed_layers(policy)
+        self._draw_fresh(layers, policy.spec["act_dim"])
+        with self._perturbed(layers):
+            excitation, log_prob = policy.explore(obs, draws)
+            perturbed = policy.mean_action(obs) if (self._calls + 1) % ADAPT_EVERY == 0 else None
         self._calls += 1
-        if self._calls % ADAPT_EVERY == 0:
-            self._adapt(policy, worlds, obs, draws)
+        if perturbed is not None:
+            self._adapt(perturbed, policy.mean_action(obs))
         return excitation, log_prob
 
-    def _draw_fresh(self, params: Mapping[str, torch.Tensor], act_dim: int) -> None:
-        if not self.noise or any(self.noise[name].shape[1:] != p.shape for name, p in params.items()):
-            self.noise = {name: torch.zeros(self.num_envs, *p.shape, device=p.device) for name, p in params.items()}
+    def _draw_fresh(self, layers: Mapping[str, nn.Linear], act_dim: int) -> None:
+        shapes = {name: (layer.weight.shape, layer.bias.shape) for name, layer in layers.items()}
+        if {name: (w.shape[1:], b.shape[1:]) for name, (w, b) in self.noise.items()} != shapes:
+            self.noise = {name: (torch.zeros(self.num_envs, *w, device=layers[name].weight.device),
+                                 torch.zeros(self.num_envs, *b, device=layers[name].weight.device))
+                          for name, (w, b) in shapes.items()}
             self._fresh = set(range(self.num_envs))
         for env in sorted(self._fresh):
-            for name, p in params.items():
-                noise = torch.randn(p.shape, generator=self.generator) * self.std
-                if name.startswith("head."):
-                    noise[act_dim:] = 0.0  # the action rows only: a Gaussian head's log-std rows stay
-                self.noise[name][env] = noise.to(p.device)
+            for name, (weight, bias) in self.noise.items():
+                for stacked in (weight, bias):
+                    noise = torch.randn(stacked.shape[1:], generator=self.generator) * self.std
+                    if name == "head":
+                        noise[act_dim:] = 0.0  # the action rows only: a Gaussian head's log-std rows stay
+                    stacked[env] = noise.to(stacked.device)
         self._fresh.clear()
 
-    def _adapt(self, policy: PolicyNetwork, worlds: dict[str, torch.Tensor], obs, draws: torch.Tensor) -> None:
-        perturbed = self._per_world(_MeanAction(policy), worlds, obs, draws)
-        self.last_distance = float((perturbed - policy.mean_action(obs)).pow(2).mean().sqrt())
+    @contextlib.contextmanager
+    def _perturbed(self, layers: Mapping[str, nn.Linear]):
+        """Within: row i of each layer's batch goes through that layer with world i's noise added
+        (x (W + E_i)^T + b + e_i, the added part one batched matmul), by forward hooks."""
+        def hook(name):
+            weight, bias = self.noise[name]
+            return lambda layer, inputs, output: output + torch.baddbmm(
+                bias.unsqueeze(1), inputs[0].unsqueeze(1), weight.transpose(1, 2)).squeeze(1)
+        handles = [layer.register_forward_hook(hook(name)) for name, layer in layers.items()]
+        try:
+            yield
+        finally:
+            for handle in handles:
+                handle.remove()
+
+    def _adapt(self, perturbed: torch.Tensor, plain: torch.Tensor) -> None:
+        self.last_distance = float((perturbed - plain).pow(2).mean().sqrt())
         self.std = self.std * ADAPT_FACTOR if self.last_distance < self.distance else self.std / ADAPT_FACTOR
         if self._calls % (ADAPT_EVERY * LOG_EVERY) == 0:
             log.info("parameter noise: std %.4f, the perturbed actions %.3f from the policy's (target %.3f)",
                      self.std, self.last_distance, self.distance)
-
-    @staticmethod
-    def _per_world(module: nn.Module, worlds: dict[str, torch.Tensor], obs, draws: torch.Tensor):
-        """`module` run on each world's observation with that world's weights (one batched call)."""
-        def one(weights, world_obs, world_draws):
-            out = torch.func.functional_call(module, weights, (_one_row(world_obs), world_draws.unsqueeze(0)))
-            return tuple(x.squeeze(0) for x in out) if isinstance(out, tuple) else out.squeeze(0)
-        return torch.func.vmap(one)(worlds, obs, draws)
-
-
-def _one_row(obs: torch.Tensor | Mapping[str, torch.Tensor]):
-    """One world's observation as a batch of one (a vector, or a map of fields)."""
-    return obs.unsqueeze(0) if isinstance(obs, torch.Tensor) else {name: x.unsqueeze(0) for name, x in obs.items()}
-
-
-def obs_device(obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.device:
-    return (obs if isinstance(obs, torch.Tensor) else next(iter(obs.values()))).device

@@ -3,7 +3,7 @@
 import torch
 
 from l2r.actors import parameter_noise
-from l2r.actors.parameter_noise import ParameterNoise, perturbed_parameters
+from l2r.actors.parameter_noise import ParameterNoise, perturbed_layers
 from l2r.policy import DETERMINISTIC, build_policy, default_spec
 
 OBS, ACT, WORLDS = 41, 18, 4
@@ -16,8 +16,7 @@ def policy(kind: str | None = None):
 
 
 def test_the_linear_layers_are_perturbed_and_layer_norm_is_not():
-    names = set(perturbed_parameters(policy()))
-    assert names == {"trunk.0.weight", "trunk.0.bias", "trunk.3.weight", "trunk.3.bias", "head.weight", "head.bias"}
+    assert set(perturbed_layers(policy())) == {"trunk.0", "trunk.3", "head"}
 
 
 def test_each_world_acts_with_its_own_perturbed_weights_as_the_plain_call_would():
@@ -28,8 +27,9 @@ def test_each_world_acts_with_its_own_perturbed_weights_as_the_plain_call_would(
     for world in range(WORLDS):  # world by world, a copy of the policy with that world's noise added
         copy = policy()
         with torch.no_grad():
-            for name, p in perturbed_parameters(copy).items():
-                p.add_(noise.noise[name][world])
+            for name, layer in perturbed_layers(copy).items():
+                layer.weight.add_(noise.noise[name][0][world])
+                layer.bias.add_(noise.noise[name][1][world])
         expected = copy.explore(obs[world:world + 1], draws[world:world + 1])
         torch.testing.assert_close(excitation[world], expected[0][0])
         torch.testing.assert_close(log_prob[world], expected[1][0])
@@ -40,27 +40,27 @@ def test_each_world_acts_with_its_own_perturbed_weights_as_the_plain_call_would(
 def test_a_gaussian_policys_log_std_rows_stay_and_its_mean_rows_move():
     noise = ParameterNoise(0.2, WORLDS, seed=2)
     noise.explore(policy(), torch.randn(WORLDS, OBS), None)
-    head = noise.noise["head.weight"]
-    assert head.shape == (WORLDS, 2 * ACT, 32)
-    assert (head[:, ACT:] == 0).all() and (head[:, :ACT] != 0).all()
+    for head in noise.noise["head"]:
+        assert head.shape[:2] == (WORLDS, 2 * ACT)
+        assert (head[:, ACT:] == 0).all() and (head[:, :ACT] != 0).all()
     deterministic = ParameterNoise(0.2, WORLDS, seed=2)
     deterministic.explore(policy(DETERMINISTIC), torch.randn(WORLDS, OBS), None)
-    assert (deterministic.noise["head.weight"] != 0).all()
+    assert all((head != 0).all() for head in deterministic.noise["head"])
 
 
 def test_a_world_keeps_its_perturbation_until_its_episode_ends_and_a_new_policy_keeps_it_too():
     noise = ParameterNoise(0.2, WORLDS, seed=3)
     noise.explore(policy(), torch.randn(WORLDS, OBS), None)
-    before = {name: n.clone() for name, n in noise.noise.items()}
+    before = {name: w.clone() for name, (w, _) in noise.noise.items()}
     newer = policy()
     with torch.no_grad():
         for p in newer.parameters():
             p.add_(0.1)
     noise.explore(newer, torch.randn(WORLDS, OBS), None)
-    assert all(torch.equal(before[name], n) for name, n in noise.noise.items())
+    assert all(torch.equal(before[name], w) for name, (w, _) in noise.noise.items())
     noise.reset(2)
     noise.explore(newer, torch.randn(WORLDS, OBS), None)
-    changed = {w for w in range(WORLDS) if not torch.equal(before["trunk.0.weight"][w], noise.noise["trunk.0.weight"][w])}
+    changed = {w for w in range(WORLDS) if not torch.equal(before["trunk.0"][w], noise.noise["trunk.0"][0][w])}
     assert changed == {2}
 
 
