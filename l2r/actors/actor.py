@@ -254,6 +254,20 @@ def fields_of(spec: ObservationSpec, observation, env_id: str) -> dict[str, np.n
         raise ObservationError(f"{env_id} returned an observation outside its own observation space: {e}") from None
 
 
+def levers_on(config: ActorConfig) -> list[str]:
+    """The robustness levers a training actor has on, as its start line names them."""
+    if config.evaluate:
+        return []
+    on = {"difficulty schedule " + str(config.difficulty_schedule): config.difficulty_schedule is not None,
+          "randomised " + ",".join(f"{k}={v:g}" for k, v in config.randomize.as_dict().items() if v):
+              bool(config.randomize),
+          f"observation noise {config.observation_noise:g}": config.observation_noise,
+          f"action noise {config.action_noise:g}": config.action_noise,
+          f"{config.exploration_noise} exploration noise": config.exploration_noise != "white",
+          f"parameter noise {config.parameter_noise:g}": config.parameter_noise}
+    return [lever for lever, is_on in on.items() if is_on]
+
+
 def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
     """Training seeds differ across actors, envs and episodes; evaluation seeds are fixed."""
     if config.evaluate:
@@ -750,10 +764,11 @@ def main(config: ActorConfig, zenoh_config: zenoh.Config, stop: threading.Event 
             actor = Actor(config, session)
         except ObservationError as e:
             raise StartupFailure(str(e)) from None
-        log.info("%s %d up: %d x %s%s (difficulty %d, action repeat %d), run %r", config.role,
+        log.info("%s %d up: %d x %s%s (difficulty %d, action repeat %d%s), run %r", config.role,
                  config.actor_id, config.num_envs, config.env_id,
                  f" as one vector env on {config.device}" if isinstance(actor.worlds, VectorWorlds) else "",
-                 config.difficulty, config.action_repeat, config.run)
+                 config.difficulty, config.action_repeat, "".join(f"; {lever}" for lever in levers_on(config)),
+                 config.run)
         next_stats = 0.0
         waited_since = None
         try:

@@ -2,6 +2,7 @@
 loopback Zenoh. The environment is a stand-in with the runner's shapes (tests/actors/standin.py),
 so these tests are about the actor; the real runner is exercised in tests/system."""
 
+import dataclasses
 import signal
 import subprocess
 import sys
@@ -12,8 +13,11 @@ import numpy as np
 import pytest
 import zenoh
 
+from l2r.actors.actor import ActorConfig, levers_on
+from l2r.actors.curriculum import DifficultySchedule
 from l2r.config import EXIT_CANNOT_START
 from l2r.policy import build_policy, policy_state, uniform_log_prob
+from l2r.sim.randomize import Randomization
 from l2r.protocol import (
     EpisodeSummary, EvaluationRound, ExperienceChunk, Keys, Stats, Weights, decode, encode, session_config,
 )
@@ -228,3 +232,12 @@ def test_parameter_noise_moves_the_actions_of_a_policy_that_does_not_explore_its
         stop(proc)
     steps = np.concatenate([c.actions for c in peer.chunks if c.policy_version == 3])
     assert np.abs(steps - 0.5).mean() > 0.01, np.abs(steps - 0.5).mean()  # without the noise: below 1e-6
+
+
+def test_a_training_actor_names_the_levers_it_has_on_and_an_evaluator_none():
+    config = ActorConfig(run="x", randomize=Randomization.parse("mass=0.1,delay=0.5"), parameter_noise=0.2,
+                         exploration_noise="pink", difficulty_schedule=DifficultySchedule.parse("0:0,1000:2"))
+    assert levers_on(config) == ["difficulty schedule 0:0,1000:2", "randomised mass=0.1,delay=0.5",
+                                 "pink exploration noise", "parameter noise 0.2"]
+    assert levers_on(ActorConfig(run="x")) == []
+    assert levers_on(dataclasses.replace(config, evaluate=True)) == []
