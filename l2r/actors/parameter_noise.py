@@ -59,7 +59,7 @@ class ParameterNoise:
         self._fresh = set(range(num_envs))  # worlds whose next call draws their perturbation
         self._calls = 0
         self.last_distance = float("nan")
-        """The RMS distance measured at the last adaptation (a stat for the status line and metrics)."""
+        """The RMS distance measured at the last adaptation (logged every `LOG_EVERY` of them)."""
 
     def reset(self, env: int) -> None:
         """World `env`'s episode has begun: a new perturbation at its next action."""

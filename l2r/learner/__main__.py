@@ -324,6 +324,8 @@ class LearnerSettings(DaemonSettings):
                              f"and TD3; --algo {self.algo} takes one observation at a time")
         if self.rank >= self.world_size:
             raise UsageError(f"--rank {self.rank} must be below --world-size {self.world_size}")
+        if self.algo != "sac" and (self.critics != SAC_DEFAULTS.critics or self.critics_in_min is not None):
+            raise UsageError(f"--critics and --critics-in-min are SAC's; --algo {self.algo} has its own critics")
         if self.layer_norm and self.no_layer_norm:
             raise UsageError("--layer-norm and --no-layer-norm contradict each other")
         if self.normalize_advantages and self.no_normalize_advantages:

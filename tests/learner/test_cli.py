@@ -35,6 +35,7 @@ def test_help_explains_and_exits_zero(capsys):
      "--colocated-randomize: randomize has no speed"),
     (["--colocated-env", "NoSuchEnv-v0"], "NoSuchEnv-v0: "),
     (["--critics", "2", "--critics-in-min", "3"], "need 1 <= critics_in_min <= critics, got 3 of 2"),
+    (["--algo", "td3", "--critics", "4"], "--critics and --critics-in-min are SAC's; --algo td3 has its own"),
     (["--colocated-env", "Pendulum-v1", "--env-id", "Hopper-v5"], "the networks take the colocated worlds' spaces"),
 ])
 def test_bad_arguments_are_usage_errors(argv, message, capsys):
