@@ -199,18 +199,25 @@ def test_evaluation_role_announces_and_repeats_its_rounds_exactly_under_the_same
     assert all(round_of(9)[seed] != round_of(3)[seed] for seed in round_of(3))
 
 
-def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
-    # A policy whose mean and std are the same at every observation: what varies is the noise alone.
+def actions_of_a_constant_policy(peer, flags: list[str], chunks: int, log_std_bias: float = 0.0) -> list[np.ndarray]:
+    """The actions a real actor with `flags` sends in `chunks` chunks, acting with a policy whose
+    mean and std are the same at every observation (its head zero, the log-std rows' bias given)."""
     params = policy_state(build_policy(SPEC))
     params |= {name: np.zeros_like(params[name]) for name in ("head.weight", "head.bias")}
+    params["head.bias"][len(params["head.bias"]) // 2:] = log_std_bias
     peer.latest = Weights(3, params, SPEC)
     peer.replay_up(True)
-    proc = peer.actor("--exploration-noise", "red", "--seed", "4")
+    proc = peer.actor(*flags, "--seed", "4")
     try:
-        assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= 12, PROCESS_START_S), "chunks"
+        assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= chunks, PROCESS_START_S), "chunks"
     finally:
         stop(proc)
-    acted = [c.actions for c in peer.chunks if c.policy_version == 3]
+    return [c.actions for c in peer.chunks if c.policy_version == 3]
+
+
+def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
+    # What varies is the noise alone.
+    acted = actions_of_a_constant_policy(peer, ["--exploration-noise", "red"], chunks=12)
     steps = np.concatenate(acted)
     assert 0.3 < steps.mean() < 0.7 and steps.std() > 0.03  # N(0, 1) draws through std 0.22 and the tanh
     # (a chunk sent early, at a change of weights, may hold a step or two: too few to correlate)
@@ -219,18 +226,9 @@ def test_red_exploration_noise_correlates_each_env_s_successive_actions(peer):
 
 
 def test_parameter_noise_moves_the_actions_of_a_policy_that_does_not_explore_itself(peer):
-    # A policy whose every action is 0.5 with a std of e^-20: what moves them is the perturbation alone.
-    params = policy_state(build_policy(SPEC))
-    params |= {name: np.zeros_like(params[name]) for name in ("head.weight", "head.bias")}
-    params["head.bias"][len(params["head.bias"]) // 2:] = -10.0  # log-std rows: the bound's minimum
-    peer.latest = Weights(3, params, SPEC)
-    peer.replay_up(True)
-    proc = peer.actor("--parameter-noise", "0.2", "--seed", "4")
-    try:
-        assert wait_for(lambda: sum(c.policy_version == 3 for c in peer.chunks) >= 4, PROCESS_START_S), "chunks"
-    finally:
-        stop(proc)
-    steps = np.concatenate([c.actions for c in peer.chunks if c.policy_version == 3])
+    # Every action 0.5 with a std of e^-20 (the log-std's lower bound): what moves them is the perturbation alone.
+    steps = np.concatenate(actions_of_a_constant_policy(peer, ["--parameter-noise", "0.2"], chunks=4,
+                                                        log_std_bias=-10.0))
     assert np.abs(steps - 0.5).mean() > 0.01, np.abs(steps - 0.5).mean()  # without the noise: below 1e-6
 
 
