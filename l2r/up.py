@@ -37,6 +37,7 @@ import threading
 import time
 import tomllib
 import zipfile
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -112,7 +113,8 @@ def free_ports(count: int) -> list[int]:
             s.close()
 
 
-METAVARS = {"randomize": "NAME=FRACTION,..."}  # recipe settings of text whose form a metavar says
+# Recipe settings of text whose form a metavar says.
+METAVARS = {"randomize": "NAME=FRACTION,...", "difficulty_schedule": "STEP:DIFFICULTY,..."}
 
 
 def _recipe_flag(name: str, text: str) -> dict:
@@ -212,14 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "to 32 times fewer bytes through replay's write-ahead log and any link, for well under 1 %% "
                         "of an actor's CPU; off sends them raw. Other tasks send the same bytes either way")
     rb = p.add_argument_group("robustness: levers for gaits that survive OpenSim, for the training actors alone (the "
-                              "evaluators run the plain env; --randomize, on in runner/sac, and --frame-stack, the "
-                              "policy's own, are among the recipe's values); each off by default, what each A/B "
+                              "evaluators run the plain env; --randomize and --difficulty-schedule, on in runner/sac, "
+                              "and --frame-stack, the policy's own, are among the recipe's values); each off by "
+                              "default, what each A/B "
                               "measured in docs/training.md, \"Levers for robustness\"")
-    rb.add_argument("--difficulty-schedule", metavar="STEP:DIFFICULTY,...",
-                    help="train on a course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training episode "
-                         "starts at the difficulty of the last pair whose step the actor's own env steps have reached, "
-                         "in place of --difficulty (the evaluators keep --difficulty, or --eval-difficulty). Unset: --difficulty "
-                         "throughout")
     rb.add_argument("--observation-noise", type=float, default=0.0, metavar="STD",
                     help="std of Gaussian noise the actors add to every observed value, in its own units (m, rad, "
                          "m/s, rad/s on the runner); replay stores the noisy observations (0: off)")
@@ -497,7 +495,7 @@ def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace)
     try:
         if args.randomize and Randomization.parse(args.randomize) and randomize_refusal(args.env_id):
             parser.error(f"--randomize: {randomize_refusal(args.env_id)}")  # as given; the recipe's is off there
-        if args.difficulty_schedule is not None:
+        if args.difficulty_schedule:
             DifficultySchedule.parse(args.difficulty_schedule)
             if family_of(args.env_id) != RUNNER:
                 parser.error(f"--difficulty-schedule is the runner's, not {args.env_id}'s")
@@ -586,8 +584,17 @@ def learner_threads(args: argparse.Namespace) -> int:
 
 
 def recipe_of(args: argparse.Namespace) -> Recipe:
-    """The recipe the job trains with: --recipe's, else the task family's, and the flags given."""
-    return resolve(args.env_id, args.algo, args.recipe, {name: getattr(args, name) for name in SETTINGS})
+    """The recipe the job trains with: --recipe's, else the task family's, and the flags given; the
+    recipe's course of difficulties off where the job asks for one difficulty (a --difficulty other
+    than 0) or steps worlds that keep one (--colocated)."""
+    recipe = resolve(args.env_id, args.algo, args.recipe, {name: getattr(args, name) for name in SETTINGS})
+    course, origin = recipe.values.get("difficulty_schedule"), recipe.origins.get("difficulty_schedule")
+    why = (f"off with --difficulty {args.difficulty}" if args.difficulty else
+           "off with --colocated, whose worlds keep --difficulty" if args.colocated else None)
+    if course and origin == "recipe" and why:
+        return replace(recipe, values=recipe.values | {"difficulty_schedule": ""},
+                       origins=recipe.origins | {"difficulty_schedule": why})
+    return recipe
 
 
 def daemon_flags(recipe: dict, flags: dict[str, str]) -> list[str]:
@@ -711,9 +718,9 @@ def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
     """A training actor's flags for the robustness levers that are on (randomisation is the MuJoCo
     port's: not for an OpenSim actor)."""
     flags = []
-    if args.difficulty_schedule is not None:
-        flags += ["--difficulty-schedule", args.difficulty_schedule]
     recipe = recipe_of(args)
+    if recipe.values.get("difficulty_schedule"):
+        flags += ["--difficulty-schedule", recipe.values["difficulty_schedule"]]
     randomize = recipe.values.get("randomize")
     # The recipe's randomisation only where the actors' env takes it (an --actor-arg may give them OpenSim).
     takes_it = recipe.origins.get("randomize") == "flag" or not randomize_refusal(actors_env_id(args))

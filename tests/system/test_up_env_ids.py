@@ -211,7 +211,7 @@ def test_the_robustness_levers_reach_the_training_actors_alone():
     assert (config.randomize, config.observation_noise, config.action_noise, config.exploration_noise,
             config.difficulty_schedule, config.parameter_noise) == (Randomization(), 0.0, 0.0, "white", None, 0.0)
     # Off, the actors' command lines are those of before the levers (runner/sac randomises: said off here).
-    args, _ = parse_args(["--randomize", ""])
+    args, _ = parse_args(["--randomize", "", "--difficulty-schedule", ""])
     assert not {"--randomize", "--observation-noise", "--action-noise", "--exploration-noise",
                 "--difficulty-schedule", "--parameter-noise"} & {
         flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448) for flag in c.argv}

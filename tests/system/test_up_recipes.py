@@ -9,7 +9,7 @@ import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.learner.__main__ import parse_settings as learner_settings
-from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, RUNNER_RANDOMIZATION, SETTINGS, STANDARD
+from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, RUNNER_CURRICULUM, RUNNER_RANDOMIZATION, SETTINGS, STANDARD
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r import disk_budget
 from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
@@ -100,13 +100,15 @@ def reached(children: dict[str, list[str]], recipe: dict) -> dict:
     values |= {"layer_norm": learner.algorithm().layer_norm, "min_replay": replay.min_size,
                "samples_per_insert": replay.samples_per_insert, "hold_actors": replay.hold_actors,
                "random_steps": actor.random_steps, "envs_per_actor": actor.num_envs,
-               "action_repeat": actor.action_repeat, "randomize": actor.randomize or ""}
+               "action_repeat": actor.action_repeat, "randomize": actor.randomize or "",
+               "difficulty_schedule": actor.difficulty_schedule or ""}
     assert learner.action_repeat == actor.action_repeat  # the learner stores it for l2r eval
     return {name: values[name] for name in recipe}
 
 
 # The levers runner/sac took on 2026-11-27, off: the runner then trains as it did before recipes.
-SINCE_RECIPES = {"sac": ["--randomize", "", "--target-entropy-per-action", "-1"], "ppo": []}
+SINCE_RECIPES = {"sac": ["--randomize", "", "--target-entropy-per-action", "-1", "--difficulty-schedule", ""],
+                 "ppo": []}
 
 
 @pytest.mark.parametrize("algo", ["sac", "ppo"])
@@ -127,6 +129,24 @@ def test_runner_sac_draws_a_body_each_episode_on_the_port_alone_and_halves_the_e
     assert recipe_of(on_opensim).values["randomize"] == "" and "off on l2r/RunOpenSim-v0" in recipe_of(
         on_opensim).origins["randomize"]
     assert actor_settings(planned("--algo", "ppo")["actor-0"]).randomize in (None, "")  # measured with SAC alone
+
+
+def test_runner_sac_trains_on_the_obstacle_course_from_a_million_steps_unless_the_job_asks_for_one_difficulty():
+    children = planned("--algo", "sac")
+    assert actor_settings(children["actor-0"]).difficulty_schedule == RUNNER_CURRICULUM == "0:0,1000000:2"
+    assert actor_settings(children["evaluator-0"]).difficulty_schedule is None  # the evaluators keep --difficulty
+    for argv, why in ((["--difficulty", "2"], "off with --difficulty 2"),
+                      (["--colocated"], "off with --colocated, whose worlds keep --difficulty"),
+                      (["--env-id", "Hopper-v5", "--recipe", "runner"], "off on Hopper-v5, the runner's alone")):
+        args, _ = parse_args(argv)
+        recipe = recipe_of(args)
+        assert (recipe.values["difficulty_schedule"], recipe.origins["difficulty_schedule"]) == ("", why)
+        assert "--difficulty-schedule" not in {flag for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)
+                                               for flag in c.argv}
+    assert actor_settings(planned("--difficulty-schedule", "0:0,5000:1")["actor-0"]).difficulty_schedule == "0:0,5000:1"
+    assert actor_settings(planned("--difficulty", "1", "--difficulty-schedule", "0:1,5000:2")["actor-0"]
+                          ).difficulty_schedule == "0:1,5000:2"  # given, it is what the job asks for
+    assert actor_settings(planned("--algo", "ppo")["actor-0"]).difficulty_schedule is None  # measured with SAC alone
 
 
 @pytest.mark.parametrize("family, algo", RECIPES)
@@ -176,7 +196,8 @@ def test_an_a3c_job_s_actors_send_gradients_of_five_step_rollouts_to_an_a3c_lear
 def test_recipe_forces_a_family_but_the_runner_s_body_options_stay_on_the_runner():
     assert reached(planned("--recipe", "standard"), RECIPES[STANDARD, "sac"]) == RECIPES[STANDARD, "sac"]
     on_hopper = reached(planned("--env-id", "Hopper-v5", "--recipe", "runner"), RECIPES[RUNNER, "sac"])
-    assert on_hopper == RECIPES[RUNNER, "sac"] | {"relative_x": False, "mirror": False, "randomize": ""}
+    assert on_hopper == RECIPES[RUNNER, "sac"] | {"relative_x": False, "mirror": False, "randomize": "",
+                                                 "difficulty_schedule": ""}
 
 
 def test_a_flag_replaces_one_value_and_launch_json_says_where_each_came_from(tmp_path):
@@ -242,12 +263,13 @@ def test_a_run_recorded_before_a_setting_was_added_resumes_with_the_value_it_tra
     args, launch = parse_args([])
     write_launch(tmp_path, args, [], launch, {})
     record = json.loads((tmp_path / "launch.json").read_text())
-    for name in ("randomize", "target_entropy_per_action"):  # as l2r up recorded runner/sac before 2026-11-27
+    for name in ("randomize", "target_entropy_per_action", "difficulty_schedule"):  # runner/sac before 2026-11-27
         del record["recipe"]["values"][name]
     (tmp_path / "launch.json").write_text(json.dumps(record))
     resumed = planned("--resume", str(tmp_path))
     assert actor_settings(resumed["actor-0"]).randomize in (None, "")
     assert learner_settings(resumed["learner"]).sac().target_entropy == -18.0
+    assert actor_settings(resumed["actor-0"]).difficulty_schedule is None
     given = planned("--resume", str(tmp_path), "--randomize", "mass=0.1")  # a flag given again still wins
     assert actor_settings(given["actor-0"]).randomize == "mass=0.1"
 
