@@ -259,8 +259,7 @@ def levers_on(config: ActorConfig) -> list[str]:
     if config.evaluate:
         return []
     on = {"difficulty schedule " + str(config.difficulty_schedule): config.difficulty_schedule is not None,
-          "randomised " + ",".join(f"{k}={v:g}" for k, v in config.randomize.as_dict().items() if v):
-              bool(config.randomize),
+          f"randomised {config.randomize}": bool(config.randomize),
           f"observation noise {config.observation_noise:g}": config.observation_noise,
           f"action noise {config.action_noise:g}": config.action_noise,
           f"{config.exploration_noise} exploration noise": config.exploration_noise != "white",

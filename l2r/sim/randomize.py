@@ -90,6 +90,10 @@ class Randomization:
                 raise ValueError(f"randomize takes NAME=FRACTION items separated by commas, got {item!r}")
         return cls.of(values)
 
+    def __str__(self) -> str:
+        """The command line's form of the factors that are on, as `parse` reads it ('' when off)."""
+        return ",".join(f"{name}={value:g}" for name, value in self.as_dict().items() if value)
+
     @classmethod
     def names(cls) -> tuple[str, ...]:
         return tuple(f.name for f in dataclasses.fields(cls))

@@ -171,6 +171,9 @@ def test_bad_randomisation_is_a_clear_error(value, message):
 def test_the_command_line_form():
     assert Randomization.parse("strength=0.05, delay=1") == Randomization(strength=0.05, delay=1.0)
     assert not Randomization.parse("")
+    assert str(Randomization(mass=0.1, delay=0.5)) == "mass=0.1,delay=0.5" and str(Randomization()) == ""
+    recipe = "strength=0.05,tendon_slack=0.02,fiber_length=0.02,mass=0.05,contact_stiffness=0.2,friction=0.2,delay=0.5"
+    assert str(Randomization.parse(recipe)) == recipe
     for text in ("strength", "strength=x", "mass=0.1,,speed=2"):
         with pytest.raises(ValueError):
             Randomization.parse(text)
