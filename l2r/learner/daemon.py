@@ -207,8 +207,10 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
         state = _initial_state(config, algo, device)
         ALGORITHMS[algorithm_of(algo)][1].broadcast_state(state)
         bfloat16 = getattr(state, "bfloat16", False)  # PPO's state has no such option: it runs float32
-        log.info("%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
-                 algorithm_of(algo).upper(), config.rank, device, "bfloat16" if bfloat16 else "float32",
+        critics = getattr(algo, "critics", 2)  # SAC's ensemble, named where it is not the twin pair
+        ensemble = "" if critics == 2 else f" with {critics} critics (the least of {algo.critics_in_min})"
+        log.info("%s%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
+                 algorithm_of(algo).upper(), ensemble, config.rank, device, "bfloat16" if bfloat16 else "float32",
                  torch.get_num_threads(), config.compile, state.version, state.updates)
         _serve(config, algo, state, conf, device, stop)
         return 0
