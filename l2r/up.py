@@ -665,6 +665,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS, PHOTO) else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every),
         "--log-min-free-mb", f"{disk_budget.LOW_FACTOR * reserve / MB:.1f}"]
+    # Each training actor's share of the env steps of the sessions before: where its course goes on.
+    steps_before = RunCounters.read(args.resume / "metrics").env_steps // args.actors if args.resume else 0
     for i in range(0 if args.colocated else args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []
@@ -673,7 +675,8 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                          *([] if shards == 1 else ["--num-shards", str(shards)]),
                                          "--random-steps", str(recipe["random_steps"]), *gradient_flags(args, recipe),
                                          "--compress-frames", args.compress_frames,
-                                         *robustness_flags(args, opensim=bool(opensim)), *logs, *args.actor_arg,
+                                         *robustness_flags(args, opensim=bool(opensim), steps_before=steps_before),
+                                         *logs, *args.actor_arg,
                                          *opensim]))
     for i, env_id in enumerate(evaluator_env_ids(args)):
         eval_env = [] if env_id is None else ["--env-id", env_id]
@@ -714,13 +717,15 @@ def gradient_flags(args: argparse.Namespace, recipe: dict) -> list[str]:
     return ["--send-gradients", "--chunk-size", str(recipe["batch_size"])] if args.algo == "a3c" else []
 
 
-def robustness_flags(args: argparse.Namespace, opensim: bool) -> list[str]:
+def robustness_flags(args: argparse.Namespace, opensim: bool, steps_before: int) -> list[str]:
     """A training actor's flags for the robustness levers that are on (randomisation is the MuJoCo
-    port's: not for an OpenSim actor)."""
+    port's: not for an OpenSim actor); a difficulty schedule goes on after the `steps_before` its
+    place in the run took in the sessions before."""
     flags = []
     recipe = recipe_of(args)
     if recipe.values.get("difficulty_schedule"):
         flags += ["--difficulty-schedule", recipe.values["difficulty_schedule"]]
+        flags += ["--env-steps-before", str(steps_before)] if steps_before else []
     randomize = recipe.values.get("randomize")
     # The recipe's randomisation only where the actors' env takes it (an --actor-arg may give them OpenSim).
     takes_it = recipe.origins.get("randomize") == "flag" or not randomize_refusal(actors_env_id(args))

@@ -63,6 +63,10 @@ class ActorSettings(DaemonSettings):
         "0:0,300000:1,600000:2; each training episode starts at the difficulty of the last pair whose step this "
         "actor's env steps (its env_steps stat) have reached, in place of --difficulty (the runner; not with "
         "--evaluate)", group=ROBUSTNESS, metavar="STEP:DIFFICULTY,...")
+    env_steps_before: int = setting(
+        0, "env steps this actor's place in the run took before this process started: the --difficulty-schedule "
+        "goes on from there (l2r up gives each training actor its share of the run's env steps on --resume)",
+        group=ROBUSTNESS, ge=0, metavar="N")
     randomize: str | None = setting(
         None, "draw a new body each episode (l2r/Run-v0 and l2r/RunWarp-v0 only): NAME=FRACTION items, each "
         "factor uniform in 1 +- FRACTION (at most 0.5): strength (max isometric force, per muscle), tendon_slack "
@@ -190,7 +194,7 @@ class ActorSettings(DaemonSettings):
             device=self.device, image_size=self.image_size, photo_goals=self.photo_goals,
             difficulty=self.difficulty, action_repeat=self.action_repeat, random_steps=self.random_steps,
             difficulty_schedule=None if self.difficulty_schedule is None else
-            DifficultySchedule.parse(self.difficulty_schedule),
+            DifficultySchedule.parse(self.difficulty_schedule), env_steps_before=self.env_steps_before,
             randomize=Randomization.parse(self.randomize or ""), observation_noise=self.observation_noise,
             action_noise=self.action_noise, exploration_noise=self.exploration_noise,
             parameter_noise=self.parameter_noise,

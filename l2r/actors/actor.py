@@ -99,6 +99,8 @@ class ActorConfig:
     difficulty_schedule: DifficultySchedule | None = None
     """Training episodes start at the schedule's difficulty for the actor's env steps (the runner;
     None: `difficulty` throughout)."""
+    env_steps_before: int = 0
+    """Env steps this actor's place in the run took before this process: where the schedule goes on from."""
     randomize: Randomization = field(default_factory=Randomization)
     """Per-episode randomisation of the MuJoCo runner's body (off by default)."""
     observation_noise: float = 0.0
@@ -258,7 +260,8 @@ def levers_on(config: ActorConfig) -> list[str]:
     """The robustness levers a training actor has on, as its start line names them."""
     if config.evaluate:
         return []
-    on = {"difficulty schedule " + str(config.difficulty_schedule): config.difficulty_schedule is not None,
+    going_on = f" from env step {config.env_steps_before:,}" if config.env_steps_before else ""
+    on = {f"difficulty schedule {config.difficulty_schedule}{going_on}": config.difficulty_schedule is not None,
           f"randomised {config.randomize}": bool(config.randomize),
           f"observation noise {config.observation_noise:g}": config.observation_noise,
           f"action noise {config.action_noise:g}": config.action_noise,
@@ -275,11 +278,12 @@ def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
 
 
 def episode_difficulty(config: ActorConfig, steps: int) -> tuple[int, dict | None]:
-    """The difficulty of a training episode starting after `steps` env steps, and the reset
-    options that set it (None: the env's own, `config.difficulty`)."""
+    """The difficulty of a training episode starting after `steps` env steps of this process (and
+    the run's `env_steps_before` of its place), and the reset options that set it (None: the env's
+    own, `config.difficulty`)."""
     if config.difficulty_schedule is None:
         return config.difficulty, None
-    difficulty = config.difficulty_schedule.at(steps)
+    difficulty = config.difficulty_schedule.at(config.env_steps_before + steps)
     return difficulty, {"difficulty": difficulty}
 
 

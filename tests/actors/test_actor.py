@@ -237,5 +237,7 @@ def test_a_training_actor_names_the_levers_it_has_on_and_an_evaluator_none():
                          exploration_noise="pink", difficulty_schedule=DifficultySchedule.parse("0:0,1000:2"))
     assert levers_on(config) == ["difficulty schedule 0:0,1000:2", "randomised mass=0.1,delay=0.5",
                                  "pink exploration noise", "parameter noise 0.2"]
+    assert levers_on(dataclasses.replace(config, env_steps_before=1_500_000))[0] == \
+        "difficulty schedule 0:0,1000:2 from env step 1,500,000"
     assert levers_on(ActorConfig(run="x")) == []
     assert levers_on(dataclasses.replace(config, evaluate=True)) == []

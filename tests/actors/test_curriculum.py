@@ -34,3 +34,8 @@ def test_a_training_episode_starts_at_the_schedule_s_difficulty():
         assert (len(env.unwrapped.obstacles) > 0) == (expected > 0)
     # Without a schedule the env keeps the configured difficulty.
     assert episode_difficulty(ActorConfig(difficulty=1), 10**6) == (1, None)
+
+
+def test_a_resumed_actor_goes_on_with_the_schedule_where_its_place_in_the_run_left_it():
+    config = ActorConfig(difficulty_schedule=DifficultySchedule.parse("0:0,100:2"), env_steps_before=60)
+    assert [episode_difficulty(config, steps)[0] for steps in (0, 39, 40)] == [0, 0, 2]

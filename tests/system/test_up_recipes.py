@@ -149,6 +149,16 @@ def test_runner_sac_trains_on_the_obstacle_course_from_a_million_steps_unless_th
     assert actor_settings(planned("--algo", "ppo")["actor-0"]).difficulty_schedule is None  # measured with SAC alone
 
 
+def test_a_resumed_run_s_actors_go_on_with_the_course_from_their_share_of_its_env_steps(tmp_path):
+    args, launch = parse_args(["--actors", "2"])
+    write_launch(tmp_path, args, ["--actors", "2"], launch, {})
+    (tmp_path / "metrics").mkdir()
+    (tmp_path / "metrics" / "status.csv").write_text("time,env_steps,updates,episodes\n3600,1700000,134000,9000\n")
+    resumed = planned("--resume", str(tmp_path))
+    assert [actor_settings(resumed[f"actor-{i}"]).actor().env_steps_before for i in (0, 1)] == [850_000, 850_000]
+    assert actor_settings(planned("--actors", "2")["actor-0"]).env_steps_before == 0  # a new run starts the course
+
+
 @pytest.mark.parametrize("family, algo", RECIPES)
 def test_the_env_id_picks_the_family_and_each_value_reaches_its_daemon(family, algo):
     recipe = RECIPES[family, algo]
