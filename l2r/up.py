@@ -58,7 +58,7 @@ from l2r.encoders import DRQ, check_observation
 from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
 from l2r.learner.algorithms import ON_POLICY
-from l2r.learner.checkpoint import checkpoint_path
+from l2r.learner.checkpoint import CheckpointError, checkpoint_path, find_checkpoint
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.photo.env import GOALS
@@ -272,6 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "learner's newest, and counts them (on-policy algorithms)")
     le.add_argument("--keep-checkpoints", type=int, default=3,
                     help="learner checkpoints kept (learner/checkpoint-<updates>.pt; checkpoint.pt is the newest)")
+    le.add_argument("--init-from", type=Path, metavar="CHECKPOINT",
+                    help="the learner starts from this checkpoint (a file, or a run directory's): a training "
+                         "checkpoint's networks, optimizers and counters (staged training: a run's "
+                         "learner/checkpoint.pt goes on, say, with --difficulty 2 on the obstacle course), or a "
+                         "policy checkpoint's policy alone (best.pt; the critics start fresh). A --resume of this run "
+                         "takes its own checkpoint instead, once it has one")
     le.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                     help="extra argument for l2r-learner, e.g. --learner-arg=--lr=3e-4 (repeatable)")
     le.add_argument("--replay-arg", action="append", default=[], metavar="ARG",
@@ -456,6 +462,11 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
             parser.error(f"--env-id {args.env_id}: {e}")
     if args.actors < 1 or recipe["envs_per_actor"] < 1:
         parser.error("--actors and --envs-per-actor must be at least 1")
+    if args.init_from is not None and args.resume is None:  # on --resume the run's own checkpoint comes first
+        try:
+            args.init_from = find_checkpoint(args.init_from).resolve()
+        except CheckpointError as e:
+            parser.error(f"--init-from: {e}")
     if args.max_restarts < 0 or args.keep_checkpoints < 1 or recipe["action_repeat"] < 1:
         parser.error("--max-restarts must be at least 0, --keep-checkpoints and --action-repeat at least 1")
     if not HIDDEN_WIDTHS.fullmatch(recipe["hidden"]) or recipe.get("update_repeat", 1) < 1:
@@ -652,6 +663,7 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
                                      "--threads", str(learner_threads(args)),
                                      "--action-repeat", str(recipe["action_repeat"]),
                                      "--keep-checkpoints", str(args.keep_checkpoints),
+                                     *([] if args.init_from is None else ["--init-from", str(args.init_from)]),
                                      "--run-dir", str(run_dir), *args.learner_arg]))
     peers = [*to_replay, "--connect", learner_ep, "--listen", "tcp/127.0.0.1:0"]
     acting = ["--env-id", args.env_id, "--num-envs", str(recipe["envs_per_actor"]),

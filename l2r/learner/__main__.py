@@ -78,6 +78,12 @@ class LearnerSettings(DaemonSettings):
                                        "(default: runs/<run>)", group=PROCESS)
     resume: bool = setting(False, "continue from the run directory's checkpoint if there is one (networks, "
                            "optimizers, alpha, version, counters)", group=PROCESS)
+    init_from: FilePath | None = setting(
+        None, "start from this checkpoint (a file, or a run directory's learner/checkpoint.pt) when there is none to "
+        "--resume: a training checkpoint gives its networks, optimizers, temperature and counters (staged training: "
+        "one run's learner goes on with other settings or on a harder task); a policy checkpoint (best.pt) gives the "
+        "policy alone, the critics or value starting fresh. Its networks must be the ones the settings build",
+        group=PROCESS, metavar="CHECKPOINT")
     device: Literal["auto", "cpu", "cuda"] = setting("auto", "where to train; auto = CUDA if available", group=PROCESS)
     threads: int = setting(0, "torch CPU threads; 0 = torch's default", group=PROCESS, ge=0)
     compile: Literal[COMPILE_MODES] = setting(
@@ -465,8 +471,8 @@ class LearnerSettings(DaemonSettings):
     def learner(self) -> LearnerConfig:
         observation, act_dim = self.spaces
         return LearnerConfig(
-            run=self.run, run_dir=self.run_dir, resume=self.resume, device=self.device, threads=self.threads,
-            compile=self.compile, obs_dim=observation.vector_width or 0,
+            run=self.run, run_dir=self.run_dir, resume=self.resume, init_from=self.init_from, device=self.device,
+            threads=self.threads, compile=self.compile, obs_dim=observation.vector_width or 0,
             observation=observation if self.images else None, act_dim=act_dim, prioritized=self.prioritized,
             priority_beta=self.priority_beta, in_flight=self.in_flight, publish_every=self.publish_every,
             checkpoint_interval=self.checkpoint_interval, keep_checkpoints=self.keep_checkpoints,

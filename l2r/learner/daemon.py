@@ -44,8 +44,8 @@ from l2r.durable import DISK_ERRORS, FailureLog
 from l2r.learner import a3c, ppo, sac, td3
 from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import (
-    ALGORITHMS, AlgorithmConfig, CheckpointError, TrainState, algorithm_of, checkpoint_path, load_checkpoint,
-    save_checkpoint,
+    ALGORITHMS, AlgorithmConfig, Checkpoint, CheckpointError, TrainState, algorithm_of, checkpoint_path,
+    load_checkpoint, save_checkpoint,
 )
 from l2r.learner.colocated import WorldsConfig, colocated_experience
 from l2r.learner.distributed import any_rank, close_distributed, init_distributed, select_device
@@ -74,6 +74,9 @@ class LearnerConfig:
     run_dir: Path | None = None
     """Where the checkpoint goes (<run_dir>/learner/checkpoint.pt); default runs/<run>."""
     resume: bool = False
+    init_from: Path | None = None
+    """A checkpoint (or run directory) to start from when there is none to resume: a training
+    checkpoint's networks, optimizers and counters, or a policy checkpoint's policy alone."""
     device: str = "auto"
     threads: int = 0
     """torch CPU threads; 0 keeps torch's default."""
@@ -291,35 +294,60 @@ def _initial_state(config: LearnerConfig, algo: AlgorithmConfig, device: torch.d
         torch.manual_seed(config.seed + config.rank)
     name = algorithm_of(algo)
     state = ALGORITHMS[name][1].init_state(algo, config.observation or config.obs_dim, config.act_dim, device)
-    if not config.resume:
+    if config.resume and config.checkpoint.is_file():
+        saved = load_checkpoint(config.checkpoint, map_location=device)
+        _check_same_networks(saved, state, algo, name, "a new run directory")
+        state.load_state_dict(saved.train_state)
+        state.set_learning_rates(algo)  # the command line's, not the saved ones
+        log.info("resumed from %s: version %d, %d updates", saved.path, state.version, state.updates)
         return state
-    if not config.checkpoint.is_file():
-        log.info("--resume: no checkpoint at %s yet, starting fresh", config.checkpoint)
+    if config.resume:
+        log.info("--resume: no checkpoint at %s yet, starting %s", config.checkpoint,
+                 "fresh" if config.init_from is None else f"from {config.init_from}")
+    if config.init_from is None:
         return state
-    saved = load_checkpoint(config.checkpoint, map_location=device)
-    if saved.algo != name or saved.config is None:
+    saved = load_checkpoint(config.init_from, map_location=device)
+    if saved.config is None:  # a policy alone (best.pt): the critics, value and optimizers start fresh
+        _check_same_networks(saved, state, algo, name, "another --init-from", policy_alone=True)
+        for actor in (state.actor, getattr(state, "target_actor", None)):
+            if actor is not None:
+                actor.load_state_dict(saved.train_state["actor"])
+        log.info("started from %s: its policy (version %d), the rest fresh", saved.path, saved.version)
+        return state
+    _check_same_networks(saved, state, algo, name, "another --init-from")
+    state.load_state_dict(saved.train_state)
+    state.set_learning_rates(algo)
+    log.info("started from %s: its networks, optimizers and counters (version %d, %d updates)", saved.path,
+             state.version, state.updates)
+    return state
+
+
+def _check_same_networks(saved: Checkpoint, state: TrainState, algo: AlgorithmConfig, name: str, instead: str,
+                         policy_alone: bool = False) -> None:
+    """CheckpointError, in one line ending with what to use `instead`, unless the saved networks are
+    the ones these settings build (the policy's alone with `policy_alone`)."""
+    if not policy_alone and (saved.algo != name or saved.config is None):
         raise CheckpointError(f"{saved.path} holds {'a policy alone' if saved.config is None else saved.algo.upper()}"
-                              f", not a {name.upper()} training state: use --algo {saved.algo}, or a new run directory")
+                              f", not a {name.upper()} training state: use --algo {saved.algo}, or {instead}")
     saved_observation = ObservationSpec.from_policy_spec(saved.policy_spec)
     saved_stack = saved.policy_spec.get("frame_stack", 1)
     if (saved_observation, saved_stack) != (state.actor.observation, state.actor.frame_stack):
         raise CheckpointError(f"{saved.path} was trained on observations {saved_observation} stacked {saved_stack}, "
                               f"this learner's are {state.actor.observation} stacked {state.actor.frame_stack}: use "
-                              "the same environment and --frame-stack, or a new run directory")
-    if (check_spec(saved.policy_spec) != state.actor.spec or saved.config.hidden != algo.hidden
-            or saved.config.layer_norm != algo.layer_norm or saved.config.activation != algo.activation):
+                              f"the same environment and --frame-stack, or {instead}")
+    if check_spec(saved.policy_spec) != state.actor.spec or not policy_alone and (
+            saved.config.hidden != algo.hidden or saved.config.layer_norm != algo.layer_norm
+            or saved.config.activation != algo.activation):
         raise CheckpointError(f"{saved.path} holds a network of {saved.policy_spec}, the settings ask for "
-                              f"{state.actor.spec}: use the same architecture flags, or a new run directory")
+                              f"{state.actor.spec}: use the same architecture flags, or {instead}")
+    if policy_alone:
+        return
     if getattr(saved.config, "critics", None) != getattr(algo, "critics", None):
         raise CheckpointError(f"{saved.path} holds {saved.config.critics} critics, the settings ask for {algo.critics}: "
-                              "use the same --critics, or a new run directory")
+                              f"use the same --critics, or {instead}")
     if getattr(saved.config, "optimizer", None) != getattr(algo, "optimizer", None):
         raise CheckpointError(f"{saved.path} holds the state of {saved.config.optimizer}, the settings ask for "
-                              f"{algo.optimizer}: use the same --optimizer, or a new run directory")
-    state.load_state_dict(saved.train_state)
-    state.set_learning_rates(algo)  # the command line's, not the saved ones
-    log.info("resumed from %s: version %d, %d updates", saved.path, state.version, state.updates)
-    return state
+                              f"{algo.optimizer}: use the same --optimizer, or {instead}")
 
 
 def _replay_batch(batch: SampleBatch, config: LearnerConfig, device: torch.device) -> sac.Batch:

@@ -255,6 +255,17 @@ def test_a_learner_arg_still_wins_over_the_recipe():
     assert (config.layer_norm, config.reward_scale, config.activation) == (False, 1.0, "elu")
 
 
+def test_init_from_hands_the_learner_the_checkpoint_a_run_directory_holds(tmp_path, capsys):
+    checkpoint = tmp_path / "old" / "learner" / "checkpoint.pt"
+    checkpoint.parent.mkdir(parents=True)
+    checkpoint.write_bytes(b"")  # found by l2r up; read by the learner (tests/learner/test_init_from.py)
+    assert learner_settings(planned("--init-from", str(tmp_path / "old"))["learner"]).init_from == checkpoint
+    assert learner_settings(planned()["learner"]).init_from is None
+    with pytest.raises(SystemExit):
+        parse_args(["--init-from", str(tmp_path / "none")])
+    assert f"--init-from: no such checkpoint: {tmp_path / 'none'}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("env_id, algo", BEFORE)
 def test_a_run_from_before_recipes_resumes_as_it_began(env_id, algo, tmp_path):
     (tmp_path / "launch.json").write_text(json.dumps(old_launch(env_id, algo)))
