@@ -4,6 +4,7 @@ and compare enhancers of degraded held-out photos.
     l2r photo tune INPUT --goal TARGET --out OUT.png [--checkpoint CK | --optimizer cmaes --queries N]
     l2r photo compare [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
     l2r photo enhance [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
+    l2r photo pretrain --out CK [--rounds N] [--episodes N] [--updates N] [--json]
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from l2r.config import CommandParser
-from l2r.photo import enhance, photos, tune
+from l2r.photo import enhance, photos, pretrain, tune
 from l2r.photo.env import GOAL_SETS, PhotoEnhanceEnv, psnr_db
 from l2r.photo.pipeline import NAMES, finish, params_from_actions
 
@@ -36,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
                                   "docs/photo.md): tune one photo towards a goal image, compare the tuners on the "
                                   "held-out photos, or compare enhancers of degraded held-out photos. A query is one "
                                   "run of the pipeline on the 256 x 256 working image; PSNR and SSIM are to the goal.")
-    commands = p.add_subparsers(dest="command", required=True, metavar="{tune,compare,enhance}")
+    commands = p.add_subparsers(dest="command", required=True, metavar="{tune,compare,enhance,pretrain}")
     t = commands.add_parser("tune", help="find the parameters that turn INPUT into TARGET and write the finished image",
                             description="Find the parameters that turn INPUT into the look of TARGET (the same "
                                         "photo, finished otherwise), with a trained policy (--checkpoint, 10 "
@@ -82,6 +83,29 @@ def build_parser() -> argparse.ArgumentParser:
     add_held_out(e, "also run this policy of l2r/PhotoEnhance-v0 or l2r/PhotoEnhanceStats-v0 (a checkpoint file, "
                     "best.pt, or an `l2r up` run directory)")
     add_common(e)
+    defaults = pretrain.PretrainConfig()
+    w = commands.add_parser("pretrain", help="learn a tuner from the hidden parameters of random goals (a warm start)",
+                            description="Learn the tuner's policy with supervision: on the task's random goals, "
+                                        "whose hidden parameters are the answer, its actions are regressed onto them "
+                                        "over rounds of episodes, the first with the answer blurred by noise, the "
+                                        "later ones with the policy's own noisy queries (DAgger); then write it as a "
+                                        "policy checkpoint that `l2r photo compare` and `tune` run and `l2r up --algo "
+                                        "td3 --init-from` trains on. Minutes on a CPU where TD3 takes an hour "
+                                        "(docs/photo.md).")
+    w.add_argument("--out", metavar="CK", type=Path, required=True, help="where the policy checkpoint goes")
+    w.add_argument("--env-id", choices=tune.TUNE_IDS, default=defaults.env_id,
+                   help=f"the task whose observations the policy takes (default: {defaults.env_id}; "
+                        f"l2r/PhotoTune-v0's images train through convolutions, slowly on a CPU)")
+    w.add_argument("--rounds", type=int, default=defaults.rounds, help=f"(default: {defaults.rounds})")
+    w.add_argument("--episodes", type=int, default=defaults.episodes,
+                   help=f"episodes of the first round, 10 queries each; each later round adds half as many "
+                        f"(default: {defaults.episodes})")
+    w.add_argument("--updates", type=int, default=defaults.updates,
+                   help=f"Adam steps a round, batches of {defaults.batch_size} (default: {defaults.updates})")
+    w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
+                   help=f"deterministic episodes on the training photos that judge the result (default: "
+                        f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
+    add_common(w)
     return p
 
 
@@ -241,10 +265,38 @@ def print_compare(result: dict) -> None:
         print(f"{label:<14} {queries:>7} {psnr:>10.2f} {ssim:>7.4f}")
 
 
+def run_pretrain(args: argparse.Namespace) -> dict:
+    import torch
+
+    try:
+        config = pretrain.PretrainConfig(env_id=args.env_id, rounds=args.rounds, episodes=args.episodes,
+                                         updates=args.updates, eval_episodes=args.eval_episodes, seed=args.seed)
+    except ValueError as e:
+        raise PhotoError(str(e)) from None
+    if not args.out.parent.is_dir():
+        raise PhotoError(f"{args.out.parent}: no such directory for --out")
+    torch.set_num_threads(1)
+    policy, evaluation = pretrain.pretrain(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
+    try:
+        pretrain.save(args.out, policy, config, evaluation)
+    except OSError as e:
+        raise PhotoError(f"{args.out}: cannot write the checkpoint ({e.strerror})") from None
+    return {"checkpoint": str(args.out), "env_id": args.env_id, "psnr_db": evaluation["mean_psnr"],
+            **{k: evaluation[k] for k in ("episodes", "observations", "losses", "seconds")}}
+
+
+def print_pretrain(result: dict) -> None:
+    print(f"wrote {result['checkpoint']}: its 10 queries reach {result['psnr_db']:.2f} dB on {result['episodes']} "
+          f"training episodes ({result['seconds']:.0f} s). Held-out photos: l2r photo compare --checkpoint "
+          f"{result['checkpoint']}; on with TD3: l2r up --env-id {result['env_id']} --algo td3 --init-from "
+          f"{result['checkpoint']}")
+
+
 def cli(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        result = {"tune": run_tune, "compare": run_compare, "enhance": run_enhance}[args.command](args)
+        result = {"tune": run_tune, "compare": run_compare, "enhance": run_enhance,
+                  "pretrain": run_pretrain}[args.command](args)
     except PhotoError as e:
         print(f"l2r photo {args.command}: {e}", file=sys.stderr)
         return 1
@@ -253,7 +305,7 @@ def cli(argv: list[str] | None = None) -> int:
     elif args.command == "tune":
         print_tune(args, result)
     else:
-        {"compare": print_compare, "enhance": print_enhance}[args.command](result)
+        {"compare": print_compare, "enhance": print_enhance, "pretrain": print_pretrain}[args.command](result)
     return 0
 
 

@@ -1,0 +1,178 @@
+"""A warm start of the photo tuner, learnt with supervision from its random goals' hidden parameters.
+
+Each random goal of `l2r/PhotoTune-v0` (and `-Stats-v0`) is the crop finished with parameters
+the task draws and hides (`env.goal_params`), so for every observation of such an episode the
+answer in one query is known: those parameters, as actions. Regressing the policy's
+deterministic actions onto them is supervised learning, far cheaper than reinforcement learning
+on two cores, and what the tuner learns does not depend on a critic's estimates. The policy
+then needs a second skill, refining its own last query; the later rounds teach it on the
+observations it makes itself (DAgger: Ross, Gordon and Bagnell, 2011), each labelled with the
+same answer:
+
+1. round 1: episodes whose queries are the answer blurred by Gaussian noise of a random scale
+   per episode (up to `first_noise`, each parameter's share of it drawn anew each query), so
+   the observations range from far off to nearly there;
+2. each round: `updates` Adam steps of mean squared error in action units over all the
+   observations so far; then, but for the last round, `episodes // 2` episodes of the policy's
+   own deterministic queries with Gaussian noise of a random scale (up to `policy_noise`) added.
+
+The networks are those of the photo/td3 recipe (l2r.recipes), so the policy checkpoint it
+writes is one `l2r photo compare`/`tune` run and `l2r up --algo td3 --init-from` starts from.
+Goals from other scenes' looks have no parameters to learn from: they stay the reinforcement
+learner's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from l2r.learner import td3
+from l2r.photo.pipeline import PARAMETERS, actions_from_params
+from l2r.photo.tune import TUNE_IDS
+
+CPU = torch.device("cpu")
+EVAL_SEED = 10**9
+"""Seeds of the closing evaluation episodes start here, far from the rounds' (below 10^8)."""
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    env_id: str = "l2r/PhotoTuneStats-v0"
+    rounds: int = 4
+    episodes: int = 1500
+    """Episodes of the first round (10 queries each); each later round adds half as many."""
+    updates: int = 6000
+    """Adam steps a round."""
+    batch_size: int = 256
+    lr: float = 1e-3
+    first_noise: float = 0.6
+    policy_noise: float = 0.2
+    eval_episodes: int = 50
+    """Deterministic episodes on the training photos that judge the result (its checkpoint's evaluation)."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.env_id not in TUNE_IDS:
+            raise ValueError(f"the warm start learns the tuner's tasks, {' or '.join(TUNE_IDS)}, not {self.env_id}")
+        if min(self.rounds, self.episodes, self.updates, self.batch_size, self.eval_episodes) < 1:
+            raise ValueError("rounds, episodes, updates, batch_size and eval_episodes must be at least 1")
+        if self.lr <= 0 or min(self.first_noise, self.policy_noise) < 0:
+            raise ValueError("lr must be positive, the noises at least 0")
+
+
+def recipe_networks() -> td3.TD3Config:
+    """The photo/td3 recipe's networks: what its learner builds for the same task."""
+    from l2r.recipes import PHOTO, RECIPES
+
+    recipe = RECIPES[PHOTO, "td3"]
+    return td3.TD3Config(hidden=tuple(int(h) for h in recipe["hidden"].split(",")), activation=recipe["activation"],
+                         layer_norm=recipe["layer_norm"], encoder=recipe["encoder"], precision="float32")
+
+
+class Episodes:
+    """The task's episodes on random goals, as the policy sees them, each observation with its answer."""
+
+    def __init__(self, env_id: str):
+        from l2r.actors.actor import make_task
+        from l2r.actors.frame_stack import FrameStack
+        from l2r.protocol import ObservationSpec
+
+        self.env_id = env_id
+        self.env = make_task(env_id, photo_goals="random")
+        self.spec = ObservationSpec.from_space(self.env.observation_space)
+        self.frames = FrameStack(self.spec, 1, 1)
+        self.observations: list = []
+        self.answers: list[np.ndarray] = []
+
+    def play(self, seed: int, queries: Callable[[object, np.ndarray], np.ndarray], keep: bool = True) -> float:
+        """One episode whose queries (actions in [-1, 1]) `queries(observation, answer)` makes; its
+        observations and answers kept (`keep`). Returns the last query's PSNR to the goal, in dB."""
+        from l2r.actors.actor import fields_of
+
+        obs, info = self.env.reset(seed=seed)
+        answer = actions_from_params(self.env.unwrapped.goal_params).astype(np.float32)
+        self.frames.reset(0, fields_of(self.spec, obs, self.env_id))
+        over = False
+        while not over:
+            observation = self.frames.stacked()
+            if keep:
+                self.observations.append(observation)
+                self.answers.append(answer)
+            action = np.clip(queries(observation, answer), -1.0, 1.0)
+            obs, _, terminated, truncated, info = self.env.step((action + 1.0) / 2.0)  # the task takes [0, 1]
+            self.frames.push(0, fields_of(self.spec, obs, self.env_id))
+            over = terminated or truncated
+        return float(info["psnr_db"])
+
+    def kept(self) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray]:
+        """Every kept observation (one array, or arrays by field) and its answer, stacked."""
+        first = self.observations[0]
+        if isinstance(first, dict):
+            return {name: np.concatenate([o[name] for o in self.observations]) for name in first}, \
+                np.stack(self.answers)
+        return np.concatenate(self.observations), np.stack(self.answers)
+
+
+def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) -> tuple[td3.DeterministicPolicy, dict]:
+    """The policy learnt as the module says, and how it did: `mean_psnr` over `eval_episodes`
+    deterministic episodes on the training photos, the rounds' losses, samples and seconds."""
+    started = time.monotonic()
+    rng = np.random.default_rng(config.seed)
+    episodes = Episodes(config.env_id)
+    actor = td3.init_state(recipe_networks(), episodes.spec, len(PARAMETERS), seed=config.seed).actor
+    optimizer = torch.optim.Adam(actor.parameters(), lr=config.lr)
+
+    def deterministic(observation, _answer) -> np.ndarray:
+        with torch.no_grad():
+            return actor.mean_action(actor.observation_tensors(observation, CPU))[0].numpy()
+
+    def blurred_answer(scale: float):
+        return lambda _observation, answer: answer + rng.normal(0.0, scale, answer.shape) * rng.random(answer.shape)
+
+    def noisy_policy(scale: float):
+        return lambda observation, answer: deterministic(observation, answer) + rng.normal(0.0, scale, answer.shape)
+
+    losses, ends = [], []
+    for round_ in range(config.rounds):
+        first_seed = config.seed * 10**7 + round_ * 10**5
+        count = config.episodes if round_ == 0 else config.episodes // 2
+        for i in range(count):
+            scale = rng.uniform(0.0, config.first_noise if round_ == 0 else config.policy_noise)
+            queries = blurred_answer(scale) if round_ == 0 else noisy_policy(scale)
+            ends.append(episodes.play(first_seed + i, queries))
+        observations, answers = episodes.kept()
+        inputs, answers = actor.observation_tensors(observations, CPU), torch.as_tensor(answers)
+        for _ in range(config.updates):
+            index = torch.randint(len(answers), (config.batch_size,))
+            batch = {k: v[index] for k, v in inputs.items()} if isinstance(inputs, dict) else inputs[index]
+            loss = torch.nn.functional.mse_loss(actor.mean_action(batch), answers[index])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        losses.append(float(loss.detach()))
+        progress(f"round {round_ + 1}/{config.rounds}: {len(answers):,} observations, loss {losses[-1]:.4f}; its "
+                 f"{count} new episode{'s' if count != 1 else ''} ended at {np.mean(ends[-count:]):.2f} dB "
+                 f"({time.monotonic() - started:.0f} s)")
+    actor.eval()
+    psnr = [episodes.play(EVAL_SEED + i, deterministic, keep=False) for i in range(config.eval_episodes)]
+    progress(f"the policy's 10 queries on {config.eval_episodes} training episodes: {np.mean(psnr):.2f} dB")
+    episodes.env.close()
+    return actor, {"score": "psnr", "mean_psnr": float(np.mean(psnr)), "episodes": config.eval_episodes,
+                   "losses": losses, "observations": len(episodes.answers),
+                   "seconds": round(time.monotonic() - started, 1)}
+
+
+def save(path: Path, actor: td3.DeterministicPolicy, config: PretrainConfig, evaluation: dict) -> Path:
+    """The policy as a policy checkpoint (what best.pt is), its evaluation beside it."""
+    from l2r.learner.checkpoint import save_policy_checkpoint
+    from l2r.policy import policy_state
+
+    return save_policy_checkpoint(path, policy_state(actor), dict(actor.spec), version=config.rounds,
+                                  updates=config.rounds * config.updates, action_repeat=1,
+                                  evaluation=evaluation | {"warm_start": "hidden parameters of random goals"})

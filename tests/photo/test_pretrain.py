@@ -1,0 +1,70 @@
+"""The tuner's warm start from its random goals' hidden parameters (`l2r photo pretrain`): real
+episodes of the task, the real command in a subprocess, and the learner that goes on from it."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from l2r.learner.checkpoint import load_checkpoint
+from l2r.learner.daemon import _initial_state
+from l2r.learner.__main__ import parse_settings as learner_settings
+from l2r.photo.pretrain import EVAL_SEED, Episodes, PretrainConfig, pretrain
+from l2r.up import parse_args, plan_children
+from tests.photo.test_tune import l2r_photo
+
+STATS_ID = "l2r/PhotoTuneStats-v0"
+
+
+@pytest.fixture
+def one_thread():
+    """Small networks: one torch thread, as the command runs them (two contend with the suite's other worker)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_input(one_thread):
+    torch.manual_seed(0)
+    policy, evaluation = pretrain(PretrainConfig(rounds=2, episodes=6, updates=150, eval_episodes=4),
+                                  progress=lambda _line: None)
+    episodes = Episodes(STATS_ID)
+    untouched = [episodes.play(EVAL_SEED + i, lambda _obs, answer: np.zeros_like(answer), keep=False)
+                 for i in range(4)]
+    answered = [episodes.play(EVAL_SEED + i, lambda _obs, answer: answer, keep=False) for i in range(4)]
+    # The neutral parameters leave the input (12 dB); the answer itself reaches the goal (100 dB, capped).
+    assert np.mean(untouched) + 3.0 < evaluation["mean_psnr"] < np.mean(answered), (untouched, evaluation)
+    assert policy.spec["kind"] == "deterministic"
+
+
+def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path):
+    out = tmp_path / "tuner.pt"
+    run = l2r_photo("pretrain", "--out", str(out), "--rounds", "1", "--episodes", "2", "--updates", "5",
+                    "--eval-episodes", "1", "--json")
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout)
+    assert result["checkpoint"] == str(out) and result["env_id"] == STATS_ID
+    assert "round 1/1: 20 observations" in run.stderr
+    saved = load_checkpoint(out)
+    assert saved.evaluation["score"] == "psnr" and saved.evaluation["mean_psnr"] == result["psnr_db"]
+    compared = l2r_photo("compare", "--checkpoint", str(out), "--photos", "1", "--budgets", "10", "--json")
+    assert compared.returncode == 0, compared.stderr
+    assert json.loads(compared.stdout)["policy_psnr_db"] is not None
+    # l2r up's photo/td3 learner takes it as its policy: the same networks, the critics fresh.
+    args, _ = parse_args(["--env-id", STATS_ID, "--algo", "td3", "--init-from", str(out)])
+    learner = next(c for c in plan_children(args, "run", tmp_path / "run", [7447], 7448) if c.name == "learner")
+    settings = learner_settings(learner.argv[3:])
+    state = _initial_state(settings.learner(), settings.algorithm(), torch.device("cpu"))
+    assert all(torch.equal(a, b) for a, b in zip(state.actor.state_dict().values(),
+                                                 saved.policy().state_dict().values()))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--out", "/nonexistent/tuner.pt"], "/nonexistent: no such directory for --out"),
+    (["--out", "x.pt", "--rounds", "0"], "rounds, episodes, updates, batch_size and eval_episodes must be at least 1"),
+])
+def test_the_command_says_in_one_line_what_is_wrong(argv, message):
+    run = l2r_photo("pretrain", *argv)
+    assert run.returncode == 1 and run.stderr.strip() == f"l2r photo pretrain: {message}"
