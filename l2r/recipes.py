@@ -315,10 +315,10 @@ SETTINGS: dict[str, str] = {
                  "(per muscle), mass (per segment), contact_stiffness, contact_damping, friction (the ground); "
                  "delay=P: the probability that an episode's excitations act one physics step late; '' (an empty "
                  "value): none (l2r-actor --help says more; the runner alone)",
-    "difficulty_schedule": "the runner's course of rising difficulty, e.g. 0:0,300000:1,600000:2: each training "
-                           "episode starts at the difficulty of the last pair whose step the actor's own env steps "
-                           "have reached; the evaluators keep --difficulty (or --eval-difficulty); '' (an empty "
-                           "value): --difficulty throughout, as a --difficulty other than 0 also asks",
+    "difficulty_schedule": "the runner's course of rising difficulty, stages entered in order, e.g. "
+                           "0:0,300000:1,600000:2 (at the actor's own env steps) or 0:0,6m:2 (once its last 20 "
+                           "training episodes average 6 m); the evaluators keep --difficulty (or --eval-difficulty); "
+                           "'' (an empty value): --difficulty throughout, as a --difficulty other than 0 also asks",
     "target_entropy_per_action": "SAC's entropy target per action dimension, towards which the temperature is "
                                  "learnt (-1: SAC's -act-dim; a --learner-arg=--target-entropy wins) (SAC)",
     "envs_per_actor": "environments per actor, batched in one policy call",

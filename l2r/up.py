@@ -114,7 +114,7 @@ def free_ports(count: int) -> list[int]:
 
 
 # Recipe settings of text whose form a metavar says.
-METAVARS = {"randomize": "NAME=FRACTION,...", "difficulty_schedule": "STEP:DIFFICULTY,..."}
+METAVARS = {"randomize": "NAME=FRACTION,...", "difficulty_schedule": "TRIGGER:DIFFICULTY,..."}
 
 
 def _recipe_flag(name: str, text: str) -> dict:

@@ -59,10 +59,12 @@ class ActorSettings(DaemonSettings):
     difficulty: int = setting(DEFAULTS.difficulty, "0 flat ground, 1 obstacles, 2 obstacles and random psoas "
                               "strengths", group=ACTING, ge=0, le=2, metavar="{0,1,2}")
     difficulty_schedule: str | None = setting(
-        None, "train on a course of rising difficulty: STEP:DIFFICULTY pairs from step 0 on, e.g. "
-        "0:0,300000:1,600000:2; each training episode starts at the difficulty of the last pair whose step this "
-        "actor's env steps (its env_steps stat) have reached, in place of --difficulty (the runner; not with "
-        "--evaluate)", group=ROBUSTNESS, metavar="STEP:DIFFICULTY,...")
+        None, "train on a course of rising difficulty: stages TRIGGER:DIFFICULTY from step 0 on, entered in "
+        "order, each when its trigger is met: an env step count of this actor's (its env_steps stat), e.g. "
+        "0:0,300000:1,600000:2, or a distance, 6m: once this actor's last 20 training episodes of the stage "
+        "before averaged 6 m, e.g. 0:0,6m:2 (a stage once entered is kept); each training episode starts at the "
+        "difficulty of the stage it is on, in place of --difficulty (the runner; not with --evaluate)",
+        group=ROBUSTNESS, metavar="TRIGGER:DIFFICULTY,...")
     env_steps_before: int = setting(
         0, "env steps this actor's place in the run took before this process started: the --difficulty-schedule "
         "goes on from there (l2r up gives each training actor its share of the run's env steps on --resume)",

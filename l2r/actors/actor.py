@@ -33,7 +33,7 @@ import zenoh
 import l2r.control  # noqa: F401  (registers the camera tasks, l2r/dmc-<domain>-<task>-v0)
 import l2r.photo  # noqa: F401  (registers the photo tasks, l2r/PhotoTune-v0)
 from l2r.actors.actor_id import ask_actor_id
-from l2r.actors.curriculum import DifficultySchedule
+from l2r.actors.curriculum import Course, DifficultySchedule
 from l2r.actors.experience import ChunkBuilder, ResendBuffer
 from l2r.actors.frame_stack import FrameStack
 from l2r.actors.gradients import GradientSender
@@ -97,7 +97,8 @@ class ActorConfig:
     """The photo tuner's goals (l2r.photo.env.GOALS; None: the task's own, random)."""
     difficulty: int = 0
     difficulty_schedule: DifficultySchedule | None = None
-    """Training episodes start at the schedule's difficulty for the actor's env steps (the runner;
+    """Training episodes start at the schedule's difficulty, its stages entered at a count of the
+    actor's env steps or a distance its episodes reach (the runner; l2r.actors.curriculum.Course;
     None: `difficulty` throughout)."""
     env_steps_before: int = 0
     """Env steps this actor's place in the run took before this process: where the schedule goes on from."""
@@ -277,13 +278,19 @@ def episode_seed(config: ActorConfig, env_index: int, episode: int) -> int:
     return int(np.random.SeedSequence([config.seed, config.actor_id, env_index, episode]).generate_state(1)[0])
 
 
-def episode_difficulty(config: ActorConfig, steps: int) -> tuple[int, dict | None]:
-    """The difficulty of a training episode starting after `steps` env steps of this process (and
-    the run's `env_steps_before` of its place), and the reset options that set it (None: the env's
-    own, `config.difficulty`)."""
-    if config.difficulty_schedule is None:
+def course_of(config: ActorConfig) -> Course | None:
+    """A training actor's place on its difficulty schedule (None: `config.difficulty` throughout)."""
+    if config.difficulty_schedule is None or config.evaluate:
+        return None
+    return Course(config.difficulty_schedule, config.env_steps_before)
+
+
+def episode_difficulty(config: ActorConfig, course: Course | None, steps: int) -> tuple[int, dict | None]:
+    """The difficulty of a training episode starting after `steps` env steps of this process on
+    `course`, and the reset options that set it (None: the env's own, `config.difficulty`)."""
+    if course is None:
         return config.difficulty, None
-    difficulty = config.difficulty_schedule.at(config.env_steps_before + steps)
+    difficulty = course.difficulty(steps)
     return difficulty, {"difficulty": difficulty}
 
 
@@ -328,6 +335,7 @@ class Actor:
         self.epoch = time.time_ns()
         self.seq = 0
         self.steps = 0
+        self.course = course_of(config)
         self.episodes = 0
         self.chunks_sent = 0
         self.blowups = 0
@@ -348,7 +356,7 @@ class Actor:
         images = any(field.dtype == np.uint8 for field in self.observation.fields.values())
         self.camera = images and family_of(config.env_id) != PHOTO
         self.frames = 0  # of a camera task: the inner steps its env took, the "frames" papers count
-        difficulty, options = episode_difficulty(self.config, self.steps)
+        difficulty, options = episode_difficulty(self.config, self.course, self.steps)
         for seed, (obs, info) in zip(seeds, self.worlds.reset(seeds, options)):
             x = float(info.get("distance", 0.0))
             self.slots.append(EnvSlot(self.observe(obs), seed, difficulty, start_x=x, x=x))
@@ -454,7 +462,7 @@ class Actor:
                 if not self.config.evaluate:
                     self.builders[i].add(action, reward, terminated, truncated, obs, None, now, log_probs[i])
         # The next episodes, in one call: a vector env resets its finished worlds together.
-        difficulty, options = episode_difficulty(self.config, self.steps)
+        difficulty, options = episode_difficulty(self.config, self.course, self.steps)
         worlds = [last[0] for last in ended]
         starts = self.worlds.reset_worlds(worlds, [self.slots[i].seed for i in worlds], options)
         for (i, action, reward, terminated, truncated, obs, log_prob), (first, info) in zip(ended, starts):
@@ -488,6 +496,8 @@ class Actor:
             difficulty=slot.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
             time=time.time(), psnr_db=final_psnr(info))
         self.summaries.put(encode(summary))
+        if self.course is not None:
+            self.course.record(slot.difficulty, summary.distance)
         if slot.recorder is not None:
             slot.recorder.end({"return": summary.episode_return, "distance": summary.distance,
                                "length": summary.length, "terminated": terminated, "truncated": truncated,

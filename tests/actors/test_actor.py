@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from l2r.actors.actor import ActorConfig, levers_on
-from l2r.actors.curriculum import DifficultySchedule
+from l2r.actors.curriculum import DISTANCE_WINDOW, DifficultySchedule
 from l2r.config import EXIT_CANNOT_START
 from l2r.policy import build_policy, policy_state, uniform_log_prob
 from l2r.sim.randomize import Randomization
@@ -230,6 +230,22 @@ def test_parameter_noise_moves_the_actions_of_a_policy_that_does_not_explore_its
     steps = np.concatenate(actions_of_a_constant_policy(peer, ["--parameter-noise", "0.2"], chunks=4,
                                                         log_std_bias=-10.0))
     assert np.abs(steps - 0.5).mean() > 0.01, np.abs(steps - 0.5).mean()  # without the noise: below 1e-6
+
+
+def test_a_distance_stage_moves_the_actor_to_the_obstacles_once_its_episodes_ran_that_far(peer):
+    # Random excitations fall within a metre of the start: a -5 m stage is reached at the 20th episode.
+    peer.replay_up(True)
+    proc = peer.actor("--env-id", "l2r/Run-v0", "--difficulty-schedule", "0:0,-5m:2", "--random-steps", "1000000")
+    try:
+        assert wait_for(lambda: any(e.difficulty == 2 for e in peer.episodes), 120), [e.difficulty for e in
+                                                                                       peer.episodes]
+    finally:
+        stop(proc)
+    training = sorted(peer.episodes, key=lambda e: e.time)
+    first_move = next(i for i, e in enumerate(training) if e.difficulty == 2)
+    assert first_move >= DISTANCE_WINDOW and all(e.difficulty == 0 for e in training[:DISTANCE_WINDOW])
+    # Every episode begun after the move is on the course; the other two worlds finish the ones they were on.
+    assert all(e.difficulty == 2 for e in training[first_move + 2:])
 
 
 def test_a_training_actor_names_the_levers_it_has_on_and_an_evaluator_none():
