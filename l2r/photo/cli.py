@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                                         "over rounds of episodes, the first with the answer blurred by noise, the "
                                         "later ones with the policy's own noisy queries (DAgger); then write it as a "
                                         "policy checkpoint that `l2r photo compare` and `tune` run and `l2r up --algo "
-                                        "td3 --init-from` trains on. Minutes on a CPU where TD3 takes an hour "
+                                        "td3 --init-from` trains on: 15 minutes on 2 loaded CPU cores where TD3 took 34 "
                                         "(docs/photo.md).")
     w.add_argument("--out", metavar="CK", type=Path, required=True, help="where the policy checkpoint goes")
     w.add_argument("--env-id", choices=tune.TUNE_IDS, default=defaults.env_id,
