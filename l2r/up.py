@@ -815,9 +815,10 @@ def after_run(run_dir: Path, metrics: RunMetrics, best: BestPolicy, group: Proce
 # What the default recipe reached on a 2-core CPU (docs/training.md, "The recipe"), for short runs to say.
 LONGER_RUN_SECONDS = 1800
 LONGER_RUN = ("a longer run: l2r up --seconds 7200 --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id "
-              "l2r/Run-v0; on 2 CPU cores shared by two runs, two 60-minute runs of the runner/sac recipe kept "
-              "policies that run 12.8-14.0 m in OpenSim on flat ground and 5.3-6.5 m over the obstacle course, "
-              "newer ones often falling sooner there than in the port (docs/training.md)")
+              "l2r/Run-v0; on 2 CPU cores shared by two runs, three 60-minute runs of the runner/sac recipe kept "
+              "policies that run 3.7-14.0 m in OpenSim on flat ground (median 12.8) and 1.7-6.5 m over the obstacle "
+              "course; a second hour kept none better, its newer policies falling sooner in OpenSim than in the port "
+              "(docs/training.md)")
 
 
 def eval_command(checkpoint: Path | str, env_id: str) -> str:
