@@ -201,6 +201,10 @@ class LearnerSettings(DaemonSettings):
                           "(n-step returns, built by the replay server)", group=TD3, ge=1)
     policy_delay: int = setting(TD3_DEFAULTS.policy_delay, "the actor steps and the targets follow on every Nth "
                                 "update; the critics on every one", group=TD3, ge=1)
+    critic_warmup: int = setting(TD3_DEFAULTS.critic_warmup, "the run's first N updates train the critics and "
+                                 "their targets alone, the actor held still: for a warm start (--init-from a "
+                                 "policy), whose values fresh critics must learn before they lead it", group=TD3, ge=0,
+                                 metavar="N")
     target_noise: float = setting(TD3_DEFAULTS.target_noise, "std of the noise on the target action (target policy "
                                   "smoothing)", group=TD3, ge=0)
     scheduled_target_noise: bool = setting(False, "the target action's noise takes the current exploration std "
@@ -454,7 +458,7 @@ class LearnerSettings(DaemonSettings):
                 **self._network(TD3_DEFAULTS), tau=self.tau, actor_lr=self._given("lr", TD3_DEFAULTS.actor_lr),
                 critic_lr=self._given("lr", TD3_DEFAULTS.critic_lr),
                 update_repeat=self.update_repeat, n_step=self.n_step, policy_delay=self.policy_delay,
-                target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
+                critic_warmup=self.critic_warmup, target_noise=None if self.scheduled_target_noise else self.target_noise, noise_clip=self.noise_clip,
                 online_target_actor=self.online_target_actor, actor_loss=self.actor_loss,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
                 exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,

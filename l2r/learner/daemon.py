@@ -496,7 +496,8 @@ def _train(config: LearnerConfig, algo: AlgorithmConfig, state: TrainState, expe
            stop: threading.Event) -> None:
     _, step, update, publish_each_batch = STEPS[algorithm_of(algo)]
     steps = update and GradientSteps(update, algo, config.compile, device, algo.update_repeat,
-                                     policy_delay=getattr(algo, "policy_delay", None))
+                                     policy_delay=getattr(algo, "policy_delay", None),
+                                     actor_after=getattr(algo, "critic_warmup", 0))
     meter = Meter()
     staging = Staging(experience, device, meter)
     last_publish, last_checkpoint, waiting_since = state.updates, time.monotonic(), None

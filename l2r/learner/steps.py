@@ -65,10 +65,10 @@ class GradientSteps:
     """`repeat` gradient steps of `update(state, batch, config)` per call, run as `mode` says, and
     counted in `state.updates`.
 
-    With `policy_delay` (TD3), each step is `update(state, batch, config, actor_step)`, actor_step
-    True on every policy_delay-th update of the run: a plain bool, so a compiled update has one
-    version per value and a block of `repeat` updates one graph per pattern of actor steps (at most
-    policy_delay of them).
+    With `policy_delay` (TD3), each step is `update(state, batch, config, actor_step, actor_learns)`,
+    actor_step True on every policy_delay-th update of the run, actor_learns from the
+    `actor_after`-th on: plain bools, so a compiled update has one version per pair of values and a
+    block of `repeat` updates one graph per pattern of them (at most 2 x policy_delay).
 
     With graphs, the first WARMUP_CALLS calls for a batch shape and pattern run eagerly on a side
     stream; the next captures `repeat` updates on static copies of the batch fields, and every call
@@ -77,8 +77,8 @@ class GradientSteps:
     """
 
     def __init__(self, update: Update, config, mode: str = "off", device: str | torch.device = "cpu",
-                 repeat: int = 1, policy_delay: int | None = None):
-        self.config, self.repeat, self.policy_delay = config, repeat, policy_delay
+                 repeat: int = 1, policy_delay: int | None = None, actor_after: int = 0):
+        self.config, self.repeat, self.policy_delay, self.actor_after = config, repeat, policy_delay, actor_after
         self.mode = resolve_mode(mode, torch.device(device))
         # fallback_random: random draws by ATen's generator, the same numbers eager draws. Not dynamic:
         # a learner's batches have one shape, and kernels specialised to it are the fastest.
@@ -105,7 +105,8 @@ class GradientSteps:
         """The extra arguments of each of the next `repeat` updates, after `updates` so far."""
         if self.policy_delay is None:
             return ((),) * self.repeat
-        return tuple(((updates + step) % self.policy_delay == 0,) for step in range(1, self.repeat + 1))
+        return tuple(((updates + step) % self.policy_delay == 0, updates + step > self.actor_after)
+                     for step in range(1, self.repeat + 1))
 
     def _steps(self, state, batch, pattern: tuple[tuple, ...]) -> dict[str, torch.Tensor]:
         for args in pattern:

@@ -80,6 +80,10 @@ class TD3Config:
     replay server); 1 is TD3's one-step target."""
     policy_delay: int = 2
     """The actor steps, and the targets follow, on every policy_delay-th update; the critics on every one."""
+    critic_warmup: int = 0
+    """The run's first updates in which the actor holds still while the critics and their targets learn
+    its values: a warm start's (`--init-from` a policy), which critics that know nothing yet would
+    lead away. 0: none."""
     target_noise: float | None = 0.2
     """Std of the Gaussian noise on the target action (target policy smoothing); None: the current
     exploration std, as DrQ-v2 does."""
@@ -125,6 +129,8 @@ class TD3Config:
         check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step, self.policy_delay) < 1:
             raise ValueError("batch_size, update_repeat, n_step and policy_delay must be >= 1")
+        if self.critic_warmup < 0:
+            raise ValueError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if self.actor_loss not in ACTOR_LOSSES:
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {self.actor_loss!r}")
         if self.encoder not in encoders.IMAGE_VIEWS:
@@ -257,8 +263,10 @@ def follow_exploration_schedule(state: TrainState, config: TD3Config) -> None:
     state.actor.exploration_std.fill_(exploration_std(config, state.updates))
 
 
-def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool) -> dict[str, torch.Tensor]:
-    """One TD3 gradient step: the critics', and the actor's and the targets' if `actor_step`.
+def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
+           actor_learns: bool = True) -> dict[str, torch.Tensor]:
+    """One TD3 gradient step: the critics', and the actor's and the targets' if `actor_step` (the
+    targets' alone where the actor does not learn yet, `config.critic_warmup`).
     Returns detached metrics tensors (`actor_loss` on actor steps only) and `priorities`
     (|TD error|, per sample). `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
     # Observations as the networks see them, embedded once for all of them: the filtered vector,
@@ -300,7 +308,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
     # 3. Delayed: the actor ascends Q1 of its own action, or the lower critic at it with noise (DrQ-v2),
     #    against the updated critics (their weights detached: only dQ/da is needed), then the
     #    targets follow by Polyak averaging.
-    if actor_step:
+    if actor_step and actor_learns:
         with state.autocast():
             embedding = embedding.detach()
             action = state.actor.action_of(embedding)
@@ -318,10 +326,11 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool)
         actor_loss.backward()
         average_gradients(state.actor.parameters())
         state.actor_opt.step()
+        metrics["actor_loss"] = actor_loss.detach()
+    if actor_step:
         with torch.no_grad():
             torch._foreach_lerp_([*state.target_actor.parameters(), *state.target_critic.parameters()],
                                  [*state.actor.parameters(), *state.critic.parameters()], config.tau)
-        metrics["actor_loss"] = actor_loss.detach()
 
     return metrics | {"exploration_std": state.actor.exploration_std.clone()}
 

@@ -190,9 +190,9 @@ def test_with_several_updates_a_batch_the_actor_steps_on_every_policy_delay_th_u
     state.updates = 1  # as resumed: the delay counts over the run, not from this process's start
     actor_moved = []
 
-    def recorded(state, batch, config, actor_step):
+    def recorded(state, batch, config, actor_step, actor_learns):
         before = [p.detach().clone() for p in state.actor.parameters()]
-        metrics = update(state, batch, config, actor_step)
+        metrics = update(state, batch, config, actor_step, actor_learns)
         actor_moved.append(any(not torch.equal(old, new) for old, new in zip(before, state.actor.parameters())))
         return metrics
 
@@ -201,6 +201,24 @@ def test_with_several_updates_a_batch_the_actor_steps_on_every_policy_delay_th_u
         steps(state, random_batch(seed=call))
         assert state.updates == 1 + 2 * (call + 1)
     assert actor_moved == [index % 3 == 0 for index in range(2, 12)]
+
+
+def test_in_the_critic_warm_up_the_actor_holds_still_while_the_critics_and_their_targets_learn():
+    config = small_config(policy_delay=2, critic_warmup=4)
+    state = init_state(config, OBS, ACT, seed=14)
+    steps = GradientSteps(update, config, policy_delay=config.policy_delay, actor_after=config.critic_warmup)
+    actor, targets = copy.deepcopy(state.actor), copy.deepcopy([state.target_actor, state.target_critic])
+    critic = copy.deepcopy(state.critic)
+    for call in range(4):
+        metrics = steps(state, random_batch(seed=20 + call))
+        assert "actor_loss" not in metrics
+    assert all(torch.equal(a, b) for a, b in zip(actor.parameters(), state.actor.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(critic.parameters(), state.critic.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(targets[1].parameters(), state.target_critic.parameters()))
+    for call in range(2):  # the 6th update is an actor step of the delay: the actor learns from then on
+        metrics = steps(state, random_batch(seed=30 + call))
+    assert "actor_loss" in metrics
+    assert any(not torch.equal(a, b) for a, b in zip(actor.parameters(), state.actor.parameters()))
 
 
 def test_the_actor_loss_is_minus_q1_of_its_own_action_against_the_updated_critics():
