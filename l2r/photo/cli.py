@@ -95,7 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--out", metavar="CK", type=Path, required=True, help="where the policy checkpoint goes")
     w.add_argument("--env-id", choices=tune.TUNE_IDS, default=defaults.env_id,
                    help=f"the task whose observations the policy takes (default: {defaults.env_id}; "
-                        f"l2r/PhotoTune-v0's images train through convolutions, slowly on a CPU)")
+                        f"l2r/PhotoTuneCompare-v0 adds the two images compared pixel for pixel; l2r/PhotoTune-v0's "
+                        f"images train through convolutions, slowly on a CPU)")
     w.add_argument("--rounds", type=int, default=defaults.rounds, help=f"(default: {defaults.rounds})")
     w.add_argument("--episodes", type=int, default=defaults.episodes,
                    help=f"episodes of the first round, 10 queries each; each later round adds half as many "

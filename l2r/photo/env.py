@@ -33,11 +33,16 @@ saturation and the sharpness), the current parameters and the steps taken. No co
 reads the images, so a tuner trains at the speed of a small MLP: what a 2-core machine can do,
 where the image encoder makes a fraction of an update a second.
 
+With `view="comparison"` (`l2r/PhotoTuneCompare-v0`) `state` is float32[100]: the statistics
+view's 60 values and `comparison_features` of the current image against the goal, which read
+both images on the same pixels: how the edits between them changed each tone and each colour,
+what the separate statistics of two images of the same scene leave the policy to guess.
+
 The reward is the change in PSNR to the goal (on the working images, capped at 100 dB) times
 0.01. An episode ends after 10 steps, or early when the image collapses, its mean brightness
 below 0.01 or above 0.9; both are terminations, the count of steps being in the observation and
 a collapse forfeiting the steps left. `info["psnr_db"]` is the PSNR of the current image; with
-`view="statistics"`, `info["frames"]` holds the images the observation leaves out (`pixels` and
+either view of statistics, `info["frames"]` holds the images the observation leaves out (`pixels` and
 `goal`, as the images view shows them), which episode logs record.
 """
 
@@ -61,7 +66,9 @@ DARKEST, BRIGHTEST = 0.01, 0.9
 MAX_PSNR_DB = 100.0
 """PSNR where the image equals its goal (the mean squared error floored at 1e-10)."""
 MAX_DRAWS = 100
-VIEWS = ("images", "statistics")
+VIEWS = ("images", "statistics", "comparison")
+"""What an observation holds: both images and three statistics of each; `image_features` of
+each; or those features and `comparison_features` of the pair (the tuner's alone)."""
 GOAL_SETS = ("random", "looks")
 """The two kinds of goal: the crop finished with hidden random parameters, or the crop with
 another scene's look (`transfer_look`)."""
@@ -104,6 +111,39 @@ def image_features(images: np.ndarray) -> np.ndarray:
                           axis=1)
 
 
+TONE_BINS = 8
+COMPARISON_FEATURES = TONE_BINS * 5
+_RATIO_FLOOR = 0.02
+"""Added to both means of a ratio, so that near-black tones give finite ratios of little weight."""
+_RATIO_SCALE = 0.25
+"""Log-ratios times this lie in [-1, 1] (|log(1.02 / 0.02)| < 4)."""
+
+
+def comparison_features(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """[N, 40] of float images and their goals [N, 3, H, W] in [0, 1], the same scene pixel for
+    pixel: the pixels in 8 equal bins of the image's HSV value (its tones), and per bin the share
+    of pixels in it, then the log of (the goal's mean + 0.02) / (the image's mean + 0.02) of R, G
+    and B and of the chroma (max - min of R, G, B), each times 0.25: the change that would take
+    each tone to the goal's, in colour and in saturation (a tone no pixel has: share and ratios 0)."""
+    n = len(images)
+    image, goal = images.reshape(n, 3, -1), goals.reshape(n, 3, -1)
+    tones = np.minimum((image.max(axis=1) * TONE_BINS).astype(np.int64), TONE_BINS - 1)
+    in_bin = tones[:, None, :] == np.arange(TONE_BINS)[None, :, None]  # [N, bins, pixels]
+    counts = in_bin.sum(axis=2)
+    weights = in_bin / np.maximum(counts, 1)[..., None]
+
+    def means(values: np.ndarray) -> np.ndarray:  # [N, C, pixels] -> [N, bins, C]
+        return np.einsum("nbp,ncp->nbc", weights, values)
+
+    def chroma(x: np.ndarray) -> np.ndarray:
+        return (x.max(axis=1) - x.min(axis=1))[:, None]
+
+    ratios = np.log((means(np.concatenate([goal, chroma(goal)], axis=1)) + _RATIO_FLOOR)
+                    / (means(np.concatenate([image, chroma(image)], axis=1)) + _RATIO_FLOOR))
+    share = counts / image.shape[2]
+    return np.concatenate([share[..., None], _RATIO_SCALE * ratios], axis=2).reshape(n, -1).astype(np.float32)
+
+
 def image_statistics(images: np.ndarray) -> np.ndarray:
     """[N, 3]: per image the mean luminance (0.27 R + 0.67 G + 0.06 B), the variance of that
     luminance (its contrast) and the mean of (max - min) / (min(max + min, 2 - max - min) + 0.01)
@@ -136,7 +176,8 @@ class PhotoTuneEnv(gym.Env):
     max_steps: steps (pipeline queries) per episode.
     sources: photos to crop from instead of the split's, by name ([3, H, W] uint8 or uint16: a
         FiveK folder's, say).
-    view: "images" (both images and their statistics) or "statistics" (`image_features` alone).
+    view: "images" (both images and their statistics), "statistics" (`image_features` alone) or
+        "comparison" (those and `comparison_features` of the current image against the goal).
     goals: "random" (RLPixTuner's FiveK-Random), "looks" (another scene's look; the tuner's task alone)
         or "mixed" (either, drawn with even odds each episode: a tuner trained on both).
     """
@@ -157,6 +198,8 @@ class PhotoTuneEnv(gym.Env):
             raise ValueError(f"{self.task}: goals must be one of {', '.join(self.goal_kinds)}, got {goals!r}")
         if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        if view == "comparison" and not self.shows_goal:
+            raise ValueError(f"{self.task}: view 'comparison' compares the image with a goal the task does not show")
         if sources is not None and not sources:
             raise ValueError(f"{self.task}: sources holds no photo")
         self.split, self.max_steps, self.view, self.goals = split, max_steps, view, goals
@@ -165,9 +208,10 @@ class PhotoTuneEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
         images_shown = 2 if self.shows_goal else 1
         statistics = 3 if view == "images" else FEATURES_PER_IMAGE
-        state = gym.spaces.Box(-1.0, 1.0, (images_shown * statistics + len(PARAMETERS) + 1,), np.float32)
+        comparison = COMPARISON_FEATURES if view == "comparison" else 0
+        state = gym.spaces.Box(-1.0, 1.0, (images_shown * statistics + comparison + len(PARAMETERS) + 1,), np.float32)
         image = gym.spaces.Box(0, 255, (3, photos.OBSERVATION_SIZE, photos.OBSERVATION_SIZE), np.uint8)
-        fields = {"state": state} if view == "statistics" else \
+        fields = {"state": state} if view != "images" else \
             {"pixels": image, "state": state} | ({"goal": image} if self.shows_goal else {})
         self.observation_space = gym.spaces.Dict(fields)
         self.episode_over = True
@@ -261,7 +305,7 @@ class PhotoTuneEnv(gym.Env):
     def frames(self) -> dict[str, dict[str, np.ndarray]]:
         """The images an observation of statistics leaves out, as the images view would show them,
         for episode logs (`info["frames"]`); nothing where the observation shows them."""
-        if self.view != "statistics":
+        if self.view == "images":
             return {}
         shown = {"pixels": self.image} | ({"goal": self.goal} if self.shows_goal else {})
         return {"frames": {name: photos.to_uint8(photos.downsample(image)) for name, image in shown.items()}}
@@ -270,8 +314,10 @@ class PhotoTuneEnv(gym.Env):
         current = photos.downsample(self.image)
         shown = np.stack([current, self.goal_small]) if self.shows_goal else current[None]
         statistics = image_statistics(shown) if self.view == "images" else image_features(shown)
-        state = np.concatenate([statistics.ravel(), actions_from_params(self.params), [self.steps / self.max_steps]])
-        if self.view == "statistics":
+        compared = comparison_features(current[None], self.goal_small[None]) if self.view == "comparison" else []
+        state = np.concatenate([statistics.ravel(), np.ravel(compared), actions_from_params(self.params),
+                                [self.steps / self.max_steps]])
+        if self.view != "images":
             return {"state": state.astype(np.float32)}
         images = {"pixels": photos.to_uint8(current)} | (
             {"goal": photos.to_uint8(self.goal_small)} if self.shows_goal else {})

@@ -10,7 +10,7 @@ import pytest
 
 import l2r.photo.env  # registers the id (l2r.photo)
 from l2r.photo import photos
-from l2r.photo.env import collapsed, image_features, image_statistics, psnr_db, transfer_look
+from l2r.photo.env import collapsed, comparison_features, image_features, image_statistics, psnr_db, transfer_look
 from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
 from l2r.protocol.observations import ObservationSpec
 
@@ -88,6 +88,49 @@ def test_the_statistics_view_observes_both_images_features_and_the_parameters():
     check_env(stats, skip_render_check=True)
     with pytest.raises(ValueError, match="view must be one of images, statistics"):
         gymnasium.make("l2r/PhotoTune-v0", view="histograms")
+
+
+def test_comparison_features_by_hand():
+    image = np.zeros((1, 3, 1, 2), np.float32)
+    image[0, :, 0, 0] = [0.05, 0.02, 0.0]  # tone bin 0 (value 0.05), chroma 0.05
+    image[0, :, 0, 1] = [0.9, 0.95, 0.6]  # tone bin 7 (value 0.95), chroma 0.35
+    goal = image.copy()
+    goal[0, :, 0, 1] = [0.5, 0.95, 0.6]  # the bright pixel loses red; the dark one is as it was
+    features = comparison_features(image, goal)[0].reshape(8, 5)
+    assert features[:, 0].tolist() == [0.5, 0, 0, 0, 0, 0, 0, 0.5]
+    assert features[1:7].tolist() == [[0.0] * 5] * 6 and features[0, 1:].tolist() == [0.0] * 4
+    ratios = [np.log(0.52 / 0.92), 0.0, 0.0, np.log(0.47 / 0.37)]  # (goal + 0.02) / (image + 0.02): R, G, B, chroma
+    assert features[7].tolist() == pytest.approx([0.5] + [0.25 * x for x in ratios], abs=1e-6)
+
+
+def test_comparison_features_tell_which_way_each_colour_moved():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.05, 0.45, (1, 3, 16, 16)).astype(np.float32)
+    assert np.all(comparison_features(image, image)[0].reshape(8, 5)[:, 1:] == 0)
+    warmer = image * np.array([1.3, 1.0, 0.8], np.float32).reshape(1, 3, 1, 1)
+    ratios = comparison_features(image, warmer)[0].reshape(8, 5)
+    occupied = ratios[:, 0] > 0
+    assert np.all(ratios[occupied, 1] > 0) and np.all(ratios[occupied, 2] == 0) and np.all(ratios[occupied, 3] < 0)
+    brighter = comparison_features(image, image * 2)[0].reshape(8, 5)
+    assert np.all(brighter[occupied, 1:] > 0) and np.all(np.abs(brighter[:, 1:]) <= 1)
+
+
+def test_the_comparison_view_observes_the_statistics_and_the_pair_compared():
+    compare = gymnasium.make("l2r/PhotoTuneCompare-v0").unwrapped
+    stats = gymnasium.make("l2r/PhotoTuneStats-v0").unwrapped
+    assert ObservationSpec.from_space(compare.observation_space) == ObservationSpec.parse("state: float32[100]")
+    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
+    (seen, info), (statistics, _) = compare.reset(seed=3), stats.reset(seed=3)
+    for _ in range(2):
+        current, goal = photos.downsample(np.stack([compare.image, compare.goal]))
+        np.testing.assert_array_equal(seen["state"][:50], statistics["state"][:50])
+        np.testing.assert_allclose(seen["state"][50:90], comparison_features(current[None], goal[None])[0], atol=1e-6)
+        np.testing.assert_array_equal(seen["state"][90:], statistics["state"][50:])
+        assert set(info["frames"]) == {"pixels", "goal"}
+        (seen, _, _, _, info), (statistics, *_) = compare.step(action), stats.step(action)
+    check_env(compare, skip_render_check=True)
+    with pytest.raises(ValueError, match="compares the image with a goal the task does not show"):
+        gymnasium.make("l2r/PhotoEnhance-v0", view="comparison")
 
 
 def test_the_reward_is_the_psnr_change_times_a_hundredth(env):

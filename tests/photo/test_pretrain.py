@@ -15,6 +15,7 @@ from l2r.up import parse_args, plan_children
 from tests.photo.test_tune import l2r_photo
 
 STATS_ID = "l2r/PhotoTuneStats-v0"
+COMPARE_ID = "l2r/PhotoTuneCompare-v0"
 
 
 @pytest.fixture
@@ -41,11 +42,11 @@ def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_in
 
 def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path):
     out = tmp_path / "tuner.pt"
-    run = l2r_photo("pretrain", "--out", str(out), "--rounds", "1", "--episodes", "2", "--updates", "5",
-                    "--eval-episodes", "1", "--json")
+    run = l2r_photo("pretrain", "--out", str(out), "--env-id", COMPARE_ID, "--rounds", "1", "--episodes", "2",
+                    "--updates", "5", "--eval-episodes", "1", "--json")
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout)
-    assert result["checkpoint"] == str(out) and result["env_id"] == STATS_ID
+    assert result["checkpoint"] == str(out) and result["env_id"] == COMPARE_ID
     assert "round 1/1: 20 observations" in run.stderr
     saved = load_checkpoint(out)
     assert saved.evaluation["score"] == "psnr" and saved.evaluation["mean_psnr"] == result["psnr_db"]
@@ -53,7 +54,7 @@ def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_s
     assert compared.returncode == 0, compared.stderr
     assert json.loads(compared.stdout)["policy_psnr_db"] is not None
     # l2r up's photo/td3 learner takes it as its policy: the same networks, the critics fresh.
-    args, _ = parse_args(["--env-id", STATS_ID, "--algo", "td3", "--init-from", str(out)])
+    args, _ = parse_args(["--env-id", COMPARE_ID, "--algo", "td3", "--init-from", str(out)])
     learner = next(c for c in plan_children(args, "run", tmp_path / "run", [7447], 7448) if c.name == "learner")
     settings = learner_settings(learner.argv[3:])
     state = _initial_state(settings.learner(), settings.algorithm(), torch.device("cpu"))
