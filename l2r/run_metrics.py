@@ -261,9 +261,12 @@ class RunMetrics:
     """Collects what the daemons publish, writes the metrics files, and gives the status figures."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, directory: Path, recent: int = 20,
-                 env_id: str = PORT_ID, simulators: dict[int, str] | None = None):
+                 env_id: str = PORT_ID, simulators: dict[int, str] | None = None, shown_eval_env_id: str | None = None):
         directory.mkdir(parents=True, exist_ok=True)
         self.env_id = env_id  # the actors' task
+        # The simulator whose evaluations the status line shows (OpenSim's come beside them): the
+        # actors' by default; the port's for actors on l2r/RunWarp-v0 judged by port evaluators.
+        self.shown_eval_env_id = shown_eval_env_id or env_id
         self.score = score_of(env_id)
         self.simulators = simulators or {}  # actor id -> env id, for the episodes of other simulators
         self._lock = threading.Lock()
@@ -438,7 +441,7 @@ class RunMetrics:
                 "episodes": self.before.episodes + self.episodes,
                 "recent_return": mean(self.train, lambda e: e.episode_return),
                 f"recent_{name}": mean(self.train),
-                f"eval_{name}": mean(evals_in(self.env_id)),
+                f"eval_{name}": mean(evals_in(self.shown_eval_env_id)),
                 # OpenSim, the runner's second simulator
                 **({f"opensim_eval_{name}": mean(evals_in(OPENSIM_ID))} if family_of(self.env_id) == RUNNER else {}),
                 f"best_eval_{name}": None if self.best_eval is None else self._score_of_row(self.best_eval),

@@ -559,6 +559,14 @@ def evaluator_env_ids(args: argparse.Namespace) -> list[str | None]:
     return [ids[i % len(ids)] for i in range(max(args.evaluators, len(ids)))]
 
 
+def shown_evaluations(env_id: str, eval_env_ids: list[str]) -> str:
+    """The simulator whose evaluations the status line shows: the actors' where evaluators run it,
+    else the first other id but OpenSim's (whose evaluations the line shows beside them)."""
+    if not eval_env_ids or env_id in eval_env_ids:
+        return env_id
+    return next((e for e in eval_env_ids if e != OPENSIM_ID), env_id)
+
+
 def replay_capacity(args: argparse.Namespace) -> int:
     """--capacity, else the default for the task's observations: the job's, all shards together."""
     capacities = {PIXELS: IMAGE_CAPACITY, PHOTO: PHOTO_CAPACITY}
@@ -938,7 +946,8 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(Keys(run).alive("launcher", 0))
         simulators = simulator_of_each_actor(children) | ({0: args.env_id} if args.colocated else {})
-        metrics = RunMetrics(session, Keys(run), run_dir / "metrics", env_id=args.env_id, simulators=simulators)
+        metrics = RunMetrics(session, Keys(run), run_dir / "metrics", env_id=args.env_id, simulators=simulators,
+                             shown_eval_env_id=shown_evaluations(args.env_id, args.eval_env_id))
         judge = args.eval_env_id[0] if args.eval_env_id else None
         best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, recipe.values["action_repeat"],
                           score_of(args.env_id),

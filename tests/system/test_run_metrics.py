@@ -11,6 +11,7 @@ from l2r.families import score_of
 from l2r.live_status import status_line
 from l2r.protocol import EpisodeSummary, Keys, Stats, encode, session_config
 from l2r.run_metrics import RunMetrics
+from l2r.up import shown_evaluations
 from tests.conftest import free_port, wait_for
 
 PORT, OPENSIM = "l2r/Run-v0", "l2r/RunOpenSim-v0"
@@ -50,6 +51,26 @@ def test_episodes_are_kept_apart_by_the_simulator_their_actor_steps(tmp_path):
     assert [e.value for e in events.Scalars("eval/distance")] == [1.0]
     assert [e.value for e in events.Scalars("eval/RunOpenSim-v0/distance")] == [3.0, 5.0]
     assert [e.value for e in events.Scalars("train/distance")] == [0.5]
+
+
+def test_warp_actors_judged_by_port_evaluators_show_the_ports_evaluations(tmp_path):
+    # l2r up --env-id l2r/RunWarp-v0 --eval-env-id l2r/Run-v0: no evaluator runs the actors' env.
+    warp = "l2r/RunWarp-v0"
+    assert shown_evaluations(warp, [PORT]) == PORT and shown_evaluations(warp, [OPENSIM, PORT]) == PORT
+    assert shown_evaluations(warp, [OPENSIM]) == warp and shown_evaluations(PORT, [OPENSIM, PORT]) == PORT
+    keys = Keys("warp-metrics-test")
+    with listening_metrics(tmp_path, keys, env_id=warp, simulators={0: warp, 1: PORT, 2: OPENSIM},
+                           shown_eval_env_id=PORT) as (metrics, sender):
+        publishers = {i: sender.declare_publisher(keys.episodes(i)) for i in (1, 2)}
+        assert wait_for(lambda: all(p.matching_status.matching for p in publishers.values()), 10)
+        for actor_id, distance in ((1, 2.5), (2, 4.0)):
+            publishers[actor_id].put(encode(EpisodeSummary(
+                actor_id=actor_id, env_id=0, episode_return=distance, distance=distance, length=100,
+                policy_version=1, difficulty=0, seed=0, evaluation=True)))
+        assert wait_for(lambda: metrics.episodes == 2, 10)
+        figures = metrics.record_status()
+    assert figures["eval_distance"] == 2.5 and figures["opensim_eval_distance"] == 4.0
+    assert "| eval distance 2.50 m (OpenSim 4.00 m) |" in status_line(figures, score_of(warp))
 
 
 def test_camera_actors_frames_per_second_add_up_into_the_figures_and_the_status_line(tmp_path):
