@@ -20,6 +20,11 @@ observations has no "obs_dim"; its spec says what it takes instead (l2r.encoders
     {"observation": [{"name": "pixels", "dtype": "uint8", "shape": [3, 84, 84]}], "frame_stack": 3,
      "encoder": {"channels": 32, "features": 50}, "act_dim": 6, ...}
 
+A deterministic spec may say "residual": i, the index in the float32 vector (or the "state"
+field) where the observation holds the action of the last step, in the policy's (-1, 1) space:
+its action is then tanh(atanh(that action) + head), a change to the last one, so that a head of
+0 repeats it (the photo tuner refining its last query's parameters, l2r.photo.env).
+
 Its "encoder" has a "kind" where it is not DrQ-v2's: {"kind": "dual", "channels": 32, "features": 50}
 (RLPixTuner's dual-path encoder); without one, it is DrQ-v2's, as every spec from before kinds.
 
@@ -57,6 +62,9 @@ SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
 # Observation options; a spec from before they existed means "off".
 FILTER_KEYS = ("relative_x", "normalize_obs")
 GAUSSIAN, DETERMINISTIC = "gaussian", "deterministic"
+# A residual policy's last action is taken at most this close to the bounds, where atanh would
+# be infinite: a change of the head can still move it back.
+RESIDUAL_EDGE = 1e-3
 
 
 def default_spec(obs_dim: int = 41, act_dim: int = 18) -> dict:
@@ -96,6 +104,7 @@ def check_spec(spec: Mapping) -> dict:
     common = {"act_dim": spec["act_dim"], "hidden": list(hidden), "activation": spec["activation"],
               "layer_norm": bool(spec["layer_norm"]), **options, "kind": kind}
     observation, frame_stack = _observation_of(spec)
+    common |= _residual_of(spec, observation, frame_stack, kind)
     if observation.vector_width is not None:
         if options["relative_x"] and observation.vector_width != layout.OBS_SIZE:
             raise ValueError(f"policy spec 'relative_x' needs the {layout.OBS_SIZE} Learning to Run observations, "
@@ -122,6 +131,22 @@ def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
     if type(frame_stack) is not int or not 1 <= frame_stack <= MAX_FRAME_STACK:
         raise ValueError(f"policy spec 'frame_stack' must be an int from 1 to {MAX_FRAME_STACK}, got {frame_stack!r}")
     return observation, frame_stack
+
+
+def _residual_of(spec: Mapping, observation: ObservationSpec, frame_stack: int, kind: str) -> dict:
+    """{"residual": index} where the spec has one (see the module docstring), else {}."""
+    index = spec.get("residual")
+    if index is None:
+        return {}
+    state = observation.fields.get(VECTOR_FIELD)
+    width = None if state is None or state.dtype != np.float32 else state.shape[0]
+    if kind != DETERMINISTIC or frame_stack != 1 or width is None:
+        raise ValueError("policy spec 'residual' is for a deterministic policy of one float32 state, "
+                         f"got a {kind} one of {observation} stacked {frame_stack}")
+    if type(index) is not int or not 0 <= index <= width - spec["act_dim"]:
+        raise ValueError(f"policy spec 'residual' must be an index from 0 to {width - spec['act_dim']} of the "
+                         f"{width} state values, got {index!r}")
+    return {"residual": index}
 
 
 def check_encoder(entry: Mapping) -> dict:
@@ -375,11 +400,18 @@ class DeterministicPolicy(PolicyNetwork):
         self.register_buffer("exploration_std", torch.zeros(()))
 
     def forward(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return torch.tanh(self.head_output(obs))
+        return self.action_of(self.embed(obs), obs)
 
-    def action_of(self, embedding: torch.Tensor) -> torch.Tensor:
-        """The action of an embedded observation (`embed`)."""
-        return torch.tanh(self.head_output_of(embedding))
+    def action_of(self, embedding: torch.Tensor, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The action of an observation `obs` embedded (`embed`), which a residual policy reads its
+        last action from."""
+        head = self.head_output_of(embedding)
+        index = self.spec.get("residual")
+        if index is None:
+            return torch.tanh(head)
+        state = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
+        last = state[..., index:index + self.spec["act_dim"]].clamp(-1.0 + RESIDUAL_EDGE, 1.0 - RESIDUAL_EDGE)
+        return torch.tanh(torch.atanh(last) + head)
 
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self(obs)

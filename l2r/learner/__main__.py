@@ -205,6 +205,10 @@ class LearnerSettings(DaemonSettings):
                                  "their targets alone, the actor held still: for a warm start (--init-from a "
                                  "policy), whose values fresh critics must learn before they lead it", group=TD3, ge=0,
                                  metavar="N")
+    residual_from: int | None = setting(None, "the policy's action is a change to the last one, which the "
+                                        "observation's float32 state holds from index N on (the photo tuner's "
+                                        "current parameters: l2r photo pretrain --residual); unset: whole actions",
+                                        group=TD3, ge=0, metavar="N")
     target_noise: float = setting(TD3_DEFAULTS.target_noise, "std of the noise on the target action (target policy "
                                   "smoothing)", group=TD3, ge=0)
     scheduled_target_noise: bool = setting(False, "the target action's noise takes the current exploration std "
@@ -464,7 +468,7 @@ class LearnerSettings(DaemonSettings):
                 exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,
                 frame_stack=self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),
                 augment_pad=(IMAGE_AUGMENT_PAD if self.images else 0) if self.augment_pad is None else self.augment_pad,
-                encoder=self.encoder)
+                encoder=self.encoder, residual=self.residual_from)
         except ValueError as e:  # a combination TD3Config refuses
             raise UsageError(str(e)) from None
 

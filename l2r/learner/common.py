@@ -13,16 +13,18 @@ from l2r.protocol.observations import ObservationSpec
 
 
 def policy_spec(config, observation: ObservationSpec | int, act_dim: int, kind: str = GAUSSIAN,
-                frame_stack: int = 1, encoder: dict | None = None) -> dict:
+                frame_stack: int = 1, encoder: dict | None = None, residual: int | None = None) -> dict:
     """The architecture spec of the policy a config (SACConfig, PPOConfig, TD3Config) trains, sent
     with the weights. `observation`: the spec of the observation, or the width of the float32
-    vector; `frame_stack` and `encoder` (its sizes) count for image observations alone."""
+    vector; `frame_stack` and `encoder` (its sizes) count for image observations alone; `residual`,
+    where the state holds the last action of a residual deterministic policy (l2r.policy)."""
     if isinstance(observation, int):
         observation = ObservationSpec.vector(observation)
     return check_spec({**observation.policy_entries(), "frame_stack": frame_stack, "encoder": encoder or {},
                        "act_dim": act_dim, "hidden": list(config.hidden),
                        "activation": config.activation, "layer_norm": config.layer_norm,
-                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs, "kind": kind})
+                       "relative_x": config.relative_x, "normalize_obs": config.normalize_obs, "kind": kind,
+                       **({} if residual is None else {"residual": residual})})
 
 
 def check_off_policy(config) -> None:

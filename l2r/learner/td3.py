@@ -123,6 +123,10 @@ class TD3Config:
     """Image observations: channels of each of the encoder's convolutions."""
     encoder_features: int = encoders.FEATURES
     """Image observations: features out of the actor's and the critics' projections of the encoder's output."""
+    residual: int | None = None
+    """The policy's action is a change to the last one, which the observation's float32 state holds
+    from this index on (l2r.policy, "residual"; the photo tuner's `PhotoTuneEnv.parameters_at`);
+    None: a whole action."""
 
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -219,7 +223,7 @@ def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: i
         torch.manual_seed(seed)
     encoder = {"kind": config.encoder, "channels": config.encoder_channels, "features": config.encoder_features}
     actor = DeterministicPolicy(policy_spec(config, observation, act_dim, DETERMINISTIC, config.frame_stack,
-                                            encoder)).to(device)
+                                            encoder, residual=config.residual)).to(device)
     if config.augment_pad and actor.encoder is None:
         raise ValueError(f"augment_pad shifts images, and observation {observation} has none")
     actor.exploration_std.fill_(exploration_std(config, 0))
@@ -284,7 +288,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
     #    Only a real termination cuts the bootstrap; n-step batches carry the discount of theirs.
     with torch.no_grad(), state.autocast():
         target_policy = state.actor if config.online_target_actor else state.target_actor
-        next_action = target_policy.action_of(next_embedding)
+        next_action = target_policy.action_of(next_embedding, next_obs)
         noise_std = state.actor.exploration_std if config.target_noise is None else config.target_noise
         smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
         next_action = (next_action + smoothing).clamp(-1.0, 1.0)
@@ -311,7 +315,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
     if actor_step and actor_learns:
         with state.autocast():
             embedding = embedding.detach()
-            action = state.actor.action_of(embedding)
+            action = state.actor.action_of(embedding, obs)
             if config.actor_loss == Q1:
                 q_pi = state.critic(embedding, action, detach_weights=True, critics=1)[0]
             else:

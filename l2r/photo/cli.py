@@ -106,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
                    help=f"deterministic episodes on the training photos that judge the result (default: "
                         f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
+    w.add_argument("--residual", action="store_true",
+                   help="each query a change to the last one's parameters (a residual head: a query nearly right "
+                        "stays so); TD3 trains on from it with --learner-arg=--residual-from=N, N as the run prints")
     add_common(w)
     return p
 
@@ -271,7 +274,8 @@ def run_pretrain(args: argparse.Namespace) -> dict:
 
     try:
         config = pretrain.PretrainConfig(env_id=args.env_id, rounds=args.rounds, episodes=args.episodes,
-                                         updates=args.updates, eval_episodes=args.eval_episodes, seed=args.seed)
+                                         updates=args.updates, eval_episodes=args.eval_episodes,
+                                         residual=args.residual, seed=args.seed)
     except ValueError as e:
         raise PhotoError(str(e)) from None
     if not args.out.parent.is_dir():
@@ -283,6 +287,7 @@ def run_pretrain(args: argparse.Namespace) -> dict:
     except OSError as e:
         raise PhotoError(f"{args.out}: cannot write the checkpoint ({e.strerror})") from None
     return {"checkpoint": str(args.out), "env_id": args.env_id, "psnr_db": evaluation["mean_psnr"],
+            "residual_from": policy.spec.get("residual"),
             **{k: evaluation[k] for k in ("episodes", "observations", "losses", "seconds")}}
 
 
@@ -290,7 +295,8 @@ def print_pretrain(result: dict) -> None:
     print(f"wrote {result['checkpoint']}: its 10 queries reach {result['psnr_db']:.2f} dB on {result['episodes']} "
           f"training episodes ({result['seconds']:.0f} s). Held-out photos: l2r photo compare --checkpoint "
           f"{result['checkpoint']}; on with TD3: l2r up --env-id {result['env_id']} --algo td3 --init-from "
-          f"{result['checkpoint']}")
+          f"{result['checkpoint']}" + ("" if result["residual_from"] is None else
+                                       f" --learner-arg=--residual-from={result['residual_from']}"))
 
 
 def cli(argv: list[str] | None = None) -> int:

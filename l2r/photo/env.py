@@ -209,7 +209,9 @@ class PhotoTuneEnv(gym.Env):
         images_shown = 2 if self.shows_goal else 1
         statistics = 3 if view == "images" else FEATURES_PER_IMAGE
         comparison = COMPARISON_FEATURES if view == "comparison" else 0
-        state = gym.spaces.Box(-1.0, 1.0, (images_shown * statistics + comparison + len(PARAMETERS) + 1,), np.float32)
+        self.parameters_at = images_shown * statistics + comparison
+        """Where `state` holds the current parameters as actions (a residual policy's last action)."""
+        state = gym.spaces.Box(-1.0, 1.0, (self.parameters_at + len(PARAMETERS) + 1,), np.float32)
         image = gym.spaces.Box(0, 255, (3, photos.OBSERVATION_SIZE, photos.OBSERVATION_SIZE), np.uint8)
         fields = {"state": state} if view != "images" else \
             {"pixels": image, "state": state} | ({"goal": image} if self.shows_goal else {})

@@ -57,6 +57,9 @@ class PretrainConfig:
     policy_noise: float = 0.2
     eval_episodes: int = 50
     """Deterministic episodes on the training photos that judge the result (its checkpoint's evaluation)."""
+    residual: bool = False
+    """Each query a change to the last one (the policy's "residual", l2r.policy): a query nearly right
+    then stays so where the head gives nearly 0."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -68,13 +71,15 @@ class PretrainConfig:
             raise ValueError("lr must be positive, the noises at least 0")
 
 
-def recipe_networks() -> td3.TD3Config:
-    """The photo/td3 recipe's networks: what its learner builds for the same task."""
+def recipe_networks(residual: int | None = None) -> td3.TD3Config:
+    """The photo/td3 recipe's networks: what its learner builds for the same task (with
+    `--residual-from` `residual`, where given)."""
     from l2r.recipes import PHOTO, RECIPES
 
     recipe = RECIPES[PHOTO, "td3"]
     return td3.TD3Config(hidden=tuple(int(h) for h in recipe["hidden"].split(",")), activation=recipe["activation"],
-                         layer_norm=recipe["layer_norm"], encoder=recipe["encoder"], precision="float32")
+                         layer_norm=recipe["layer_norm"], encoder=recipe["encoder"], precision="float32",
+                         residual=residual)
 
 
 class Episodes:
@@ -127,7 +132,8 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
     started = time.monotonic()
     rng = np.random.default_rng(config.seed)
     episodes = Episodes(config.env_id)
-    actor = td3.init_state(recipe_networks(), episodes.spec, len(PARAMETERS), seed=config.seed).actor
+    residual = episodes.env.unwrapped.parameters_at if config.residual else None
+    actor = td3.init_state(recipe_networks(residual), episodes.spec, len(PARAMETERS), seed=config.seed).actor
     optimizer = torch.optim.Adam(actor.parameters(), lr=config.lr)
 
     def deterministic(observation, _answer) -> np.ndarray:
