@@ -20,10 +20,11 @@ observations has no "obs_dim"; its spec says what it takes instead (l2r.encoders
     {"observation": [{"name": "pixels", "dtype": "uint8", "shape": [3, 84, 84]}], "frame_stack": 3,
      "encoder": {"channels": 32, "features": 50}, "act_dim": 6, ...}
 
-A deterministic spec may say "residual": i, the index in the float32 vector (or the "state"
-field) where the observation holds the action of the last step, in the policy's (-1, 1) space:
-its action is then tanh(atanh(that action) + head), a change to the last one, so that a head of
-0 repeats it (the photo tuner refining its last query's parameters, l2r.photo.env).
+A third kind, "residual", is the deterministic one whose action is a change to the last: its spec's
+"residual": i is the index in the float32 vector (or the "state" field) where the observation
+holds the action of the last step, in the policy's (-1, 1) space, and its action is
+tanh(atanh(that action) + head), so that a head of 0 repeats it (the photo tuner refining its last
+query's parameters, l2r.photo.env). A peer that knows no such kind refuses its weights.
 
 Its "encoder" has a "kind" where it is not DrQ-v2's: {"kind": "dual", "channels": 32, "features": 50}
 (RLPixTuner's dual-path encoder); without one, it is DrQ-v2's, as every spec from before kinds.
@@ -61,7 +62,7 @@ ACTIVATIONS = {"elu": partial(nn.ELU, inplace=True), "relu": partial(nn.ReLU, in
 SPEC_KEYS = ("obs_dim", "act_dim", "hidden", "activation", "layer_norm")
 # Observation options; a spec from before they existed means "off".
 FILTER_KEYS = ("relative_x", "normalize_obs")
-GAUSSIAN, DETERMINISTIC = "gaussian", "deterministic"
+GAUSSIAN, DETERMINISTIC, RESIDUAL = "gaussian", "deterministic", "residual"
 # A residual policy's last action is taken at most this close to the bounds, where atanh would
 # be infinite: a change of the head can still move it back.
 RESIDUAL_EDGE = 1e-3
@@ -134,15 +135,17 @@ def _observation_of(spec: Mapping) -> tuple[ObservationSpec, int]:
 
 
 def _residual_of(spec: Mapping, observation: ObservationSpec, frame_stack: int, kind: str) -> dict:
-    """{"residual": index} where the spec has one (see the module docstring), else {}."""
+    """{"residual": index} of a residual policy's spec (see the module docstring), else {}."""
     index = spec.get("residual")
-    if index is None:
+    if kind != RESIDUAL:
+        if index is not None:
+            raise ValueError(f"policy spec 'residual' is for the residual kind, not {kind}")
         return {}
     state = observation.fields.get(VECTOR_FIELD)
     width = None if state is None or state.dtype != np.float32 else state.shape[0]
-    if kind != DETERMINISTIC or frame_stack != 1 or width is None:
-        raise ValueError("policy spec 'residual' is for a deterministic policy of one float32 state, "
-                         f"got a {kind} one of {observation} stacked {frame_stack}")
+    if frame_stack != 1 or width is None:
+        raise ValueError(f"a residual policy reads its last action from one float32 state, not {observation} "
+                         f"stacked {frame_stack}")
     if type(index) is not int or not 0 <= index <= width - spec["act_dim"]:
         raise ValueError(f"policy spec 'residual' must be an index from 0 to {width - spec['act_dim']} of the "
                          f"{width} state values, got {index!r}")
@@ -403,15 +406,8 @@ class DeterministicPolicy(PolicyNetwork):
         return self.action_of(self.embed(obs), obs)
 
     def action_of(self, embedding: torch.Tensor, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """The action of an observation `obs` embedded (`embed`), which a residual policy reads its
-        last action from."""
-        head = self.head_output_of(embedding)
-        index = self.spec.get("residual")
-        if index is None:
-            return torch.tanh(head)
-        state = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
-        last = state[..., index:index + self.spec["act_dim"]].clamp(-1.0 + RESIDUAL_EDGE, 1.0 - RESIDUAL_EDGE)
-        return torch.tanh(torch.atanh(last) + head)
+        """The action of an observation `obs` embedded (`embed`; the residual kind reads `obs` too)."""
+        return torch.tanh(self.head_output_of(embedding))
 
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self(obs)
@@ -424,6 +420,19 @@ class DeterministicPolicy(PolicyNetwork):
         noise = torch.randn_like(action) if noise is None else noise
         action = (action + self.exploration_std * noise).clamp(-1.0, 1.0)
         return to_excitation(action), action.new_zeros(len(action))
+
+
+class ResidualPolicy(DeterministicPolicy):
+    """Deterministic policy of changes: tanh(atanh(last action) + mu(s)), the last action read from
+    the observation's state at the spec's "residual" index; explored as its parent."""
+
+    KIND = RESIDUAL
+
+    def action_of(self, embedding: torch.Tensor, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        state = obs[VECTOR_FIELD] if isinstance(obs, Mapping) else obs
+        index = self.spec["residual"]
+        last = state[..., index:index + self.spec["act_dim"]].clamp(-1.0 + RESIDUAL_EDGE, 1.0 - RESIDUAL_EDGE)
+        return torch.tanh(torch.atanh(last) + self.head_output_of(embedding))
 
 
 def tanh_gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -514,4 +523,4 @@ def load_policy_state(policy: PolicyNetwork, arrays: Mapping[str, np.ndarray]) -
 
 
 # The network of each spec "kind".
-POLICIES = {GAUSSIAN: Policy, DETERMINISTIC: DeterministicPolicy}
+POLICIES = {GAUSSIAN: Policy, DETERMINISTIC: DeterministicPolicy, RESIDUAL: ResidualPolicy}

@@ -41,7 +41,7 @@ from l2r.learner import sac
 from l2r.learner.common import adam, bfloat16_pays, check_off_policy, load_adam_state, policy_spec
 from l2r.learner.distributed import average_gradients, broadcast
 from l2r.learner.sac import Batch, TwinCritic
-from l2r.policy import DETERMINISTIC, DeterministicPolicy
+from l2r.policy import DETERMINISTIC, RESIDUAL, DeterministicPolicy, build_policy
 from l2r.protocol.limits import MAX_FRAME_STACK
 from l2r.protocol.observations import ObservationSpec
 
@@ -222,8 +222,9 @@ def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: i
     if seed is not None:
         torch.manual_seed(seed)
     encoder = {"kind": config.encoder, "channels": config.encoder_channels, "features": config.encoder_features}
-    actor = DeterministicPolicy(policy_spec(config, observation, act_dim, DETERMINISTIC, config.frame_stack,
-                                            encoder, residual=config.residual)).to(device)
+    kind = DETERMINISTIC if config.residual is None else RESIDUAL
+    actor = build_policy(policy_spec(config, observation, act_dim, kind, config.frame_stack, encoder,
+                                     residual=config.residual)).to(device)
     if config.augment_pad and actor.encoder is None:
         raise ValueError(f"augment_pad shifts images, and observation {observation} has none")
     actor.exploration_std.fill_(exploration_std(config, 0))

@@ -371,6 +371,52 @@ def test_a_spec_without_a_kind_is_a_gaussian_policy_and_a_bad_kind_is_refused():
         Policy(old | {"kind": "deterministic"})
 
 
+def residual_batch(n: int = 64, seed: int = 0):
+    """A random batch whose observations hold, at [1, 1 + ACT), last actions in (-1, 1)."""
+    batch = random_batch(n=n, seed=seed)
+    for obs in (batch.obs, batch.next_obs):
+        obs[:, 1:1 + ACT] = torch.tanh(obs[:, 1:1 + ACT])
+    return batch
+
+
+def test_a_residual_policy_changes_the_last_action_the_state_holds_and_repeats_it_where_its_head_gives_0():
+    spec = {"obs_dim": OBS, "act_dim": ACT, "hidden": [8], "activation": "elu", "layer_norm": True,
+            "kind": "residual", "residual": 1}
+    policy = build_policy(spec)
+    assert isinstance(policy, DeterministicPolicy) and policy.spec["residual"] == 1
+    obs = residual_batch(n=16).obs
+    last = obs[:, 1:1 + ACT]
+    with torch.no_grad():
+        head = policy.head_output(obs)
+        torch.testing.assert_close(policy(obs), torch.tanh(torch.atanh(last) + head))
+        policy.head.weight.zero_()
+        policy.head.bias.zero_()
+        torch.testing.assert_close(policy(obs), last)
+        at_bounds = obs.clone()
+        at_bounds[:, 1:1 + ACT] = torch.tensor([-1.0, 1.0, 0.0])
+        assert torch.isfinite(policy(at_bounds)).all() and policy(at_bounds).abs().max() < 1.0
+    for bad, message in ((spec | {"residual": OBS - ACT + 1}, "index from 0 to 2"),
+                         (spec | {"residual": 1.0}, "index from 0 to 2"),
+                         ({k: v for k, v in spec.items() if k != "residual"}, "index from 0 to 2"),
+                         (spec | {"kind": "deterministic"}, "for the residual kind, not deterministic"),
+                         (spec | {"frame_stack": 2}, "from one float32 state")):
+        with pytest.raises(ValueError, match=message):
+            check_spec(bad)
+
+
+def test_td3_trains_a_residual_actor_and_targets_on_the_last_actions_of_their_own_observations():
+    config = small_config(residual=1, policy_delay=1, target_noise=0.0, gamma=0.5)
+    state = init_state(config, OBS, ACT, seed=20)
+    assert state.actor.spec["kind"] == "residual" and state.target_actor.spec["residual"] == 1
+    batch = residual_batch(seed=21)
+    expected = hand_target(state, batch, config, 0.5 * (1.0 - batch.terminated))  # the target's from next_obs
+    actor_before = copy.deepcopy(state.actor)
+    metrics, actions = actor_step_actions(state, batch, config)
+    torch.testing.assert_close(metrics["target_mean"], expected.mean())
+    with torch.no_grad():
+        torch.testing.assert_close(actions, actor_before(batch.obs))
+
+
 def test_the_command_line_builds_td3_s_settings():
     config = parse_settings(["--algo", "td3", "--n-step", "3", "--policy-delay", "4", "--noise-clip", "0.3",
                              "--exploration-std-start", "1.0", "--exploration-std-updates", "500", "--hidden", "64,64",

@@ -40,13 +40,16 @@ def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_in
     assert policy.spec["kind"] == "deterministic"
 
 
-def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path):
+@pytest.mark.parametrize("residual", [False, True])
+def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path, residual):
     out = tmp_path / "tuner.pt"
     run = l2r_photo("pretrain", "--out", str(out), "--env-id", COMPARE_ID, "--rounds", "1", "--episodes", "2",
-                    "--updates", "5", "--eval-episodes", "1", "--json")
+                    "--updates", "5", "--eval-episodes", "1", "--json", *(["--residual"] if residual else []))
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout)
     assert result["checkpoint"] == str(out) and result["env_id"] == COMPARE_ID
+    # The compare view's state: 2 x 25 image features, 40 compared, then the 9 parameters at 90.
+    assert result["residual_from"] == (90 if residual else None)
     assert "round 1/1: 20 observations" in run.stderr
     saved = load_checkpoint(out)
     assert saved.evaluation["score"] == "psnr" and saved.evaluation["mean_psnr"] == result["psnr_db"]
@@ -54,12 +57,14 @@ def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_s
     assert compared.returncode == 0, compared.stderr
     assert json.loads(compared.stdout)["policy_psnr_db"] is not None
     # l2r up's photo/td3 learner takes it as its policy: the same networks, the critics fresh.
-    args, _ = parse_args(["--env-id", COMPARE_ID, "--algo", "td3", "--init-from", str(out)])
+    args, _ = parse_args(["--env-id", COMPARE_ID, "--algo", "td3", "--init-from", str(out),
+                          *(["--learner-arg=--residual-from=90"] if residual else [])])
     learner = next(c for c in plan_children(args, "run", tmp_path / "run", [7447], 7448) if c.name == "learner")
     settings = learner_settings(learner.argv[3:])
     state = _initial_state(settings.learner(), settings.algorithm(), torch.device("cpu"))
     assert all(torch.equal(a, b) for a, b in zip(state.actor.state_dict().values(),
                                                  saved.policy().state_dict().values()))
+    assert state.actor.spec.get("residual") == result["residual_from"] == saved.policy_spec.get("residual")
 
 
 @pytest.mark.parametrize("argv, message", [
