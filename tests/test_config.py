@@ -5,10 +5,12 @@ failures at run time, and --version."""
 from __future__ import annotations
 
 import json
+import shutil
 import socket
 import subprocess
 import sys
 from importlib.metadata import version
+from pathlib import Path
 
 import pytest
 
@@ -131,6 +133,19 @@ def test_every_command_has_the_packages_version():
     for module, prog in (("l2r.replay", "l2r-replay"), ("l2r.learner", "l2r-learner"), ("l2r.actors", "l2r-actor")):
         result = run(module, "--version")
         assert (result.returncode, result.stdout) == (0, f"{prog} {expected}\n")
+
+
+def test_a_source_tree_never_installed_imports_with_its_pyproject_s_version(tmp_path):
+    # A copy of the package's root and pyproject.toml, no metadata beside them (a checkout's own
+    # l2r.egg-info, left by the editable install, would answer); -S: no site-packages either.
+    checkout = Path(__file__).resolve().parent.parent
+    (tmp_path / "l2r").mkdir()
+    shutil.copy(checkout / "l2r" / "__init__.py", tmp_path / "l2r")
+    shutil.copy(checkout / "pyproject.toml", tmp_path)
+    result = subprocess.run([sys.executable, "-S", "-c", f"import sys; sys.path.insert(0, {str(tmp_path)!r}); "
+                             "import l2r; print(l2r.__version__)"], capture_output=True, text=True, timeout=60,
+                            cwd=tmp_path)
+    assert (result.returncode, result.stdout) == (0, f"{version('l2r')}\n"), result.stderr
 
 
 @pytest.mark.parametrize("argv, message", [
