@@ -29,7 +29,7 @@ def one_thread():
 
 def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_input(one_thread):
     torch.manual_seed(0)
-    policy, evaluation = pretrain(PretrainConfig(rounds=2, episodes=6, updates=150, eval_episodes=4),
+    policy, evaluation = pretrain(PretrainConfig(env_id=STATS_ID, rounds=2, episodes=6, updates=150, eval_episodes=4),
                                   progress=lambda _line: None)
     episodes = Episodes(STATS_ID)
     untouched = [episodes.play(EVAL_SEED + i, lambda _obs, answer: np.zeros_like(answer), keep=False)
