@@ -91,13 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
                                         "--rounds above 1, over the policy's own noisy queries: DAgger); then write it "
                                         "as a "
                                         "policy checkpoint that `l2r photo compare` and `tune` run and `l2r up --algo "
-                                        "td3 --init-from` trains on: 22 minutes on 2 loaded CPU cores where TD3 took 34 "
+                                        "td3 --init-from` trains on: 14 minutes on 2 busy CPU cores where TD3 took 34 "
                                         "(docs/photo.md).")
     w.add_argument("--out", metavar="CK", type=Path, required=True, help="where the policy checkpoint goes")
     w.add_argument("--env-id", choices=tune.TUNE_IDS, default=defaults.env_id,
                    help=f"the task whose observations the policy takes (default: {defaults.env_id}, the "
                         f"statistics of both images and the two compared pixel for pixel; l2r/PhotoTuneStats-v0, the "
-                        f"statistics alone, did 0.8 dB better on other scenes' looks and 2.3 worse on random edits; "
+                        f"statistics alone, did 0.8 dB better on other scenes' looks and 2.3 worse on random edits "
+                        f"(3,000 episodes each); "
                         f"l2r/PhotoTune-v0's images train through convolutions, slowly on a CPU)")
     w.add_argument("--rounds", type=int, default=defaults.rounds,
                    help=f"rounds of episodes; each after the first adds half as many of the policy's own noisy "

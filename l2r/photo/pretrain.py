@@ -16,8 +16,8 @@ on two cores, and what the tuner learns does not depend on a critic's estimates:
 
 Rounds after the first were meant to teach the policy to refine its own queries; measured, the
 three of the old default cost it 2.0 dB on held-out random edits (0.5 gained on other scenes'
-looks), and one round of twice the episodes gained 0.9 dB more (docs/photo.md): the default is
-that one round.
+looks), and one round of more episodes gained more (0.9 dB from 1,500 to 3,000, 0.4 from 3,000 to
+6,000; docs/photo.md): the default is one round of 6,000.
 
 The networks are those of the photo/td3 recipe (l2r.recipes), so the policy checkpoint it
 writes is one `l2r photo compare`/`tune` run and `l2r up --algo td3 --init-from` starts from.
@@ -48,11 +48,11 @@ EVAL_SEED = 10**9
 class PretrainConfig:
     env_id: str = "l2r/PhotoTuneCompare-v0"
     """The comparison's tuner: 2.3 dB above the statistics' on held-out random edits, 0.8 below on
-    other scenes' looks (docs/photo.md)."""
+    other scenes' looks (one round of 3,000 episodes each, docs/photo.md)."""
     rounds: int = 1
-    episodes: int = 3000
+    episodes: int = 6000
     """Episodes of the first round (10 queries each); each later round adds half as many."""
-    updates: int = 12000
+    updates: int = 24000
     """Adam steps a round."""
     batch_size: int = 256
     lr: float = 1e-3
