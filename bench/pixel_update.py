@@ -15,6 +15,8 @@ Prints one JSON line. Figures:
   frames_to_500k_s            seconds the update alone needs for DrQ-v2's 500k frames (125,000 updates:
                               action repeat 2, an update every 2 env steps), at resident_updates_per_s
   peak_memory_mib             the device's peak allocation (CUDA only)
+  compile, warmup_s           how the update ran (--compile, resolved) and the seconds before timing
+                              (compilation and the CUDA graph's capture, where they run)
 On CPU the figures are seconds per update: use small --size and --batch-size for a smoke run.
 """
 
@@ -31,7 +33,7 @@ import torch
 
 from l2r.encoders import DRQ, IMAGE_VIEWS
 from l2r.learner.sac import batch_from_frames
-from l2r.learner.steps import GradientSteps
+from l2r.learner.steps import COMPILE_MODES, WARMUP_CALLS, GradientSteps
 from l2r.learner.td3 import TD3Config, init_state, update
 from l2r.protocol import ObservationSpec
 
@@ -97,6 +99,9 @@ def main() -> None:
                    help="the learner's --encoder: DrQ-v2's convolutions, or RLPixTuner's dual path "
                         "(default: %(default)s)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads (default: all)")
+    p.add_argument("--compile", choices=COMPILE_MODES, default="auto",
+                   help="how the update runs, as the learner's --compile (default: auto, inductor-graphs on CUDA "
+                        "and eager on CPU, as the learner daemon runs it)")
     args = p.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch sees no CUDA device")
@@ -104,7 +109,7 @@ def main() -> None:
     config = drqv2_config(args.batch_size, args.encoder)
     observation = ObservationSpec.parse(f"pixels: uint8[3, {args.size}, {args.size}]")
     state = init_state(config, observation, ACT_DIM, args.device, seed=0)
-    steps = GradientSteps(update, config, "off", args.device, policy_delay=config.policy_delay)
+    steps = GradientSteps(update, config, args.compile, args.device, policy_delay=config.policy_delay)
     batches = FramesBatches(args.size, args.batch_size, args.device)
     resident = batches.next()
 
@@ -115,14 +120,17 @@ def main() -> None:
         steps(state, resident)
 
     started = time.perf_counter()
-    for run_one in (fed, on_device):  # allocator, cuDNN's algorithm choice, lazy imports
-        rate(run_one, 3, args.device)
+    # Allocator, cuDNN's algorithm choice, lazy imports; compilation and the graph's capture after
+    # its WARMUP_CALLS eager calls.
+    for run_one in (fed, on_device):
+        rate(run_one, WARMUP_CALLS + 1, args.device)
+    warmup_s = time.perf_counter() - started
     rates: dict[str, list[float]] = {"fed": [], "resident": []}
     for _ in range(args.rounds):
         rates["fed"].append(rate(fed, args.updates, args.device))
         rates["resident"].append(rate(on_device, args.updates, args.device))
     result = {"bench": "pixel_update", "device": args.device, "torch": torch.__version__, "encoder": args.encoder,
-              "size": args.size,
+              "compile": steps.mode, "warmup_s": round(warmup_s, 1), "size": args.size,
               "frame_stack": STACK, "batch_size": args.batch_size, "hidden": list(config.hidden),
               "threads": args.threads, "cpu": platform.processor() or platform.machine(),
               "batch_frame_bytes": int(batches.frames[0].nbytes)}

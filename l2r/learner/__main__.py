@@ -329,8 +329,6 @@ class LearnerSettings(DaemonSettings):
         observation = self.spaces[0]
         if self.images and self.algo != "td3":
             raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
-        if self.images and self.compile not in ("auto", "off"):
-            raise UsageError(f"--compile {self.compile}: the update of image observations runs eagerly")
         if not self.images and (self.augment_pad or self.encoder != DRQ):
             raise UsageError(f"--augment-pad and --encoder are for image observations, not {observation}")
         if (self.frame_stack or 1) > 1 and self.algo not in ("sac", "td3"):

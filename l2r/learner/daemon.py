@@ -192,9 +192,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     device = select_device(config.device, config.rank)
-    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), the
-    # on-policy algorithms loop over their own steps, and image batches (maps of fields) are not captured yet.
-    eager = config.world_size > 1 or algorithm_of(algo) in ON_POLICY or config.observation is not None
+    # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), and
+    # the on-policy algorithms loop over their own steps.
+    eager = config.world_size > 1 or algorithm_of(algo) in ON_POLICY
     config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
     if config.observation is not None:
         reuse_large_buffers()  # before Zenoh's threads start: batches of frames are 20-30 MB each

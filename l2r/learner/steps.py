@@ -21,6 +21,7 @@ What an update must do to be compiled and captured (`sac.update` and `td3.update
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Callable
 
 import torch
@@ -134,21 +135,37 @@ class _Graph:
     """A CUDA graph of `steps(batch)` on static copies of a batch's tensors."""
 
     def __init__(self, steps: Callable, batch):
-        self.static = dataclasses.replace(batch, **{name: value.clone() for name, value in _fields(batch)})
+        self.static = _cloned(batch)
         self.graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(self.graph):  # records the kernels; nothing runs until replay
             self.metrics = steps(self.static)
 
     def replay(self, batch) -> dict[str, torch.Tensor]:
-        for name, value in _fields(batch):
-            getattr(self.static, name).copy_(value, non_blocking=True)
+        # The same fields in the same order: the graph's key holds their names and shapes.
+        for (_, static), (_, value) in zip(_fields(self.static), _fields(batch)):
+            static.copy_(value, non_blocking=True)
         self.graph.replay()
         return self.metrics
 
 
+def _cloned(batch):
+    """The batch with a copy of each tensor, an image batch's observation maps field by field."""
+    def cloned(value):
+        return {key: field.clone() for key, field in value.items()} if isinstance(value, Mapping) else value.clone()
+    return dataclasses.replace(batch, **{f.name: cloned(getattr(batch, f.name)) for f in dataclasses.fields(batch)
+                                         if isinstance(getattr(batch, f.name), (torch.Tensor, Mapping))})
+
+
 def _fields(batch) -> list[tuple[str, torch.Tensor]]:
-    return [(f.name, getattr(batch, f.name)) for f in dataclasses.fields(batch)
-            if isinstance(getattr(batch, f.name), torch.Tensor)]
+    """The batch's tensors by name; an image batch's observations are maps of fields ("obs.pixels")."""
+    fields = []
+    for f in dataclasses.fields(batch):
+        value = getattr(batch, f.name)
+        if isinstance(value, torch.Tensor):
+            fields.append((f.name, value))
+        elif isinstance(value, Mapping):
+            fields += [(f"{f.name}.{key}", field) for key, field in value.items()]
+    return fields
 
 
 def _shape(batch) -> tuple:
