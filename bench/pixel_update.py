@@ -33,7 +33,7 @@ import torch
 
 from l2r.encoders import DRQ, IMAGE_VIEWS
 from l2r.learner.sac import batch_from_frames
-from l2r.learner.steps import COMPILE_MODES, WARMUP_CALLS, GradientSteps
+from l2r.learner.steps import COMPILE_MODES, WARMUP_CALLS, GradientSteps, resolve_mode
 from l2r.learner.td3 import TD3Config, init_state, update
 from l2r.protocol import ObservationSpec
 
@@ -100,8 +100,8 @@ def main() -> None:
                         "(default: %(default)s)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads (default: all)")
     p.add_argument("--compile", choices=COMPILE_MODES, default="auto",
-                   help="how the update runs, as the learner's --compile (default: auto, inductor-graphs on CUDA "
-                        "and eager on CPU, as the learner daemon runs it)")
+                   help="how the update runs (default: auto, as the learner daemon runs it: graphs on CUDA, eager on "
+                        "CPU; the learner refuses the inductor modes for images, timed here all the same)")
     args = p.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch sees no CUDA device")
@@ -109,7 +109,8 @@ def main() -> None:
     config = drqv2_config(args.batch_size, args.encoder)
     observation = ObservationSpec.parse(f"pixels: uint8[3, {args.size}, {args.size}]")
     state = init_state(config, observation, ACT_DIM, args.device, seed=0)
-    steps = GradientSteps(update, config, args.compile, args.device, policy_delay=config.policy_delay)
+    mode = resolve_mode(args.compile, torch.device(args.device), images=True)
+    steps = GradientSteps(update, config, mode, args.device, policy_delay=config.policy_delay)
     batches = FramesBatches(args.size, args.batch_size, args.device)
     resident = batches.next()
 

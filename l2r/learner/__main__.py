@@ -90,8 +90,8 @@ class LearnerSettings(DaemonSettings):
         "auto", "how SAC's and TD3's update runs: off (eager, one kernel launch per operation); graphs (its "
         "update-repeat updates captured as one CUDA graph, replayed per batch; CUDA only, needs no compiler); inductor "
         "(torch.compile's fused kernels; a C++ compiler on CPU, Triton on CUDA; compiles for a minute or more at "
-        "start); inductor-graphs (both, CUDA); auto = inductor-graphs on CUDA (graphs without Triton), off on CPU "
-        "(docs/learner.md)",
+        "start); inductor-graphs (both, CUDA); auto = inductor-graphs on CUDA (graphs without Triton, and for "
+        "image observations, which refuse inductor), off on CPU (docs/learner.md)",
         group=PROCESS)
     obs_dim: int = setting(41, "width of the float32 vector observation, when --observation and --env-id are not "
                            "given", group=PROCESS, ge=1)
@@ -329,6 +329,9 @@ class LearnerSettings(DaemonSettings):
         observation = self.spaces[0]
         if self.images and self.algo != "td3":
             raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
+        if self.images and self.compile.startswith("inductor"):
+            raise UsageError(f"--compile {self.compile}: the image update compiled by inductor trained apart from "
+                             "eager on a GPU (docs/learner.md); graphs (or auto) captures it as CUDA graphs")
         if not self.images and (self.augment_pad or self.encoder != DRQ):
             raise UsageError(f"--augment-pad and --encoder are for image observations, not {observation}")
         if (self.frame_stack or 1) > 1 and self.algo not in ("sac", "td3"):

@@ -195,7 +195,8 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
     # Data-parallel ranks run the update eagerly (their gradient all-reduce is not captured), and
     # the on-policy algorithms loop over their own steps.
     eager = config.world_size > 1 or algorithm_of(algo) in ON_POLICY
-    config = replace(config, compile=resolve_mode("off" if eager else config.compile, device))
+    config = replace(config, compile=resolve_mode("off" if eager else config.compile, device,
+                                                  images=config.observation is not None))
     if config.observation is not None:
         reuse_large_buffers()  # before Zenoh's threads start: batches of frames are 20-30 MB each
     stop = threading.Event()

@@ -238,9 +238,11 @@ def test_the_command_line_takes_the_observation_and_defaults_to_drq_v2_s_stack_a
     assert settings.learner().observation == PIXELS
     vector = parse_settings(["--algo", "td3", "--obs-dim", "7"])
     assert vector.learner().observation is None and vector.learner().obs_dim == 7 and vector.td3().frame_stack == 1
-    compiled = parse_settings(["--algo", "td3", "--compile", "inductor", "--observation", str(PIXELS)])
-    assert compiled.learner().compile == "inductor"  # image updates compile and capture as the vector's do
+    captured = parse_settings(["--algo", "td3", "--compile", "graphs", "--observation", str(PIXELS)])
+    assert captured.learner().compile == "graphs"  # image updates are captured as CUDA graphs
     for argv, message in ((["--algo", "sac", "--observation", str(PIXELS)], "train with --algo td3"),
+                          (["--algo", "td3", "--compile", "inductor-graphs", "--observation", str(PIXELS)],
+                           "apart from eager"),
                           (["--algo", "td3", "--augment-pad", "3"], "for image observations"),
                           (["--algo", "td3", "--env-id", "Hopper-v5", "--observation", str(PIXELS)], "give one")):
         with pytest.raises(UsageError, match=message):

@@ -63,11 +63,11 @@ CUDA_MODES = [("cuda", "graphs", CUDA), ("cuda", "inductor", CUDA, pytest.mark.c
               ("cuda", "inductor-graphs", CUDA, pytest.mark.compile)]
 
 
-# DrQ-v2's update compiles on a CPU too (it passed here once), but its convolutions take inductor
-# minutes on 2 cores with a cold cache: the suite checks it where it is meant to run, on CUDA.
+# DrQ-v2's update is captured as eager's kernels (graphs): inductor's kept eager's losses on a CPU but
+# not on an H200 (2026-11-27), and the learner refuses it for images.
 @pytest.mark.parametrize("setup, device, mode",
                          [case(setup, *mode) for setup in (sac_setup, td3_setup) for mode in (CPU_INDUCTOR, *CUDA_MODES)]
-                         + [case(drqv2_setup, *mode) for mode in CUDA_MODES])
+                         + [case(drqv2_setup, *CUDA_MODES[0])])
 def test_compiled_steps_train_as_the_eager_ones(setup, device, mode):
     # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once;
     # normalised inputs, whose statistics change outside the update (in prepare) between calls;
@@ -126,6 +126,8 @@ def test_steps_count_the_updates_of_their_one_state():
 def test_auto_captures_graphs_on_cuda_compiled_where_triton_is_and_graphs_need_cuda(monkeypatch):
     monkeypatch.setattr(steps_module, "has_triton", lambda: True)
     assert resolve_mode("auto", torch.device("cuda")) == "inductor-graphs"
+    assert resolve_mode("auto", torch.device("cuda"), images=True) == "graphs"
+    assert resolve_mode("auto", torch.device("cpu"), images=True) == "off"
     monkeypatch.setattr(steps_module, "has_triton", lambda: False)
     assert resolve_mode("auto", torch.device("cuda")) == "graphs"
     assert resolve_mode("auto", torch.device("cpu")) == "off"
