@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 
 import numpy as np
 import torch
 
+from env_speed import cpu_flags, cpu_model  # this folder's: the same machine record as the other figures
 from l2r.encoders import DRQ, IMAGE_VIEWS
 from l2r.learner.sac import batch_from_frames
 from l2r.learner.steps import COMPILE_MODES, WARMUP_CALLS, GradientSteps, resolve_mode
@@ -133,7 +133,7 @@ def main() -> None:
     result = {"bench": "pixel_update", "device": args.device, "torch": torch.__version__, "encoder": args.encoder,
               "compile": steps.mode, "warmup_s": round(warmup_s, 1), "size": args.size,
               "frame_stack": STACK, "batch_size": args.batch_size, "hidden": list(config.hidden),
-              "threads": args.threads, "cpu": platform.processor() or platform.machine(),
+              "threads": args.threads, "cpu": cpu_model(), "cpu_flags": cpu_flags(),
               "batch_frame_bytes": int(batches.frames[0].nbytes)}
     if args.device == "cuda":
         result["gpu"] = torch.cuda.get_device_name()
