@@ -17,7 +17,8 @@ on two cores, and what the tuner learns does not depend on a critic's estimates:
 Rounds after the first were meant to teach the policy to refine its own queries; measured, the
 three of the old default cost it 2.0 dB on held-out random edits (0.5 gained on other scenes'
 looks), and one round of more episodes gained more (0.9 dB from 1,500 to 3,000, 0.4 from 3,000 to
-6,000; docs/photo.md): the default is one round of 6,000.
+6,000, 1.7 from 6,000 to 12,000 over three seeds' medians; docs/photo.md): the default is one
+round of 12,000.
 
 The networks are those of the photo/td3 recipe (l2r.recipes), so the policy checkpoint it
 writes is one `l2r photo compare`/`tune` run and `l2r up --algo td3 --init-from` starts from.
@@ -50,9 +51,9 @@ class PretrainConfig:
     """The comparison's tuner: 2.3 dB above the statistics' on held-out random edits, 0.8 below on
     other scenes' looks (one round of 3,000 episodes each, docs/photo.md)."""
     rounds: int = 1
-    episodes: int = 6000
+    episodes: int = 12000
     """Episodes of the first round (10 queries each); each later round adds half as many."""
-    updates: int = 24000
+    updates: int = 48000
     """Adam steps a round."""
     batch_size: int = 256
     lr: float = 1e-3
