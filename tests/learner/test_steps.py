@@ -23,7 +23,8 @@ COMPILER = pytest.mark.skipif(not (shutil.which("c++") or shutil.which("g++")),
 def vector_batch(call: int, device: str) -> sac.Batch:
     rng = np.random.default_rng(call)
     return sac.batch_from_numpy(rng.normal(size=(32, OBS)), rng.random((32, ACT)), rng.normal(size=32),
-                                rng.normal(size=(32, OBS)), rng.random(32) < 0.2, rng.random(32), device, rng.random(32))
+                                rng.normal(size=(32, OBS)), rng.random(32) < 0.2, rng.random(32), device,
+                                rng.random(32))
 
 
 def image_batch(call: int, device: str) -> sac.Batch:
@@ -46,7 +47,8 @@ def td3_setup():
     # 3 updates a batch with an actor step every 2nd: two patterns of actor steps, alternating.
     return td3, td3_config(hidden=(16,), batch_size=32, tau=0.25, actor_lr=1e-2, critic_lr=1e-2,
                            normalize_obs=True, update_repeat=3, policy_delay=2, target_noise=None,
-                           exploration_std_start=1.0, exploration_std_end=0.1, exploration_std_updates=60), OBS, vector_batch
+                           exploration_std_start=1.0, exploration_std_end=0.1,
+                           exploration_std_updates=60), OBS, vector_batch
 
 
 def drqv2_setup():
@@ -66,8 +68,8 @@ CUDA_MODES = [("cuda", "graphs", CUDA), ("cuda", "inductor", CUDA, pytest.mark.c
 # DrQ-v2's update is captured as eager's kernels (graphs): inductor's kept eager's losses on a CPU but
 # not on an H200 (2026-11-27), and the learner refuses it for images.
 @pytest.mark.parametrize("setup, device, mode",
-                         [case(setup, *mode) for setup in (sac_setup, td3_setup) for mode in (CPU_INDUCTOR, *CUDA_MODES)]
-                         + [case(drqv2_setup, *CUDA_MODES[0])])
+                         [case(setup, *mode) for setup in (sac_setup, td3_setup)
+                          for mode in (CPU_INDUCTOR, *CUDA_MODES)] + [case(drqv2_setup, *CUDA_MODES[0])])
 def test_compiled_steps_train_as_the_eager_ones(setup, device, mode):
     # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once;
     # normalised inputs, whose statistics change outside the update (in prepare) between calls;
