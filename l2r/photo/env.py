@@ -180,6 +180,10 @@ class PhotoTuneEnv(gym.Env):
         "comparison" (those and `comparison_features` of the current image against the goal).
     goals: "random" (RLPixTuner's FiveK-Random), "looks" (another scene's look; the tuner's task alone)
         or "mixed" (either, drawn with even odds each episode: a tuner trained on both).
+    source_variety: each random goal's input crop first flipped left-right with even odds and
+        finished with random parameters within this fraction of each one's range about neutral
+        (0: the photo's own crop; at most 1), so that a few training photos show many colourings
+        and exposures; the goal is then that varied input finished with the hidden parameters.
     """
 
     metadata = {"render_modes": []}
@@ -190,7 +194,8 @@ class PhotoTuneEnv(gym.Env):
     goal_kinds = GOALS
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
-                 sources: Mapping[str, np.ndarray] | None = None, view: str = "images", goals: str = "random"):
+                 sources: Mapping[str, np.ndarray] | None = None, view: str = "images", goals: str = "random",
+                 source_variety: float = 0.0):
         photos.check_split(split)
         if view not in VIEWS:
             raise ValueError(f"{self.task}: view must be one of {', '.join(VIEWS)}, got {view!r}")
@@ -202,7 +207,11 @@ class PhotoTuneEnv(gym.Env):
             raise ValueError(f"{self.task}: view 'comparison' compares the image with a goal the task does not show")
         if sources is not None and not sources:
             raise ValueError(f"{self.task}: sources holds no photo")
+        if isinstance(source_variety, bool) or not isinstance(source_variety, (int, float)) \
+                or not 0.0 <= source_variety <= 1.0:
+            raise ValueError(f"{self.task}: source_variety must be a number in [0, 1], got {source_variety!r}")
         self.split, self.max_steps, self.view, self.goals = split, max_steps, view, goals
+        self.source_variety = float(source_variety)
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
@@ -257,12 +266,22 @@ class PhotoTuneEnv(gym.Env):
         names = list(self.loaded())
         for _ in range(MAX_DRAWS):
             name = names[int(self.np_random.integers(len(names)))]
-            crop = photos.random_crop(self.photos[name], self.np_random)
+            crop = self.varied(photos.random_crop(self.photos[name], self.np_random))
             params = params_from_actions(self.np_random.uniform(-1.0, 1.0, len(PARAMETERS)))
             edited = finish(crop[None], params)[0]
             if not collapsed(crop) and not collapsed(edited):
                 return name, crop, params, edited
         raise RuntimeError(f"{MAX_DRAWS} crops of the {self.split} photos and their edits in a row were collapsed")
+
+    def varied(self, crop: np.ndarray) -> np.ndarray:
+        """The crop as `source_variety` says: itself at 0, else flipped left-right with even odds and
+        finished with random actions uniform within ± source_variety."""
+        if not self.source_variety:
+            return crop
+        if self.np_random.random() < 0.5:
+            crop = np.ascontiguousarray(crop[:, :, ::-1])
+        actions = self.np_random.uniform(-self.source_variety, self.source_variety, len(PARAMETERS))
+        return finish(crop[None], params_from_actions(actions))[0]
 
     def borrowed_look(self) -> tuple[str, np.ndarray, str, np.ndarray]:
         """A photo of the split by name, a random crop of it, a photo of another scene by name, and

@@ -154,6 +154,31 @@ def test_the_hidden_parameters_reach_the_goal(env):
     assert psnr_db(np.zeros((1, 3, 2, 2)), np.ones((1, 3, 2, 2))).tolist() == [0.0]
 
 
+def test_varied_sources_are_other_inputs_whose_goals_the_hidden_parameters_still_reach():
+    plain = gymnasium.make("l2r/PhotoTune-v0").unwrapped
+    none = gymnasium.make("l2r/PhotoTune-v0", source_variety=0.0).unwrapped
+    varied = gymnasium.make("l2r/PhotoTune-v0", source_variety=0.5).unwrapped
+    flipped = 0
+    for seed in range(8):
+        plain.reset(seed=seed), none.reset(seed=seed), varied.reset(seed=seed)
+        np.testing.assert_array_equal(none.source, plain.source)  # 0: the photo's own crop, as before
+        np.testing.assert_array_equal(none.goal, plain.goal)
+        # The same photo and crop are drawn first; the input is then flipped or refinished.
+        assert varied.photo_name == plain.photo_name and not np.allclose(varied.source, plain.source)
+        np.testing.assert_array_equal(finish(varied.source[None], varied.goal_params)[0], varied.goal)
+        # A flip shows in the edges: the varied input's left column is then the crop's right one, refinished.
+        left, right = (np.corrcoef(varied.source[:, :, 0].ravel(), plain.source[:, :, col].ravel())[0, 1]
+                       for col in (0, -1))
+        flipped += right > left
+        again = varied.source.copy()
+        varied.reset(seed=seed)
+        np.testing.assert_array_equal(varied.source, again)
+    assert 2 <= flipped <= 6  # even odds over 8 seeds
+    for bad in (-0.1, 1.5, True, "0.5"):
+        with pytest.raises(ValueError, match="source_variety must be a number in"):
+            gymnasium.make("l2r/PhotoTune-v0", source_variety=bad)
+
+
 def test_an_episode_is_ten_queries(env):
     env.reset(seed=4)
     for step in range(1, 11):

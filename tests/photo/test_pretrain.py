@@ -44,10 +44,11 @@ def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_in
 def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path, residual):
     out = tmp_path / "tuner.pt"
     run = l2r_photo("pretrain", "--out", str(out), "--env-id", COMPARE_ID, "--rounds", "1", "--episodes", "2",
-                    "--updates", "5", "--eval-episodes", "1", "--json", *(["--residual"] if residual else []))
+                    "--updates", "5", "--eval-episodes", "1", "--source-variety", "0.3", "--json",
+                    *(["--residual"] if residual else []))
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout)
-    assert result["checkpoint"] == str(out) and result["env_id"] == COMPARE_ID
+    assert result["checkpoint"] == str(out) and result["env_id"] == COMPARE_ID and result["source_variety"] == 0.3
     # The compare view's state: 2 x 25 image features, 40 compared, then the 9 parameters at 90.
     assert result["residual_from"] == (90 if residual else None)
     assert "round 1/1: 20 observations" in run.stderr
@@ -70,6 +71,7 @@ def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_s
 @pytest.mark.parametrize("argv, message", [
     (["--out", "/nonexistent/tuner.pt"], "/nonexistent: no such directory for --out"),
     (["--out", "x.pt", "--rounds", "0"], "rounds, episodes, updates, batch_size and eval_episodes must be at least 1"),
+    (["--out", "x.pt", "--source-variety", "1.5"], "source_variety must be in [0, 1], got 1.5"),
 ])
 def test_the_command_says_in_one_line_what_is_wrong(argv, message):
     run = l2r_photo("pretrain", *argv)
