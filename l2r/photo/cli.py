@@ -114,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--source-variety", type=float, default=defaults.source_variety, metavar="FRACTION",
                    help="each training crop flipped at random and finished with random actions within ± FRACTION "
                         "before its hidden edit, so that the few training photos show many colourings (0: off; "
-                        "default: %(default)s, 2.0 dB better held out at seed 2)")
+                        "default: %(default)s, which held the three seeds' held-out results within 0.5 dB)")
     w.add_argument("--residual", action="store_true",
                    help="each query a change to the last one's parameters (a residual head: a query nearly right "
                         "stays so); TD3 trains on from it with --learner-arg=--residual-from=N, N as the run prints")
