@@ -169,7 +169,13 @@ def make_task(env_id: str, difficulty: int = 0, seed: int | None = None,
     if family_of(env_id) == RUNNER:
         options = {"randomize": randomize} if randomize else {}  # the OpenSim env takes no randomize
         return gymnasium.make(env_id, difficulty=difficulty, seed=seed, **options)
-    env = gymnasium.make(env_id, **image_size_option(env_id, image_size), **photo_goals_option(env_id, photo_goals))
+    return unit_actions(gymnasium.make(env_id, **image_size_option(env_id, image_size),
+                                       **photo_goals_option(env_id, photo_goals)))
+
+
+def unit_actions(env: gymnasium.Env) -> gymnasium.Env:
+    """The env, rescaled where its Box actions are not [0, 1] already so that it takes the policy's
+    [0, 1] excitations."""
     if not (np.all(env.action_space.low == 0.0) and np.all(env.action_space.high == 1.0)):
         bound = env.action_space.dtype.type  # (Python floats would make gymnasium warn of a float64 bound)
         env = RescaleAction(env, bound(0.0), bound(1.0))

@@ -100,15 +100,13 @@ class Episodes:
 
     def __init__(self, env_id: str, source_variety: float = 0.0):
         import gymnasium
-        from gymnasium.wrappers import RescaleAction
 
+        from l2r.actors.actor import unit_actions
         from l2r.actors.frame_stack import FrameStack
         from l2r.protocol import ObservationSpec
 
         self.env_id = env_id
-        # Queries in [0, 1], as actors send them (`l2r.actors.actor.make_task`).
-        self.env = RescaleAction(gymnasium.make(env_id, goals="random", source_variety=source_variety),
-                                 np.float32(0.0), np.float32(1.0))
+        self.env = unit_actions(gymnasium.make(env_id, goals="random", source_variety=source_variety))
         self.spec = ObservationSpec.from_space(self.env.observation_space)
         self.frames = FrameStack(self.spec, 1, 1)
         self.observations: list = []
