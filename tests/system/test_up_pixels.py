@@ -21,7 +21,7 @@ def test_a_camera_task_trains_on_stacked_frames_and_its_checkpoint_evaluates(tmp
     proc = l2r_up(tmp_path / "up.out", "--env-id", CAMERA, "--algo", "td3", "--recipe", "pixels", "--env-steps", "300",
                   "--seconds", "300", "--name", name, "--runs-dir", str(tmp_path), "--hidden", "32,32",
                   "--batch-size", "16", "--samples-per-insert", "4", "--random-steps", "100", "--min-replay", "100",
-                  "--publish-every", "5", "--eval-episodes", "2", "--eval-interval", "3", "--status-interval", "2",
+                  "--publish-every", "5", "--eval-episodes", "2", "--eval-interval", "0", "--status-interval", "2",
                   "--learner-arg=--checkpoint-interval=3")
     out = finish(proc, tmp_path / "up.out", 300)
     assert proc.returncode == 0, out
@@ -35,8 +35,10 @@ def test_a_camera_task_trains_on_stacked_frames_and_its_checkpoint_evaluates(tmp
     # The actor's warm-up ran its course, then it acted on stacks with the learner's image policy.
     assert "warm-up over after 100 random steps" in (logs / "actor-0.log").read_text()
     assert "bad_spec" not in (logs / "actor-0.log").read_text() + (logs / "evaluator-0.log").read_text()
+    # Every round reached l2r up, the first too (sent as the evaluator joins), and a trained image
+    # policy was among them (each new version is evaluated: --eval-interval 0).
     evaluated = [int(r["version"]) for r in rows(run_dir / "metrics" / "evaluation.csv")]
-    assert evaluated and max(evaluated) > 1, evaluated  # a trained image policy was evaluated
+    assert evaluated[:2] == [1, 1] and max(evaluated) > 1, evaluated
 
     ev = subprocess.run([sys.executable, "-m", "l2r.cli", "eval", str(run_dir), "--env-id", CAMERA, "--episodes", "1",
                          "--json"], cwd=ROOT, capture_output=True, text=True, timeout=120)
