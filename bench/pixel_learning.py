@@ -1,12 +1,13 @@
-"""DrQ-v2 through `l2r up` on a camera task, on this host, against DrQ-v2's published curve at the same frames.
+"""DrQ-v2 (or DrQ) through `l2r up` on a camera task, on this host, against DrQ-v2's published curve at the same frames.
 
     python bench/pixel_learning.py                                    # cartpole-swingup, 48 x 48 frames, one hour
     python bench/pixel_learning.py --task cartpole-balance            # the same on cartpole-balance
+    python bench/pixel_learning.py --task cartpole-balance --algo sac # DrQ: SAC's pixels recipe
     python bench/pixel_learning.py --image-size 84 --batch-size 256 --seconds 1200   # DrQ-v2's own sizes (a GPU)
     python bench/pixel_learning.py --run-dir RUN --plot docs/pixel_curve.png         # a run already made
 
 The job is `l2r up --env-id l2r/dmc-<task>-v0 --algo td3` (the pixels recipe, DrQ-v2's
-values) with `--image-size`, `--batch-size` and `--samples-per-insert` half the batch, so that the
+values; `--algo sac`, DrQ's) with `--image-size`, `--batch-size` and `--samples-per-insert` half the batch, so that the
 learner makes one update per 2 env steps whatever the batch, as DrQ-v2 does. On a CPU DrQ-v2's
 update at 84 x 84 and batch 256 makes about 0.9 updates/s on 2 threads (bench/pixel_update.py),
 a tenth of what an hour's learning needs; 48 x 48 frames and batches of 128 make about 4 on
@@ -63,8 +64,8 @@ DRQV2 = {
 
 
 def run_job(args: argparse.Namespace) -> Path:
-    name = f"{args.task}-{args.image_size}px"
-    subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--env-id", f"l2r/dmc-{args.task}-v0", "--algo", "td3",
+    name = f"{args.task}-{args.algo}-{args.image_size}px"
+    subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--env-id", f"l2r/dmc-{args.task}-v0", "--algo", args.algo,
                     "--image-size", str(args.image_size), "--batch-size", str(args.batch_size),
                     "--samples-per-insert", str(args.batch_size / 2), "--seconds", str(args.seconds),
                     "--eval-episodes", "5", "--eval-interval", str(args.eval_interval), "--seed", str(args.seed),
@@ -99,7 +100,7 @@ def summary(run_dir: Path) -> dict:
             at[milestone] = {"l2r_eval": round(reached[-1], 1), "drqv2_median": median, "drqv2_mean": mean,
                              "drqv2_range": [lowest, highest]}
     seconds = max(done["time"], 1e-9)
-    return {"bench": "pixel_learning", "run_dir": str(run_dir), "env_id": launch["env_id"],
+    return {"bench": "pixel_learning", "run_dir": str(run_dir), "env_id": launch["env_id"], "algo": launch["algo"],
             "image_size": launch.get("image_size"), "batch_size": launch.get("batch_size"),
             "seconds": round(done["time"], 1), "frames": frames, "frames_per_s": round(frames / seconds, 1),
             "updates": done["updates"], "updates_per_s": round(done["updates"] / seconds, 2),
@@ -130,7 +131,7 @@ def plot(run_dir: Path, out: Path) -> None:
     rounds = np.array(evaluation_rounds(run_dir))
     if len(rounds):
         ax.plot(rounds[:, 0], rounds[:, 1], "o-", color="tab:blue", label="l2r: evaluation (5 episodes)")
-    ax.set_title(f"{task_of(launch)} from pixels: l2r {launch.get('image_size') or 84} x "
+    ax.set_title(f"{task_of(launch)} from pixels: l2r {launch['algo'].upper()} {launch.get('image_size') or 84} x "
                  f"{launch.get('image_size') or 84}, batch {launch.get('batch_size')}")
     ax.set_xlabel("frames (suite steps)")
     ax.set_ylabel("episode return")
@@ -144,6 +145,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run-dir", type=Path, help="summarise this run instead of running one")
     p.add_argument("--task", choices=tuple(DRQV2), default="cartpole-swingup", help="the suite task (default: %(default)s)")
+    p.add_argument("--algo", choices=("td3", "sac"), default="td3",
+                   help="td3: DrQ-v2's recipe (pixels/td3); sac: DrQ's (pixels/sac) (default: %(default)s)")
     p.add_argument("--image-size", type=int, default=48, help="frames' side in pixels (default: %(default)s)")
     p.add_argument("--batch-size", type=int, default=128, help="transitions per update (default: %(default)s)")
     p.add_argument("--seconds", type=float, default=3600, help="the job's time budget (default: %(default)s)")

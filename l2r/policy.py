@@ -351,15 +351,23 @@ class Policy(PolicyNetwork):
     def __init__(self, spec: Mapping):
         super().__init__(spec, outputs=2)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, log_std = self.head_output(obs).chunk(2, dim=-1)
+    def forward(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.distribution_of(self.embed(obs))
+
+    def distribution_of(self, embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-std of the pre-tanh Gaussian of an observation embedded (`embed`)."""
+        mean, log_std = self.head_output_of(embedding).chunk(2, dim=-1)
         # Squash log-std smoothly into its bounds so gradients never vanish at a hard clip.
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mean, log_std
 
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def sample(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterised action in (-1, 1) and its log-probability (summed over dims)."""
-        mean, log_std = self(obs)
+        return self.sample_of(self.embed(obs))
+
+    def sample_of(self, embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`sample` of an observation embedded (`embed`): a learner embeds a batch once for all networks."""
+        mean, log_std = self.distribution_of(embedding)
         std = log_std.exp()
         noise = torch.randn_like(mean)
         pre_tanh = mean + std * noise

@@ -210,6 +210,19 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
         # action_repeat 1: the camera task itself holds each action for DrQ-v2's 2 suite steps.
         random_steps=2_000, envs_per_actor=1, action_repeat=1, encoder="drq",
     ),
+    # DrQ's (Kostrikov, Yarats and Fergus, 2021; its repository's config.yaml), SAC on the camera tasks:
+    # 1024-wide networks, learning rate 1e-3, tau 0.01, a cool start (temperature 0.1) towards SAC's
+    # entropy target, batches of 512 (the paper's), one update per env step, learning after 1,000
+    # uniform random steps; the learner's image defaults add its frame stack of 3 and shifts of 4
+    # pixels. l2r's: the actor and the targets every update (DrQ's every 2nd), the encoder's conv
+    # layers shared as DrQ-v2 shares them (no target encoder).
+    (PIXELS, "sac"): dict(
+        hidden="1024,1024", activation="relu", layer_norm=False, batch_size=512, lr=1e-3, gamma=0.99, tau=0.01,
+        reward_scale=1.0, initial_alpha=0.1, target_entropy_per_action=-1.0, update_repeat=1, publish_every=10,
+        relative_x=False, normalize_obs=False, mirror=False,
+        min_replay=1_000, samples_per_insert=512.0, hold_actors=True,
+        random_steps=1_000, envs_per_actor=1, action_repeat=1, encoder="drq",
+    ),
     # The pixels recipe made RLPixTuner's where its training script (bash/train.sh, envs/run_sb3.py)
     # says: the discount 0.9, tau 0.007 (its EMA rate 0.993), the exploration std 0.02, the
     # target's noise 0.04 clipped at 0.01 (a quarter of it), the actor every 2nd update and
@@ -326,9 +339,9 @@ SETTINGS: dict[str, str] = {
                      "task (stored in checkpoints for `l2r eval`)",
     "frame_stack": "observations stacked into each input, oldest first: a camera task's frames, or the vector's "
                    "history (SAC, TD3; unset: the learner's 3 for images)",
-    "augment_pad": "image observations: pixels of DrQ's random shift (TD3; 0: none; unset: the learner's 4)",
+    "augment_pad": "image observations: pixels of DrQ's random shift (SAC, TD3; 0: none; unset: the learner's 4)",
     "encoder": "image observations: the encoder of each image field, drq (DrQ-v2's convolutions) or dual "
-               "(RLPixTuner's global and local paths, images of 32 x 32 or more; l2r-learner --help) (TD3)",
+               "(RLPixTuner's global and local paths, images of 32 x 32 or more; l2r-learner --help) (SAC, TD3)",
 }
 # Settings whose values are one of a few names.
 CHOICES: dict[str, tuple[str, ...]] = {"activation": tuple(ACTIVATIONS), "lag_correction": LAG_CORRECTIONS,

@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "replay server and learner then take its observation spec, the job trains with the standard "
                         "recipe, and the runner's own options are off: --relative-x, --mirror, the actors' blow-up "
                         "check); or a camera task, l2r/dmc-<domain>-<task>-v0 such as l2r/dmc-cartpole-swingup-v0 "
-                        "(84 x 84 frames, DrQ-v2's pixels recipe, --algo td3); or the photo tuner l2r/PhotoTune-v0 "
+                        "(84 x 84 frames, --algo td3: DrQ-v2's pixels recipe, --algo sac: DrQ's); or the photo tuner l2r/PhotoTune-v0 "
                         "(RLPixTuner's photo recipe, --algo td3, scored by PSNR in dB), or the photo enhancer "
                         "l2r/PhotoEnhanceStats-v0 (--algo ppo, the photo/ppo recipe, scored by PSNR in dB)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
@@ -447,9 +447,9 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
             observation, _ = task_spaces(args.env_id, args.image_size)
         except ValueError as e:
             parser.error(f"--env-id {args.env_id}: {e}")
-        if observation.vector_width is None and args.algo != "td3":
+        if observation.vector_width is None and args.algo not in ("sac", "td3"):
             parser.error(f"--env-id {args.env_id}: its observation is {observation}; images train with --algo td3 "
-                         f"(DrQ-v2), not {args.algo}")
+                         f"(DrQ-v2) or sac (DrQ), not {args.algo}")
     family = args.recipe or family_of(args.env_id)
     if (family, args.algo) not in RECIPES:
         parser.error(f"there is no {family} recipe for --algo {args.algo}; {family}'s: "

@@ -98,7 +98,7 @@ class LearnerSettings(DaemonSettings):
     observation: str | None = setting(
         None, "the observation the networks take, as l2r-replay's --observation: fields 'name: dtype[shape]' "
         "separated by commas, e.g. 'pixels: uint8[3, 84, 84]'; image fields (uint8[C, H, W]) train with --algo td3 "
-        "through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack frames. Default: "
+        "(DrQ-v2) or sac (DrQ) through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack frames. Default: "
         "'state: float32[<obs-dim>]'",
         group=PROCESS, metavar="SPEC")
     env_id: str | None = setting(None, "take the observation (as --observation) and --act-dim from the spaces of this "
@@ -235,14 +235,14 @@ class LearnerSettings(DaemonSettings):
     augment_pad: int | None = setting(None, "image observations: DrQ's random shift, each image of each update "
                                       "padded by this many pixels that repeat its edge, then cropped back to its "
                                       f"size at a random offset; 0: none (default: {IMAGE_AUGMENT_PAD} for images, "
-                                      "0 for the vector, which takes no other)", group=TD3, ge=0)
+                                      "0 for the vector, which takes no other)", group=OFF_POLICY, ge=0)
     encoder: Literal[tuple(IMAGE_VIEWS)] = setting(
         DRQ, "image observations: the convolutional encoder of each image field, shared by actor and critics: drq, "
         "DrQ-v2's four 3x3 convolutions of 32 channels (the first of stride 2), flattened; dual, RLPixTuner's "
         f"dual path, a global path (the image averaged down to {GLOBAL_SIDE} x {GLOBAL_SIDE}, strided "
         "convolutions, averaged to one value per channel: its tone and colour) beside a local path (convolutions "
         f"from full resolution, averaged into a grid of {LOCAL_GRID} x {LOCAL_GRID} cells: where its detail is); "
-        f"images of at least {MIN_IMAGE_SIDES[DUAL]} x {MIN_IMAGE_SIDES[DUAL]}", group=TD3)
+        f"images of at least {MIN_IMAGE_SIDES[DUAL]} x {MIN_IMAGE_SIDES[DUAL]}", group=OFF_POLICY)
 
     epochs: int | None = setting(None, "passes over each batch " + _defaults("epochs"), group=PPO, ge=1)
     minibatches: int | None = setting(None, "minibatches per pass, one gradient step each " + _defaults("minibatches"),
@@ -327,8 +327,9 @@ class LearnerSettings(DaemonSettings):
 
     def check(self) -> None:
         observation = self.spaces[0]
-        if self.images and self.algo != "td3":
-            raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2)")
+        if self.images and self.algo not in ("sac", "td3"):
+            raise UsageError(f"observation {observation}: image observations train with --algo td3 (DrQ-v2) or "
+                             "sac (DrQ)")
         if self.images and self.compile.startswith("inductor"):
             raise UsageError(f"--compile {self.compile}: the image update compiled by inductor trained apart from "
                              "eager on a GPU (docs/learner.md); graphs (or auto) captures it as CUDA graphs")
@@ -406,9 +407,15 @@ class LearnerSettings(DaemonSettings):
                 target_entropy=self._given("target_entropy", self.target_entropy_per_action * self.spaces[1]),
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, critics=self.critics,
                 critics_in_min=self._given("critics_in_min", self.critics), mirror=self.mirror,
-                precision=self.precision, frame_stack=self.frame_stack or 1)
+                precision=self.precision, **self._image_options())
         except ValueError as e:  # a combination SACConfig refuses
             raise UsageError(str(e)) from None
+
+    def _image_options(self) -> dict:
+        """The frame stack, random shift and encoder SAC and TD3 share, DrQ-v2's for images where unset."""
+        return {"frame_stack": self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),
+                "augment_pad": self._given("augment_pad", IMAGE_AUGMENT_PAD if self.images else 0),
+                "encoder": self.encoder}
 
     def _given(self, name: str, default):
         """The flag `name` as given, or `default` where it was left unset (None)."""
@@ -467,9 +474,7 @@ class LearnerSettings(DaemonSettings):
                 online_target_actor=self.online_target_actor, actor_loss=self.actor_loss,
                 exploration_std_start=self.exploration_std_start, exploration_std_end=self.exploration_std_end,
                 exploration_std_updates=self.exploration_std_updates, mirror=self.mirror, precision=self.precision,
-                frame_stack=self.frame_stack or (IMAGE_FRAME_STACK if self.images else 1),
-                augment_pad=(IMAGE_AUGMENT_PAD if self.images else 0) if self.augment_pad is None else self.augment_pad,
-                encoder=self.encoder, residual=self.residual_from)
+                residual=self.residual_from, **self._image_options())
         except ValueError as e:  # a combination TD3Config refuses
             raise UsageError(str(e)) from None
 
@@ -498,8 +503,9 @@ def build_parser() -> CommandParser:
         "samples the same way and trains twin critics and a deterministic policy, which the actors explore with "
         "scheduled Gaussian noise; PPO (--algo ppo), A2C (--algo a2c), REINFORCE (--algo reinforce), TRPO (--algo "
         "trpo) and ACKTR (--algo acktr) take batches from the replay servers' queue table, each transition once, and "
-        "train the same policy with a value network. All publish versioned policy weights for actors and checkpoint "
-        "atomically.",
+        "train the same policy with a value network. SAC and TD3 also learn from images (--observation or --env-id "
+        "of a camera task): DrQ and DrQ-v2, one convolutional encoder trained by the critics. All publish versioned "
+        "policy weights for actors and checkpoint atomically.",
         "Example: l2r-learner --run exp1 --connect tcp/127.0.0.1:7447 --run-dir runs/exp1 --resume\n"
         "TD3: l2r-learner --algo td3 --exploration-std-start 1.0 --exploration-std-updates 100000 ...\n"
         "PPO: l2r-learner --algo ppo --in-flight 1 ... against l2r-replay --capacity 0 --queue-capacity 8192 "

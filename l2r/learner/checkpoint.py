@@ -210,7 +210,7 @@ class Checkpoint:
         """The full training state (networks, optimizers, counters) on `device`."""
         if self.config is None:
             raise CheckpointError(f"{self.path} holds a policy alone, not a training state to resume")
-        # Image observations (TD3's) are saved with obs_dim 0: their spec is the policy spec's.
+        # Image observations are saved with obs_dim 0: their spec is the policy spec's.
         observation = self.obs_dim or ObservationSpec.from_policy_spec(self.policy_spec)
         state = ALGORITHMS[self.algo][1].init_state(self.config, observation, self.act_dim, device)
         state.load_state_dict(self.train_state)

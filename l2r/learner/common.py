@@ -8,7 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from l2r import encoders
 from l2r.policy import ACTIVATIONS, GAUSSIAN, check_spec
+from l2r.protocol.limits import MAX_FRAME_STACK
 from l2r.protocol.observations import ObservationSpec
 
 
@@ -28,14 +30,19 @@ def policy_spec(config, observation: ObservationSpec | int, act_dim: int, kind: 
 
 
 def check_off_policy(config) -> None:
-    """The checks SACConfig and TD3Config share (their networks, discount, Polyak rate and precision);
-    ValueError saying what is wrong."""
+    """The checks SACConfig and TD3Config share (their networks, discount, Polyak rate, precision,
+    frame stack and image encoder); ValueError saying what is wrong."""
     if config.activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {config.activation!r}")
     if not 0.0 <= config.gamma <= 1.0 or not 0.0 < config.tau <= 1.0:
         raise ValueError(f"need 0 <= gamma <= 1 and 0 < tau <= 1, got {config.gamma}, {config.tau}")
     if config.precision not in ("auto", "float32", "bfloat16"):
         raise ValueError(f"precision must be auto, float32 or bfloat16, got {config.precision!r}")
+    if config.encoder not in encoders.IMAGE_VIEWS:
+        raise ValueError(f"encoder must be one of {sorted(encoders.IMAGE_VIEWS)}, got {config.encoder!r}")
+    if not 1 <= config.frame_stack <= MAX_FRAME_STACK or config.augment_pad < 0:
+        raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK} and augment_pad >= 0, got "
+                         f"{config.frame_stack} and {config.augment_pad}")
 
 
 def adam(params, lr: float, device: torch.device, eps: float = 1e-8) -> torch.optim.Adam:

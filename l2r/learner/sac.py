@@ -6,6 +6,11 @@ of the target critics. The learner daemon and the tests call this same function,
 through `steps.GradientSteps`, which counts the updates and may compile the update or capture it
 as a CUDA graph: so it never reads a value back to the host and branches only on the config.
 
+Image observations make it DrQ (Kostrikov, Yarats and Fergus, ICLR 2021) in DrQ-v2's arrangement, as
+TD3 makes DrQ-v2 (docs/learner.md): one convolutional encoder, the policy's, learnt by the critic
+loss alone, embeds each batch once for every network (`views`), of images shifted afresh in each
+update (`augment_pad`); the target critics take the online encoder's embedding.
+
 Where the speed comes from: the critics run as one batched network; the actor loss
 differentiates the critics with respect to the action only (their weights are detached, so no
 weight gradients are computed there); hidden-layer matmuls run in bfloat16 where the hardware
@@ -27,13 +32,13 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from l2r.encoders import stack_frames
+from l2r import encoders
 from l2r.learner.common import (
     Transitions, adam, bfloat16_pays, check_off_policy, device_tensor, float_tensor, load_adam_state, policy_spec,
 )
 from l2r.learner.distributed import average_gradients, broadcast, sum_over_ranks
-from l2r.policy import ACTIVATIONS, Policy, to_tanh_space
-from l2r.protocol.limits import MAX_FRAME_STACK
+from l2r.policy import ACTIVATIONS, Policy, PolicyNetwork, to_tanh_space
+from l2r.protocol.observations import ObservationSpec
 from l2r.sim import layout
 
 # `hidden` as command lines write it: widths separated by commas, e.g. 256,256.
@@ -87,7 +92,18 @@ class SACConfig:
     mirrored data set as well, at no extra cost per update (the body is left-right symmetric)."""
     frame_stack: int = 1
     """The networks take the last k observations, oldest first (an observation history, as the
-    2017 winners stacked theirs); the actors keep them and the replay stacks them when it samples."""
+    2017 winners stacked theirs, or an image observation's frames: DrQ's 3); the actors keep them
+    and the replay stacks them when it samples."""
+    augment_pad: int = 0
+    """Image observations: DrQ's random shift, each image of each update padded by this many pixels
+    that repeat its edge and cropped back at a random offset (DrQ: 4); 0: none."""
+    encoder: str = encoders.DRQ
+    """Image observations: the encoder, 'drq' (four convolutions, flattened) or 'dual' (RLPixTuner's
+    global and local paths; l2r.encoders.DualPath)."""
+    encoder_channels: int = encoders.CHANNELS
+    """Image observations: channels of each of the encoder's convolutions."""
+    encoder_features: int = encoders.FEATURES
+    """Image observations: features out of the actor's and the critics' projections of the encoder's output."""
     precision: str = "auto"
     """'bfloat16': hidden-layer matmuls in bfloat16 with float32 accumulation (weights, output
     heads, losses and Adam stay float32); 'float32'; 'auto': bfloat16 on CPUs that compute it
@@ -100,8 +116,6 @@ class SACConfig:
             raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
         if not 1 <= self.critics_in_min <= self.critics:
             raise ValueError(f"need 1 <= critics_in_min <= critics, got {self.critics_in_min} of {self.critics}")
-        if not 1 <= self.frame_stack <= MAX_FRAME_STACK:
-            raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK}, got {self.frame_stack}")
 
     def to_dict(self) -> dict:
         return {**asdict(self), "hidden": list(self.hidden)}
@@ -178,6 +192,9 @@ class TrainState:
         """What training changes, to check for divergence."""
         return [*self.actor.parameters(), *self.critic.parameters(), self.log_alpha]
 
+    def critic_parameters(self) -> list[torch.Tensor]:
+        return critic_parameters(self.actor, self.critic)
+
     def set_learning_rates(self, config: SACConfig) -> None:
         """Apply the config's learning rates (a resumed run takes the command line's, not the saved ones)."""
         for opt, lr in ((self.actor_opt, config.actor_lr), (self.critic_opt, config.critic_lr),
@@ -207,29 +224,66 @@ class TrainState:
 _MODULES, _OPTIMIZERS = ("actor", "critic", "target_critic"), ("actor_opt", "critic_opt", "alpha_opt")
 
 
-def init_state(config: SACConfig, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
-               seed: int | None = None) -> TrainState:
-    """Freshly initialised networks and optimizers on `device`."""
+def init_state(config: SACConfig, observation: ObservationSpec | int, act_dim: int,
+               device: str | torch.device = "cpu", seed: int | None = None) -> TrainState:
+    """Freshly initialised networks and optimizers on `device`, for `observation` (its spec, or the
+    width of the float32 vector)."""
     device = torch.device(device)
-    check_mirror(config, obs_dim, act_dim)
+    if isinstance(observation, int):
+        observation = ObservationSpec.vector(observation)
+    check_mirror(config, observation.vector_width, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
-    actor = Policy(policy_spec(config, obs_dim, act_dim, frame_stack=config.frame_stack)).to(device)
-    critic = TwinCritic(obs_dim * config.frame_stack, act_dim, config.hidden, config.activation,
-                        config.layer_norm, n=config.critics).to(device)
+    actor = Policy(policy_spec(config, observation, act_dim, frame_stack=config.frame_stack,
+                               encoder=image_encoder(config))).to(device)
+    check_augmentation(config, actor)
+    critic = critics_of(actor, act_dim, config, n=config.critics).to(device)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     log_alpha = torch.tensor(math.log(config.initial_alpha), device=device, requires_grad=True)
     target_entropy = -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
     bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and bfloat16_pays(device))
     return TrainState(actor, critic, target_critic, log_alpha,
-                      adam(actor.parameters(), config.actor_lr, device),
-                      adam(critic.parameters(), config.critic_lr, device),
+                      adam(policy_parameters(actor), config.actor_lr, device),
+                      adam(critic_parameters(actor, critic), config.critic_lr, device),
                       adam([log_alpha], config.alpha_lr, device), target_entropy,
                       bfloat16=bfloat16)
 
 
-def check_mirror(config: SACConfig, obs_dim: int, act_dim: int) -> None:
-    """ValueError if config.mirror is on for widths other than the Learning to Run layout's."""
+def image_encoder(config: SACConfig) -> dict:
+    """The policy spec's "encoder" of a config (SAC's or TD3's): its sizes, used where the observation has images."""
+    return {"kind": config.encoder, "channels": config.encoder_channels, "features": config.encoder_features}
+
+
+def check_augmentation(config: SACConfig, actor: PolicyNetwork) -> None:
+    """ValueError where the config shifts images (augment_pad) and the actor's observation has none."""
+    if config.augment_pad and actor.encoder is None:
+        raise ValueError(f"augment_pad shifts images, and observation {actor.observation} has none")
+
+
+def critics_of(actor: PolicyNetwork, act_dim: int, config: SACConfig, n: int = 2) -> TwinCritic:
+    """The critics of an actor's observation: on its filtered vector (stacked), or, for images, on the
+    actor's encoder's embedding through a projection of their own (DrQ-v2's: one for all n)."""
+    if actor.encoder is None:
+        return TwinCritic(actor.spec["obs_dim"] * actor.frame_stack, act_dim, config.hidden, config.activation,
+                          config.layer_norm, n=n)
+    projection = encoders.Projection(actor.encoder.conv_dim, actor.encoder.vector_dim, config.encoder_features)
+    return TwinCritic(projection.out_dim, act_dim, config.hidden, config.activation, config.layer_norm, n=n,
+                      projection=projection)
+
+
+def policy_parameters(actor: PolicyNetwork) -> list[torch.Tensor]:
+    """What the actor's loss trains: the policy's own layers, not the image encoder it shares with the critics."""
+    return [p for name, p in actor.named_parameters() if not name.startswith("encoder.")]
+
+
+def critic_parameters(actor: PolicyNetwork, critic: TwinCritic) -> list[torch.Tensor]:
+    """What the critic loss trains: the critics, and the image encoder the actor shares with them."""
+    encoder = [] if actor.encoder is None else list(actor.encoder.parameters())
+    return [*critic.parameters(), *encoder]
+
+
+def check_mirror(config: SACConfig, obs_dim: int | None, act_dim: int) -> None:
+    """ValueError if config.mirror is on for widths other than the Learning to Run layout's (None: images)."""
     if config.mirror and (obs_dim, act_dim) != (layout.OBS_SIZE, len(layout.ACTION_LABELS)):
         raise ValueError(f"mirror needs the Learning to Run layout ({layout.OBS_SIZE} observations, "
                          f"{len(layout.ACTION_LABELS)} actions), got {obs_dim} and {act_dim}")
@@ -263,7 +317,8 @@ def batch_from_frames(frames: Mapping[str, np.ndarray], obs_frames: np.ndarray, 
     in their own dtype (uint8 images stay uint8, a quarter of float32's bytes), and are gathered
     into stacks there (`encoders.stack_frames`): obs and next_obs are maps of stacked fields."""
     on_device = {name: device_tensor(rows, device) for name, rows in frames.items()}
-    obs, next_obs = (stack_frames(on_device, device_tensor(rows, device)) for rows in (obs_frames, next_obs_frames))
+    obs, next_obs = (encoders.stack_frames(on_device, device_tensor(rows, device))
+                     for rows in (obs_frames, next_obs_frames))
     return _batch(obs, next_obs, action, reward, terminated, weights, device, discounts)
 
 
@@ -285,7 +340,10 @@ def _mirror_permutations(device: torch.device, frames: int) -> tuple[torch.Tenso
 
 def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
     """Once per sampled batch, before its gradient steps: mirror a random half of it (config.mirror)
-    and add its observations to the running statistics the networks' inputs are standardised by."""
+    and add its observations to the running statistics the networks' inputs are standardised by.
+    An image batch goes as it came (its augmentation is drawn afresh in every update)."""
+    if state.actor.encoder is not None:
+        return batch
     if config.mirror:
         swap = torch.rand(len(batch.obs), 1, device=batch.obs.device) < 0.5
         obs_mirror, action_mirror = _mirror_permutations(batch.obs.device, state.actor.frame_stack)
@@ -296,37 +354,50 @@ def prepare(state: TrainState, batch: Batch, config: SACConfig) -> Batch:
     return batch
 
 
+def views(actor: PolicyNetwork, batch: Batch, augment_pad: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A batch's observation and next observation as every network sees them, each embedded once:
+    the filtered vector, or, for images shifted at random first where `augment_pad` says, the
+    shared encoder's output, which learns from the critic loss alone (the actor's takes it
+    detached); the next one is made without gradients. The shift leaves other fields as they are."""
+    obs, next_obs = batch.obs, batch.next_obs
+    if augment_pad:
+        obs = encoders.random_shift(obs, actor.image_fields, augment_pad)
+        next_obs = encoders.random_shift(next_obs, actor.image_fields, augment_pad)
+    embedding = actor.embed(obs)
+    with torch.no_grad():
+        next_embedding = actor.embed(next_obs)
+    return embedding, next_embedding
+
+
 def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torch.Tensor]:
     """One SAC gradient step. Returns detached metrics tensors and `priorities` (|TD error|, per sample).
     `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
     alpha = state.log_alpha.detach().exp()
-    # The critics see observations through the policy's filter; the policy applies it itself.
-    with torch.no_grad():
-        critic_obs = state.actor.observation_filter(batch.obs)
-        critic_next_obs = state.actor.observation_filter(batch.next_obs)
+    embedding, next_embedding = views(state.actor, batch, config.augment_pad)
 
     # 1. Soft Bellman target. Only a real termination cuts the bootstrap; a time limit does not.
     with torch.no_grad(), state.autocast():
-        next_action, next_log_prob = state.actor.sample(batch.next_obs)
-        next_q = least_of_drawn(state.target_critic(critic_next_obs, next_action), config)
+        next_action, next_log_prob = state.actor.sample_of(next_embedding)
+        next_q = least_of_drawn(state.target_critic(next_embedding, next_action), config)
         next_value = next_q - alpha * next_log_prob
         target = config.reward_scale * batch.reward + config.gamma * (1.0 - batch.terminated) * next_value
 
     # 2. Critic loss, each critic towards the same target (importance-weighted under prioritized replay), and step.
     with state.autocast():
-        q = state.critic(critic_obs, batch.action)
+        q = state.critic(embedding, batch.action)
     td_error = q - target
     squared = td_error.pow(2) if batch.weights is None else td_error.pow(2) * batch.weights
     critic_loss = squared.mean(-1).sum()
     state.critic_opt.zero_grad(set_to_none=True)
     critic_loss.backward()
-    average_gradients(state.critic.parameters())
+    average_gradients(state.critic_parameters())
     state.critic_opt.step()
 
     # 3. Actor loss against the updated critics; their weights are detached (only dQ/da is needed).
     with state.autocast():
-        action, log_prob = state.actor.sample(batch.obs)
-        q_pi = least_of_drawn(state.critic(critic_obs, action, detach_weights=True), config)
+        embedding = embedding.detach()
+        action, log_prob = state.actor.sample_of(embedding)
+        q_pi = least_of_drawn(state.critic(embedding, action, detach_weights=True), config)
     actor_loss = (alpha * log_prob - q_pi).mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()

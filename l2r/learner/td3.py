@@ -42,7 +42,6 @@ from l2r.learner.common import adam, bfloat16_pays, check_off_policy, load_adam_
 from l2r.learner.distributed import average_gradients, broadcast
 from l2r.learner.sac import Batch, TwinCritic
 from l2r.policy import DETERMINISTIC, RESIDUAL, DeterministicPolicy, build_policy
-from l2r.protocol.limits import MAX_FRAME_STACK
 from l2r.protocol.observations import ObservationSpec
 
 
@@ -137,11 +136,6 @@ class TD3Config:
             raise ValueError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if self.actor_loss not in ACTOR_LOSSES:
             raise ValueError(f"actor_loss must be one of {ACTOR_LOSSES}, got {self.actor_loss!r}")
-        if self.encoder not in encoders.IMAGE_VIEWS:
-            raise ValueError(f"encoder must be one of {sorted(encoders.IMAGE_VIEWS)}, got {self.encoder!r}")
-        if not 1 <= self.frame_stack <= MAX_FRAME_STACK or self.augment_pad < 0:
-            raise ValueError(f"need 1 <= frame_stack <= {MAX_FRAME_STACK} and augment_pad >= 0, got "
-                             f"{self.frame_stack} and {self.augment_pad}")
         stds = (self.exploration_std_start, self.exploration_std_end, self.noise_clip,
                 0.0 if self.target_noise is None else self.target_noise)
         if min(stds) < 0 or self.exploration_std_updates < 0:
@@ -184,7 +178,7 @@ class TrainState:
         return [*self.actor.parameters(), *self.critic.parameters()]
 
     def critic_parameters(self) -> list[torch.Tensor]:
-        return critic_parameters(self.actor, self.critic)
+        return sac.critic_parameters(self.actor, self.critic)
 
     def set_learning_rates(self, config: TD3Config) -> None:
         """Apply the config's learning rates (a resumed run takes the command line's, not the saved ones)."""
@@ -221,44 +215,30 @@ def init_state(config: TD3Config, observation: ObservationSpec | int, act_dim: i
     sac.check_mirror(config, observation.vector_width, act_dim)
     if seed is not None:
         torch.manual_seed(seed)
-    encoder = {"kind": config.encoder, "channels": config.encoder_channels, "features": config.encoder_features}
     kind = DETERMINISTIC if config.residual is None else RESIDUAL
-    actor = build_policy(policy_spec(config, observation, act_dim, kind, config.frame_stack, encoder,
-                                     residual=config.residual)).to(device)
-    if config.augment_pad and actor.encoder is None:
-        raise ValueError(f"augment_pad shifts images, and observation {observation} has none")
+    actor = build_policy(policy_spec(config, observation, act_dim, kind, config.frame_stack,
+                                     sac.image_encoder(config), residual=config.residual)).to(device)
+    sac.check_augmentation(config, actor)
     actor.exploration_std.fill_(exploration_std(config, 0))
     target_actor = copy.deepcopy(actor).requires_grad_(False)
-    projection = None
     if actor.encoder is None:
         # The target policy sees observations through the online filter: its statistics are not
         # learned weights, so a slow copy of them would only be a stale one.
         target_actor.observation_filter = actor.observation_filter
-        critic_input = actor.spec["obs_dim"] * actor.frame_stack
     else:
         # One encoder for all (DrQ-v2's): the target networks take the online encoder's embedding.
         target_actor.encoder = actor.encoder
-        projection = encoders.Projection(actor.encoder.conv_dim, actor.encoder.vector_dim, config.encoder_features)
-        critic_input = projection.out_dim
-    critic = TwinCritic(critic_input, act_dim, config.hidden, config.activation, config.layer_norm,
-                        projection=projection).to(device)
+    critic = sac.critics_of(actor, act_dim, config).to(device)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
     bfloat16 = config.precision == "bfloat16" or (config.precision == "auto" and bfloat16_pays(device))
-    actor_parameters = [p for name, p in actor.named_parameters() if not name.startswith("encoder.")]
-    return TrainState(actor, target_actor, critic, target_critic, adam(actor_parameters, config.actor_lr, device),
-                      adam(critic_parameters(actor, critic), config.critic_lr, device), bfloat16=bfloat16)
+    return TrainState(actor, target_actor, critic, target_critic,
+                      adam(sac.policy_parameters(actor), config.actor_lr, device),
+                      adam(sac.critic_parameters(actor, critic), config.critic_lr, device), bfloat16=bfloat16)
 
 
-def critic_parameters(actor: DeterministicPolicy, critic: TwinCritic) -> list[torch.Tensor]:
-    """What the critic loss trains: the critics, and the image encoder the actor shares with them."""
-    encoder = [] if actor.encoder is None else list(actor.encoder.parameters())
-    return [*critic.parameters(), *encoder]
-
-
-def prepare(state: TrainState, batch: Batch, config: TD3Config) -> Batch:
-    """Once per sampled batch: SAC's (mirroring, the observation statistics) for the vector; an
-    image batch goes as it came (its augmentation is drawn afresh in every update)."""
-    return sac.prepare(state, batch, config) if state.actor.encoder is None else batch
+# Once per sampled batch, SAC's: mirroring and the observation statistics for the vector; an image
+# batch goes as it came.
+prepare = sac.prepare
 
 
 def follow_exploration_schedule(state: TrainState, config: TD3Config) -> None:
@@ -274,22 +254,15 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
     targets' alone where the actor does not learn yet, `config.critic_warmup`).
     Returns detached metrics tensors (`actor_loss` on actor steps only) and `priorities`
     (|TD error|, per sample). `state.updates` is the caller's to count (`steps.GradientSteps` does)."""
-    # Observations as the networks see them, embedded once for all of them: the filtered vector,
-    # or, for images, the shared encoder's output, which learns from the critic loss alone (the
-    # actor's loss takes it detached), of images shifted afresh in every update (augment_pad).
-    obs, next_obs = batch.obs, batch.next_obs
-    if config.augment_pad:
-        obs = encoders.random_shift(obs, state.actor.image_fields, config.augment_pad)
-        next_obs = encoders.random_shift(next_obs, state.actor.image_fields, config.augment_pad)
-    embedding = state.actor.embed(obs)
-    with torch.no_grad():
-        next_embedding = state.actor.embed(next_obs)
+    # Observations as the networks see them, embedded once for all of them (SAC's `views`); the
+    # residual kind reads its last action from the batch's state, which no shift moves.
+    embedding, next_embedding = sac.views(state.actor, batch, config.augment_pad)
 
     # 1. Target: clipped double Q of the target policy's action, smoothed by clipped noise.
     #    Only a real termination cuts the bootstrap; n-step batches carry the discount of theirs.
     with torch.no_grad(), state.autocast():
         target_policy = state.actor if config.online_target_actor else state.target_actor
-        next_action = target_policy.action_of(next_embedding, next_obs)
+        next_action = target_policy.action_of(next_embedding, batch.next_obs)
         noise_std = state.actor.exploration_std if config.target_noise is None else config.target_noise
         smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
         next_action = (next_action + smoothing).clamp(-1.0, 1.0)
@@ -316,7 +289,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
     if actor_step and actor_learns:
         with state.autocast():
             embedding = embedding.detach()
-            action = state.actor.action_of(embedding, obs)
+            action = state.actor.action_of(embedding, batch.obs)
             if config.actor_loss == Q1:
                 q_pi = state.critic(embedding, action, detach_weights=True, critics=1)[0]
             else:

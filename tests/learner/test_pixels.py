@@ -1,6 +1,6 @@
 """Image observations in the learner: DrQ's random shift against crops taken by hand, the gather of
 a batch's distinct frames into stacks on the device, the encoder's shapes and which loss trains it,
-TD3 updates on image batches, image policies in checkpoints and in `act`, and the vector's
+TD3 and SAC updates on image batches, image policies in checkpoints and in `act`, and the vector's
 networks and spec as they always were."""
 
 import copy
@@ -15,10 +15,11 @@ from l2r.encoders import PixelEncoder, random_shift, shift_images, stack_frames
 from l2r.learner.__main__ import parse_settings
 from l2r.learner.checkpoint import CheckpointError, checkpoint_path, load_checkpoint, save_checkpoint
 from l2r.learner.daemon import LearnerConfig, _check_observations, _initial_state
+from l2r.learner import sac
 from l2r.learner.sac import batch_from_frames
 from l2r.learner.steps import GradientSteps
 from l2r.learner.td3 import TD3Config, init_state, update
-from l2r.policy import DeterministicPolicy, act, act_with_log_prob, build_policy, check_spec, default_spec
+from l2r.policy import DeterministicPolicy, Policy, act, act_with_log_prob, build_policy, check_spec, default_spec
 from l2r.protocol import ObservationSpec, ProtocolError, SampleBatch
 from l2r.protocol.observations import FieldSpec
 
@@ -31,6 +32,12 @@ def pixel_config(**overrides) -> TD3Config:
     base = dict(hidden=(16,), batch_size=8, precision="float32", frame_stack=K, augment_pad=2,
                 encoder_channels=8, encoder_features=6, policy_delay=1)
     return TD3Config(**(base | overrides))
+
+
+def sac_config(**overrides) -> sac.SACConfig:
+    base = dict(hidden=(16,), batch_size=8, precision="float32", frame_stack=K, augment_pad=2,
+                encoder_channels=8, encoder_features=6)
+    return sac.SACConfig(**(base | overrides))
 
 
 def frames_batch(observation: ObservationSpec = PIXELS, n: int = 8, seed: int = 0, act_dim: int = ACT):
@@ -124,6 +131,23 @@ def test_the_critic_loss_trains_the_encoder_and_the_actor_loss_leaves_it_alone()
     assert not torch.equal(states[1].actor.head.weight, states[0].actor.head.weight)  # the actor did step
 
 
+def test_sac_s_critic_loss_trains_the_encoder_and_its_actor_loss_leaves_it_alone():
+    config = sac_config()
+    state = sac.init_state(config, CAMERA_AND_STATE, ACT, seed=1)
+    conv = state.actor.encoder.convs["pixels"][0]
+    assert not set(map(id, state.actor.encoder.parameters())) & {
+        id(p) for group in state.actor_opt.param_groups for p in group["params"]}
+    before, head = conv.weight.detach().clone(), state.actor.head.weight.detach().clone()
+    # The encoder's gradient as the critic's step takes it: the actor's and the temperature's losses,
+    # computed after, must add nothing to it.
+    critic_step, at_critic_step = state.critic_opt.step, []
+    state.critic_opt.step = lambda: at_critic_step.append(conv.weight.grad.clone()) or critic_step()
+    sac.update(state, sac.prepare(state, frames_batch(CAMERA_AND_STATE), config), config)
+    assert at_critic_step[0].abs().sum() > 0 and not torch.equal(conv.weight, before)
+    torch.testing.assert_close(conv.weight.grad, at_critic_step[0], rtol=0, atol=0)
+    assert not torch.equal(state.actor.head.weight, head)  # the actor did step
+
+
 def sample_batch(frames: dict, k: int = K, n: int = 4) -> SampleBatch:
     """A frames-form reply of a replay shard, every stack of frame 0."""
     return SampleBatch(0, n, False, None, np.zeros((n, ACT), np.float32), np.zeros(n, np.float32), None,
@@ -156,12 +180,17 @@ def test_resuming_with_another_observation_or_stack_stops_with_one_line_naming_b
         _initial_state(learner, replace(config, frame_stack=2), torch.device("cpu"))
 
 
-def test_td3_updates_on_image_batches_move_every_network():
-    config = pixel_config(update_repeat=2)
-    state = init_state(config, CAMERA_AND_STATE, ACT, seed=2)
-    networks = ("actor", "critic", "target_actor", "target_critic")
+@pytest.mark.parametrize("algorithm", ["td3", "sac"])
+def test_updates_on_image_batches_move_every_network(algorithm):
+    if algorithm == "td3":
+        config, networks = pixel_config(update_repeat=2), ("actor", "critic", "target_actor", "target_critic")
+        state = init_state(config, CAMERA_AND_STATE, ACT, seed=2)
+        steps = GradientSteps(update, config, repeat=2, policy_delay=config.policy_delay)
+    else:
+        config, networks = sac_config(update_repeat=2), ("actor", "critic", "target_critic")
+        state = sac.init_state(config, CAMERA_AND_STATE, ACT, seed=2)
+        steps = GradientSteps(sac.update, config, repeat=2)
     before = {name: copy.deepcopy(getattr(state, name).state_dict()) for name in networks}
-    steps = GradientSteps(update, config, repeat=2, policy_delay=config.policy_delay)
     for seed in range(2):
         metrics = steps(state, frames_batch(CAMERA_AND_STATE, seed=seed))
     assert state.updates == 4 and metrics["priorities"].shape == (8,)
@@ -214,20 +243,27 @@ def test_act_takes_stacked_fields_and_the_vector_as_before():
     np.testing.assert_array_equal(act(vector, one, True), act(vector, {"state": one}, True))
 
 
-def test_an_image_training_state_survives_a_checkpoint(tmp_path):
-    config = pixel_config()
-    state = init_state(config, PIXELS, ACT, seed=4)
-    GradientSteps(update, config, policy_delay=1)(state, frames_batch())
+@pytest.mark.parametrize("algorithm", ["td3", "sac"])
+def test_an_image_training_state_survives_a_checkpoint(tmp_path, algorithm):
+    if algorithm == "td3":
+        config, kind = pixel_config(), DeterministicPolicy
+        state = init_state(config, PIXELS, ACT, seed=4)
+        GradientSteps(update, config, policy_delay=1)(state, frames_batch())
+    else:
+        config, kind = sac_config(), Policy
+        state = sac.init_state(config, PIXELS, ACT, seed=4)
+        GradientSteps(sac.update, config)(state, frames_batch())
     path = save_checkpoint(checkpoint_path(tmp_path), state, config, 0, ACT)
     saved = load_checkpoint(path)
     assert saved.policy_spec == state.actor.spec and saved.config == config
     restored = saved.restore()
-    for name in ("actor", "target_actor", "critic", "target_critic"):
+    for name in ("actor", "critic", "target_critic", *(["target_actor"] if algorithm == "td3" else [])):
         mine, theirs = getattr(state, name).state_dict(), getattr(restored, name).state_dict()
         assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine), name
-    assert restored.target_actor.encoder is restored.actor.encoder
+    if algorithm == "td3":
+        assert restored.target_actor.encoder is restored.actor.encoder
     policy = saved.policy()
-    assert isinstance(policy, DeterministicPolicy) and policy.frame_stack == K
+    assert isinstance(policy, kind) and policy.frame_stack == K
     obs = {"pixels": np.zeros((1, 9, 24, 24), np.uint8)}
     np.testing.assert_array_equal(act(policy, obs, True), act(state.actor, obs, True))
 
@@ -240,7 +276,9 @@ def test_the_command_line_takes_the_observation_and_defaults_to_drq_v2_s_stack_a
     assert vector.learner().observation is None and vector.learner().obs_dim == 7 and vector.td3().frame_stack == 1
     captured = parse_settings(["--algo", "td3", "--compile", "graphs", "--observation", str(PIXELS)])
     assert captured.learner().compile == "graphs"  # image updates are captured as CUDA graphs
-    for argv, message in ((["--algo", "sac", "--observation", str(PIXELS)], "train with --algo td3"),
+    drq = parse_settings(["--algo", "sac", "--observation", str(PIXELS)]).sac()
+    assert (drq.frame_stack, drq.augment_pad, drq.encoder) == (3, 4, "drq")
+    for argv, message in ((["--algo", "ppo", "--observation", str(PIXELS)], "train with --algo td3 .* or sac"),
                           (["--algo", "td3", "--compile", "inductor-graphs", "--observation", str(PIXELS)],
                            "apart from eager"),
                           (["--algo", "td3", "--augment-pad", "3"], "for image observations"),

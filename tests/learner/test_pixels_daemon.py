@@ -1,4 +1,4 @@
-"""A TD3 learner on image observations through real daemons over loopback Zenoh: an l2r-replay
+"""A TD3 (DrQ-v2) and a SAC (DrQ) learner on image observations through real daemons over loopback Zenoh: an l2r-replay
 storing 24 x 24 frames, a feeder sending it random image chunks, and l2r-learner --observation
 sampling stacks of frames from it, training, publishing and checkpointing."""
 
@@ -16,12 +16,13 @@ ACT = 2
 
 @pytest.mark.slow
 @pytest.mark.parametrize("network", [["--observation", str(PIXELS), "--act-dim", str(ACT)]], indirect=True)
-def test_td3_trains_on_stacks_of_frames_sampled_from_an_image_shard(network, tmp_path):
+@pytest.mark.parametrize("algorithm", [["td3", "--n-step", "3"], ["sac"]], ids=["td3", "sac"])
+def test_trains_on_stacks_of_frames_sampled_from_an_image_shard(network, tmp_path, algorithm):
     run_dir = tmp_path / "run"
     feeder = Feeder(network.session, network.run, chunk=20, observation=PIXELS, act_dim=ACT)
     watcher = WeightsWatcher(network.session, network.run)
     learner = network.start("l2r.learner", *learner_args(
-        network, run_dir, "--algo", "td3", "--observation", str(PIXELS), "--act-dim", str(ACT), "--n-step", "3",
+        network, run_dir, "--algo", *algorithm, "--observation", str(PIXELS), "--act-dim", str(ACT),
         "--batch-size", "16", "--checkpoint-interval", "1"), name="learner")
     try:
         watcher.wait(lambda v: v and v[-1] >= 3, 90, "version 3", learner)

@@ -64,10 +64,11 @@ def test_soft_bellman_target_bootstraps_with_the_entropy_bonus_unless_terminated
     terminal = update(copy.deepcopy(state), random_batch(reward=1.0, terminated=1.0), config)
     assert float(terminal["target_mean"]) == pytest.approx(1.0, rel=1e-6)
 
-    # Record what the policy samples inside the update: its first draw is a' ~ pi(.|s') for the target.
+    # Record what the policy samples inside the update: its first draw is a' ~ pi(.|s') for the target
+    # (of s' as the networks see it: unfiltered here).
     bootstrapped, batch, draws = copy.deepcopy(state), random_batch(reward=1.0, terminated=0.0), []
-    sample = bootstrapped.actor.sample
-    bootstrapped.actor.sample = lambda obs: draws.append((obs, sample(obs))) or draws[-1][1]
+    sample = bootstrapped.actor.sample_of
+    bootstrapped.actor.sample_of = lambda seen: draws.append((seen, sample(seen))) or draws[-1][1]
     truncated = update(bootstrapped, batch, config)
     next_obs, (_, next_log_prob) = draws[0]
     assert torch.equal(next_obs, batch.next_obs)

@@ -11,7 +11,7 @@ from l2r.learner import sac, td3
 from l2r.learner import steps as steps_module
 from l2r.learner.distributed import DeviceUnavailable
 from l2r.learner.steps import WARMUP_CALLS, GradientSteps, resolve_mode
-from tests.learner.test_pixels import CAMERA_AND_STATE, K, pixel_config
+from tests.learner.test_pixels import CAMERA_AND_STATE, K, pixel_config, sac_config
 from tests.learner.test_sac import ACT, OBS, random_batch, small_config
 from tests.learner.test_td3 import small_config as td3_config
 
@@ -56,6 +56,12 @@ def drqv2_setup():
     return td3, pixel_config(update_repeat=2, actor_lr=1e-2, critic_lr=1e-2, tau=0.25), CAMERA_AND_STATE, image_batch
 
 
+def drq_setup():
+    # DrQ (SAC) on the same: the shift, the policy's draws and the temperature's step inside each update.
+    return sac, sac_config(update_repeat=2, actor_lr=1e-2, critic_lr=1e-2, alpha_lr=1e-2, tau=0.25), \
+        CAMERA_AND_STATE, image_batch
+
+
 def case(setup, device: str, mode: str, *marks):
     return pytest.param(setup, device, mode, marks=list(marks), id=f"{device}-{mode}-{setup.__name__}")
 
@@ -65,11 +71,12 @@ CUDA_MODES = [("cuda", "graphs", CUDA), ("cuda", "inductor", CUDA, pytest.mark.c
               ("cuda", "inductor-graphs", CUDA, pytest.mark.compile)]
 
 
-# DrQ-v2's update is captured as eager's kernels (graphs): inductor's kept eager's losses on a CPU but
-# not on an H200 (2026-11-27), and the learner refuses it for images.
+# Image updates are captured as eager's kernels (graphs): DrQ-v2's under inductor kept eager's losses on
+# a CPU but not on an H200 (2026-11-27), and the learner refuses inductor for images.
 @pytest.mark.parametrize("setup, device, mode",
                          [case(setup, *mode) for setup in (sac_setup, td3_setup)
-                          for mode in (CPU_INDUCTOR, *CUDA_MODES)] + [case(drqv2_setup, *CUDA_MODES[0])])
+                          for mode in (CPU_INDUCTOR, *CUDA_MODES)]
+                         + [case(setup, *CUDA_MODES[0]) for setup in (drqv2_setup, drq_setup)])
 def test_compiled_steps_train_as_the_eager_ones(setup, device, mode):
     # Large tau and learning rates, so that a skipped Polyak copy or optimizer step shows at once;
     # normalised inputs, whose statistics change outside the update (in prepare) between calls;

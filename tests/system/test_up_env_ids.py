@@ -151,6 +151,12 @@ def test_a_camera_task_plans_its_observation_spec_and_the_pixels_recipe():
     # The task holds each action for 2 suite steps itself; the actors add no repeat of their own.
     assert actor_settings(children["actor-0"]).action_repeat == 1
     assert actor_settings(children["actor-0"]).actor().compress_frames  # frames go compressed unless told
+    # SAC on the same task is DrQ: its recipe, the learner's image defaults.
+    args, _ = parse_args(["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "sac"])
+    children = {c.name: c.argv[3:] for c in plan_children(args, "run", Path("runs/x"), [7447], 7448)}
+    drq = learner_settings(children["learner"]).algorithm()
+    assert (type(drq).__name__, drq.frame_stack, drq.augment_pad, drq.batch_size, drq.actor_lr) == (
+        "SACConfig", 3, 4, 512, 1e-3)
 
 
 def test_compress_frames_off_reaches_the_actors():
@@ -179,7 +185,8 @@ def test_the_photo_tuner_s_goals_reach_its_actors_and_evaluators():
 
 
 def test_a_task_l2r_cannot_train_is_refused_in_one_line(capsys):
-    for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0"], "images train with --algo td3 (DrQ-v2), not sac"),
+    for argv, why in ((["--env-id", "l2r/dmc-cartpole-swingup-v0", "--algo", "ppo"],
+                       "images train with --algo td3 (DrQ-v2) or sac (DrQ), not ppo"),
                       (["--env-id", "Nope-v0"], "doesn't exist"),
                       (["--env-id", "Hopper-v5", "--recipe", "pixels", "--algo", "ppo"], "no pixels recipe for --algo ppo"),
                       (["--env-id", "Hopper-v5", "--image-size", "48"], "--image-size 48: an image size is for the camera tasks"),

@@ -1,6 +1,6 @@
 """`l2r up` on a camera task, end to end: real replay, learner, actor and evaluator processes over
 loopback Zenoh, the actors rendering a small cartpole (tests.actors.camera), the learner training
-TD3 on stacks of its frames with the pixels recipe, and `l2r eval` acting on what it leaves."""
+TD3 (DrQ-v2) or SAC (DrQ) on stacks of its frames with the pixels recipes, and `l2r eval` acting on what it leaves."""
 
 import json
 import subprocess
@@ -16,9 +16,10 @@ from tests.system.test_up import finish, l2r_up, rows
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not RENDERER, reason="no EGL or OSMesa to render with")]
 
 
-def test_a_camera_task_trains_on_stacked_frames_and_its_checkpoint_evaluates(tmp_path):
+@pytest.mark.parametrize("algo", ["td3", "sac"])
+def test_a_camera_task_trains_on_stacked_frames_and_its_checkpoint_evaluates(tmp_path, algo):
     name = f"test-{uuid.uuid4().hex[:6]}"
-    proc = l2r_up(tmp_path / "up.out", "--env-id", CAMERA, "--algo", "td3", "--recipe", "pixels", "--env-steps", "300",
+    proc = l2r_up(tmp_path / "up.out", "--env-id", CAMERA, "--algo", algo, "--recipe", "pixels", "--env-steps", "300",
                   "--seconds", "300", "--name", name, "--runs-dir", str(tmp_path), "--hidden", "32,32",
                   "--batch-size", "16", "--samples-per-insert", "4", "--random-steps", "100", "--min-replay", "100",
                   "--publish-every", "5", "--eval-episodes", "2", "--eval-interval", "0", "--status-interval", "2",
