@@ -90,9 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "over episodes whose queries are the answer blurred by noise (and, with "
                                         "--rounds above 1, over the policy's own noisy queries: DAgger); then write it "
                                         "as a policy checkpoint that `l2r photo compare` and `tune` run and `l2r up "
-                                        "--algo td3 --init-from` trains on: about 12 minutes on a quiet CPU core "
-                                        "(twice the 6 that 6,000 episodes took; 33 on a busy one), where TD3 took 34 "
-                                        "on a busy one to a tuner 7 dB worse (docs/photo.md).")
+                                        "--algo td3 --init-from` trains on: about 26 minutes of one CPU core (40 beside "
+                                        "other work on 2 cores), where TD3 took 34 on a busy core to a tuner 9 dB "
+                                        "worse (docs/photo.md).")
     w.add_argument("--out", metavar="CK", type=Path, required=True, help="where the policy checkpoint goes")
     w.add_argument("--env-id", choices=tune.TUNE_IDS, default=defaults.env_id,
                    help=f"the task whose observations the policy takes (default: {defaults.env_id}, the "
