@@ -170,15 +170,21 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
             scale = rng.uniform(0.0, config.first_noise if round_ == 0 else config.policy_noise)
             queries = blurred_answer(scale) if round_ == 0 else noisy_policy(scale)
             ends.append(episodes.play(first_seed + i, queries))
+            if tenth(i, count):
+                progress(f"round {round_ + 1}/{config.rounds}: {i + 1:,} of {count:,} episodes played "
+                         f"({time.monotonic() - started:.0f} s)")
         observations, answers = episodes.kept()
         inputs, answers = actor.observation_tensors(observations, CPU), torch.as_tensor(answers)
-        for _ in range(config.updates):
+        for step in range(config.updates):
             index = torch.randint(len(answers), (config.batch_size,))
             batch = {k: v[index] for k, v in inputs.items()} if isinstance(inputs, dict) else inputs[index]
             loss = torch.nn.functional.mse_loss(actor.mean_action(batch), answers[index])
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
+            if tenth(step, config.updates):
+                progress(f"round {round_ + 1}/{config.rounds}: {step + 1:,} of {config.updates:,} steps, loss "
+                         f"{float(loss.detach()):.4f} ({time.monotonic() - started:.0f} s)")
         losses.append(float(loss.detach()))
         progress(f"round {round_ + 1}/{config.rounds}: {len(answers):,} observations, loss {losses[-1]:.4f}; its "
                  f"{count} new episode{'s' if count != 1 else ''} ended at {np.mean(ends[-count:]):.2f} dB "
@@ -190,6 +196,12 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
     return actor, {"score": "psnr", "mean_psnr": float(np.mean(psnr)), "episodes": config.eval_episodes,
                    "losses": losses, "observations": len(episodes.answers),
                    "seconds": round(time.monotonic() - started, 1)}
+
+
+def tenth(index: int, count: int) -> bool:
+    """Whether the `index`-th of `count` items (from 0) completes another tenth of them (count // 10,
+    at least 1), the last aside (its round's line says it): where long work reports its progress."""
+    return (index + 1) % max(count // 10, 1) == 0 and index + 1 < count
 
 
 def save(path: Path, actor: td3.DeterministicPolicy, config: PretrainConfig, evaluation: dict) -> Path:

@@ -52,6 +52,9 @@ def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_s
     # The compare view's state: 2 x 25 image features, 40 compared, then the 9 parameters at 90.
     assert result["residual_from"] == (90 if residual else None)
     assert "round 1/1: 20 observations" in run.stderr
+    # Long work says how far it is: each tenth of the episodes and of the steps, the last aside.
+    assert "round 1/1: 1 of 2 episodes played" in run.stderr and "round 1/1: 4 of 5 steps, loss" in run.stderr
+    assert "2 of 2 episodes" not in run.stderr and "5 of 5 steps" not in run.stderr
     saved = load_checkpoint(out)
     assert saved.evaluation["score"] == "psnr" and saved.evaluation["mean_psnr"] == result["psnr_db"]
     compared = l2r_photo("compare", "--checkpoint", str(out), "--photos", "1", "--budgets", "10", "--json")
