@@ -361,12 +361,9 @@ class Policy(PolicyNetwork):
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mean, log_std
 
-    def sample(self, obs: torch.Tensor | Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """A reparameterised action in (-1, 1) and its log-probability (summed over dims)."""
-        return self.sample_of(self.embed(obs))
-
     def sample_of(self, embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`sample` of an observation embedded (`embed`): a learner embeds a batch once for all networks."""
+        """A reparameterised action in (-1, 1) and its log-probability (summed over dims), of an
+        observation embedded (`embed`): a learner embeds a batch once for all its networks."""
         mean, log_std = self.distribution_of(embedding)
         std = log_std.exp()
         noise = torch.randn_like(mean)

@@ -189,7 +189,7 @@ def test_log_prob_matches_the_change_of_variables():
     policy = build_policy(default_spec(OBS, ACT) | {"hidden": [8]})
     obs = torch.randn(4, OBS)
     torch.manual_seed(0)
-    action, log_prob = policy.sample(obs)
+    action, log_prob = policy.sample_of(policy.embed(obs))
     mean, log_std = policy(obs)
     pre_tanh = torch.atanh(action.clamp(-0.999999, 0.999999))
     gauss = torch.distributions.Normal(mean, log_std.exp()).log_prob(pre_tanh)
