@@ -172,8 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "replay server and learner then take its observation spec, the job trains with the standard "
                         "recipe, and the runner's own options are off: --relative-x, --mirror, the actors' blow-up "
                         "check); or a camera task, l2r/dmc-<domain>-<task>-v0 such as l2r/dmc-cartpole-swingup-v0 "
-                        "(84 x 84 frames, --algo td3: DrQ-v2's pixels recipe, --algo sac: DrQ's); or the photo tuner l2r/PhotoTune-v0 "
-                        "(RLPixTuner's photo recipe, --algo td3, scored by PSNR in dB), or the photo enhancer "
+                        "(84 x 84 frames, --algo td3: DrQ-v2's pixels recipe, --algo sac: DrQ's); or the photo "
+                        "tuner l2r/PhotoTune-v0 (RLPixTuner's photo recipe, --algo td3, scored by PSNR in dB), or the photo enhancer "
                         "l2r/PhotoEnhanceStats-v0 (--algo ppo, the photo/ppo recipe, scored by PSNR in dB)")
     a.add_argument("--actors", type=int, default=1, help="actor processes")
     a.add_argument("--image-size", type=int, metavar="PIXELS",

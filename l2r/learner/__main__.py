@@ -98,8 +98,8 @@ class LearnerSettings(DaemonSettings):
     observation: str | None = setting(
         None, "the observation the networks take, as l2r-replay's --observation: fields 'name: dtype[shape]' "
         "separated by commas, e.g. 'pixels: uint8[3, 84, 84]'; image fields (uint8[C, H, W]) train with --algo td3 "
-        "(DrQ-v2) or sac (DrQ) through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack frames. Default: "
-        "'state: float32[<obs-dim>]'",
+        "(DrQ-v2) or sac (DrQ) through --encoder (DrQ-v2's by default), sampled as stacks of --frame-stack "
+        "frames. Default: 'state: float32[<obs-dim>]'",
         group=PROCESS, metavar="SPEC")
     env_id: str | None = setting(None, "take the observation (as --observation) and --act-dim from the spaces of this "
                                  "gymnasium environment, e.g. l2r/dmc-cartpole-swingup-v0 (it is made once, and "
