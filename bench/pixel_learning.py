@@ -9,9 +9,9 @@
 The job is `l2r up --env-id l2r/dmc-<task>-v0 --algo td3` (the pixels recipe, DrQ-v2's
 values; `--algo sac`, DrQ's) with `--image-size`, `--batch-size` and `--samples-per-insert` half
 the batch, so that the learner makes one update per 2 env steps whatever the batch, as DrQ-v2
-does (DrQ makes one per env step). On a CPU DrQ-v2's update at 84 x 84 and batch 256 makes about 0.9 updates/s on 2 threads (bench/pixel_update.py),
-a tenth of what an hour's learning needs; 48 x 48 frames and batches of 128 make about 4 on
-one thread. Evaluation: 5 deterministic episodes (seeds 0-4) of each new policy at most every
+does (DrQ makes one per env step). On a CPU DrQ-v2's update at 84 x 84 and batch 256 makes
+about 0.9 updates/s on 2 threads (bench/pixel_update.py), a tenth of what an hour's learning
+needs; 48 x 48 frames and batches of 128 make about 4 on one thread. Evaluation: 5 deterministic episodes (seeds 0-4) of each new policy at most every
 `--eval-interval` seconds.
 
 Frames are the suite's steps, as DrQ-v2 counts them: 2 per env step (the task holds each action
