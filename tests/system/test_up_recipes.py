@@ -242,10 +242,10 @@ def test_each_flag_s_help_names_the_recipes_values():
     assert help_["reward_scale"].endswith("runner/sac 10, standard/sac 1, runner/ppo 1, standard/ppo 1, "
                                           "runner/a2c 1, standard/a2c 1, runner/reinforce 1, standard/reinforce 1, "
                                           "runner/trpo 1, standard/trpo 1, runner/acktr 1, standard/acktr 1, "
-                                          "runner/td3 10, standard/td3 1, pixels/td3 1, photo/td3 1, photo/ppo 1, "
-                                          "runner/a3c 1, standard/a3c 1")
+                                          "runner/td3 10, standard/td3 1, pixels/td3 1, pixels/sac 1, photo/td3 1, "
+                                          "photo/ppo 1, runner/a3c 1, standard/a3c 1")
     assert help_["mirror"].endswith("runner/sac on, standard/sac off, runner/td3 on, standard/td3 off, pixels/td3 off, "
-                                    "photo/td3 off")
+                                    "pixels/sac off, photo/td3 off")
     assert help_["policy_delay"].endswith("runner/td3 2, standard/td3 2, pixels/td3 1, photo/td3 2")
 
 
