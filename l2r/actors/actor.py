@@ -46,8 +46,8 @@ from l2r.episodes.live import LiveFrames
 from l2r.families import PHOTO, RUNNER, family_of, score_of
 from l2r.policy import act, act_with_log_prob, uniform_log_prob
 from l2r.protocol import (
-    EPISODE_QOS, EXPERIENCE_QOS, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, FrameCompressor, Keys,
-    ObservationSpec, ProtocolError, Rejections, ReplayAck, Stats, decode, encode, shard_of,
+    EPISODE_QOS, EXPERIENCE_QOS, LISTENER_GRACE, ROUND_QOS, STATS_QOS, EpisodeSummary, EvaluationRound, FrameCompressor,
+    Keys, ObservationSpec, ProtocolError, Rejections, ReplayAck, Stats, await_listener, decode, encode, shard_of,
 )
 from l2r.sim import WARP_ID, randomize_refusal  # (importing l2r.sim registers the runner's envs)
 from l2r.sim.randomize import Randomization
@@ -59,9 +59,6 @@ log = logging.getLogger("l2r.actor")
 STEP_SECONDS = 0.01  # one inner step of the runner
 MAX_RESEND_DELAY = 30.0  # a chunk's resend wait doubles up to this while no shard acknowledges it
 HOLD_FOR = 2.0  # seconds an ack's hold lasts unless renewed (a shard repeats it every ack interval)
-# A new peer learns of others' subscriptions a moment after it joins; what it sends before then is
-# lost. Summaries wait for a listener at most this long after start (a run without one goes on).
-LISTENER_GRACE = 5.0
 
 
 def blew_up(reward: float, info: dict, max_speed: float) -> bool:
@@ -396,7 +393,7 @@ class Actor:
         self._rate_steps, self._rate_frames, self._rate_time = 0, 0, time.monotonic()
         self._next_round = 0.0
         self._round_version = -1
-        self._listen_deadline = time.monotonic() + LISTENER_GRACE
+        self._listen_deadline = time.monotonic() + LISTENER_GRACE  # the first summaries wait for l2r up
 
     def observe(self, observation) -> dict[str, np.ndarray]:
         return fields_of(self.observation, observation, self.config.env_id)
@@ -505,7 +502,7 @@ class Actor:
             policy_version=-1 if self.acting_randomly else self.weights.version,
             difficulty=slot.difficulty, seed=slot.seed, evaluation=self.config.evaluate,
             time=time.time(), psnr_db=final_psnr(info))
-        self.await_listener(self.summaries)
+        await_listener(self.summaries, self._listen_deadline)
         self.summaries.put(encode(summary))
         if self.course is not None:
             self.course.record(slot.difficulty, summary.distance)
@@ -547,12 +544,6 @@ class Actor:
                 self.seq += 1
                 self.chunks_sent += 1
 
-    def await_listener(self, publisher: zenoh.Publisher) -> None:
-        """Until someone (l2r up) subscribes to what `publisher` sends, or the grace after start is
-        over: the first episodes' summaries would otherwise go nowhere."""
-        while time.monotonic() < self._listen_deadline and not publisher.matching_status.matching:
-            time.sleep(0.01)
-
     # -- evaluation rounds -------------------------------------------------------------------
 
     def ready_for_round(self) -> bool:
@@ -568,7 +559,7 @@ class Actor:
         """`eval_episodes` deterministic episodes with one policy version, spread over the envs."""
         version, n, scores = self.weights.version, len(self.slots), []
         # Said before the first episode, so that l2r up keeps this version's weights to save if it scores best.
-        self.await_listener(self.rounds)
+        await_listener(self.rounds, self._listen_deadline)
         self.rounds.put(encode(EvaluationRound(self.config.actor_id, version)))
         score = score_of(self.config.env_id)
         for start in range(0, self.config.eval_episodes, n):
@@ -583,7 +574,7 @@ class Actor:
                     distance=result.distance, length=result.length, policy_version=version,
                     difficulty=self.config.difficulty, seed=seed, evaluation=True, time=time.time(),
                     psnr_db=result.psnr_db)
-                self.await_listener(self.summaries)
+                await_listener(self.summaries, self._listen_deadline)
                 self.summaries.put(encode(summary))
                 self.episodes += 1
                 scores.append(score.of(summary))

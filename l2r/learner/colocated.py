@@ -43,7 +43,7 @@ from l2r.families import RUNNER, family_of
 from l2r.learner import ppo
 from l2r.learner.sac import Batch
 from l2r.policy import PolicyNetwork, to_tanh_space
-from l2r.protocol import EPISODE_QOS, STATS_QOS, EpisodeSummary, Keys, Stats, encode
+from l2r.protocol import EPISODE_QOS, LISTENER_GRACE, STATS_QOS, EpisodeSummary, Keys, Stats, await_listener, encode
 from l2r.sim.env import STEP_SECONDS
 from l2r.sim.randomize import Randomization
 
@@ -193,6 +193,7 @@ class ColocatedWorlds:
         self.stats_extra: dict[str, float] = {}
         self._rate_steps, self._rate_time, self._next_stats = 0, time.monotonic(), 0.0
         self._summaries = session.declare_publisher(keys.episodes(config.actor_id), **EPISODE_QOS.publisher())
+        self._listen_deadline = time.monotonic() + LISTENER_GRACE  # the first summaries wait for l2r up
         self._stats = session.declare_publisher(keys.stats("actor", config.actor_id), **STATS_QOS.publisher())
         self._token = session.liveliness().declare_token(keys.alive("actor", config.actor_id))
 
@@ -272,6 +273,7 @@ class ColocatedWorlds:
         """Summaries of the episodes that ended, each world's distance the x it had reached; the
         next episodes start from `new_start` (a blown-up world's env goes on from where it is)."""
         now = time.time()
+        await_listener(self._summaries, self._listen_deadline)
         for w in worlds.tolist():
             self._summaries.put(encode(EpisodeSummary(
                 actor_id=self.config.actor_id, env_id=w, episode_return=float(self.returns[w]),

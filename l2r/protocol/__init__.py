@@ -13,8 +13,8 @@ from l2r.protocol.frames_codec import FrameCompressor
 from l2r.protocol.observations import FieldSpec, ObservationSpec, as_fields
 from l2r.protocol.replay_client import ReplayClient
 from l2r.protocol.session import (
-    DaemonSettings, Rejections, configure_logging, reuse_large_buffers, session_config, wait_alive, watched,
-    with_reply_pool,
+    LISTENER_GRACE, DaemonSettings, Rejections, await_listener, configure_logging, reuse_large_buffers, session_config,
+    wait_alive, watched, with_reply_pool,
 )
 
 __all__ = [
@@ -24,6 +24,6 @@ __all__ = [
     "ExperienceChunk", "Frame", "Gradient", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError",
     "ReplayAck", "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "encode_gathered",
     "FrameCompressor", "FieldSpec", "ObservationSpec", "as_fields", "ReplayClient",
-    "DaemonSettings", "Rejections", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
+    "LISTENER_GRACE", "DaemonSettings", "Rejections", "await_listener", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
     "watched", "with_reply_pool",
 ]

@@ -245,6 +245,19 @@ def watched(sample: zenoh.Sample, expected: type[Message]) -> Message | None:
         return None
 
 
+LISTENER_GRACE = 5.0
+"""Seconds after its start that a sender of one-off messages waits for a listener (`await_listener`)."""
+
+
+def await_listener(publisher: zenoh.Publisher, deadline: float) -> None:
+    """Wait until someone subscribes to what `publisher` sends, or until `time.monotonic()` reaches
+    `deadline`. A new peer learns of others' subscriptions a moment after it joins, and what it puts
+    before then reaches no one: a sender of messages that are not repeated (episode summaries)
+    waits here until its start plus LISTENER_GRACE; a run without a listener goes on after that."""
+    while time.monotonic() < deadline and not publisher.matching_status.matching:
+        time.sleep(0.01)
+
+
 def wait_alive(session: zenoh.Session, key_expr: str, timeout: float = 10.0) -> list[str]:
     """Wait until a liveliness token matches ``key_expr``; return the matching keys ([] on timeout)."""
     deadline = time.monotonic() + timeout

@@ -190,6 +190,9 @@ def test_a_learner_trains_on_its_own_worlds_publishes_weights_and_their_episodes
         assert wait_for(lambda: heard.episodes, timeout=60), learner.log()
         assert wait_for(lambda: heard.stats and heard.stats[-1]["env_steps"] >= 400, timeout=30), heard.stats[-1:]
         assert learner.stop(signal.SIGTERM) == 0, learner.log()
+        # Every episode the worlds counted reached this listener, the first too (sent as the learner joined).
+        counted = max(s["episodes"] for s in heard.stats)
+        assert wait_for(lambda: len(heard.episodes) >= counted, timeout=5), (len(heard.episodes), counted)
     finally:
         session.close()
     log = learner.log()
