@@ -46,7 +46,7 @@ import zenoh
 
 import l2r.control  # noqa: F401  (registers the camera tasks' ids, so --env-id can name them)
 import l2r.photo  # noqa: F401  (registers the photo tasks' ids)
-from l2r import disk_budget
+from l2r import disk_budget, opensim_stage
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.actors.actor import registers_vector_env
 from l2r.actors.curriculum import DifficultySchedule
@@ -56,7 +56,7 @@ from l2r.config import EXIT_FAILURE, EXIT_USAGE, CommandParser
 from l2r.durable import DISK_ERRORS, MB, FileLogHandler, disk_failure, free_bytes
 from l2r.encoders import DRQ, check_observation
 from l2r.episodes.read import find_episode
-from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, family_of, score_of
+from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, Score, family_of, score_of
 from l2r.learner.algorithms import ON_POLICY
 from l2r.learner.checkpoint import CheckpointError, checkpoint_path, find_checkpoint
 from l2r.learner.sac import HIDDEN_WIDTHS
@@ -233,6 +233,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "episode, the perturbation's std adapted so its actions lie this RMS distance from the "
                          "policy's in (-1, 1) action space, e.g. 0.2 (Plappert et al., 2018; reason8's runner); "
                          "SAC and TD3 (0: off)")
+    rb.add_argument("--opensim-stage", type=float, default=0.0, metavar="SECONDS",
+                    help="the runner's OpenSim stage: after this many seconds of the job on the port's actors, the "
+                         "learner goes on from its newest checkpoint in a run of its own, RUN_DIR-opensim, whose one "
+                         "actor steps OpenSim 4.6 and whose replay holds that actor's experience alone (2,000 "
+                         "transitions before learning, 128 samples of each, the actor held to the learner; flat "
+                         "ground); --seconds is the whole job's and the evaluators are the job's. Gaits formed on the "
+                         "port part from OpenSim; their experience in OpenSim mends that (docs/training.md, "
+                         "\"OpenSim's own experience once the port's gait has parted\"). A --resume of the port's "
+                         "directory goes on with whichever stage is unfinished (0: off)")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
@@ -480,6 +489,8 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--replay-shards is for the replay table of sac and td3; --algo {args.algo} takes its "
                      f"batches from one replay server's queue")
     _check_robustness(parser, args)
+    if refused := opensim_stage.refusal(args):
+        parser.error(refused)
     if args.colocated:
         _check_colocated(parser, args)
     return args
@@ -526,6 +537,7 @@ def _check_robustness(parser: argparse.ArgumentParser, args: argparse.Namespace)
 
 
 def make_run_dir(args: argparse.Namespace) -> Path:
+    """A new run directory, or the one to --resume."""
     if args.resume:
         return args.resume
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
@@ -871,13 +883,65 @@ def final_report(run_dir: Path, summary: dict, args: argparse.Namespace, updates
 def cli(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args, launch = parse_args(argv)
+    if not args.opensim_stage:
+        return job(args, argv, launch)
+    return staged(args, argv, launch)
+
+
+def staged(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int:
+    """--opensim-stage: the port's stage, then OpenSim's, each a run of its own; a --resume of the
+    port's directory goes on with the stage that is unfinished."""
+    port_run = args.resume or make_run_dir(args)
+    stage_run = opensim_stage.run_dir_of(port_run)
+    if not stage_run.is_dir():
+        print(f"l2r up: {args.opensim_stage:g} s on the port's actors in {port_run}, then OpenSim's stage in "
+              f"{stage_run}", file=sys.stderr)
+        code = job(args, argv, launch, port_run)
+        if code or not opensim_stage.port_stage_over(args, port_run):
+            return code
+    try:
+        stage = opensim_stage.stage_args(args, port_run)
+    except CheckpointError as e:
+        print(f"l2r up: failed: the port's stage left nothing to go on from: {e}", file=sys.stderr)
+        return EXIT_FAILURE
+    stage_launch = json.loads((stage_run / "launch.json").read_text()) if stage.resume else None
+    stage_run.mkdir(exist_ok=True)
+    print(f"l2r up: OpenSim's stage goes on in {stage_run}" if stage.resume else
+          f"l2r up: the port's stage is over; OpenSim's stage starts from {stage.init_from} in {stage_run}",
+          file=sys.stderr)
+    code = job(stage, argv, stage_launch, stage_run)
+    print(f"l2r up: {better_stage(port_run, stage_run, score_of(args.env_id))}", file=sys.stderr)
+    return code
+
+
+def better_stage(port_run: Path, stage_run: Path, score: Score) -> str:
+    """Which stage's best.pt its judge scored higher, in one line."""
+    kept = {}
+    for name, run_dir in (("the port's", port_run), ("OpenSim's", stage_run)):
+        try:
+            best = json.loads((run_dir / "summary.json").read_text())["best_policy"]
+        except (OSError, ValueError, KeyError):
+            continue
+        if best:
+            kept[name] = best
+    if not kept:
+        return "neither stage kept an evaluated policy"
+    name, best = max(kept.items(), key=lambda item: item[1][f"mean_{score.name}"])
+    return (f"of the stages' best.pt, {name} scored higher: v{best['version']}, mean "
+            f"{score.text(best[f'mean_{score.name}'])} ({best['path']})")
+
+
+def job(args: argparse.Namespace, argv: list[str], launch: dict | None, run_dir: Path | None = None) -> int:
+    """One run: in `run_dir` (unset: a new directory, or the one to --resume), unless its budget is
+    spent or the disk cannot take it."""
     if args.resume and (spent := budget_spent(args, RunCounters.read(args.resume / "metrics"))):
-        print(f"l2r up: nothing to do: the run's {spent} (give a larger budget to train on)", file=sys.stderr)
+        if not args.opensim_stage:
+            print(f"l2r up: nothing to do: the run's {spent} (give a larger budget to train on)", file=sys.stderr)
         return 0
     if not fits_on_disk(args):
         return EXIT_USAGE
     try:
-        return train(args, argv, launch)
+        return train(args, argv, launch, run_dir or make_run_dir(args))
     except OSError as e:  # a write of l2r up's own that its disk refused (the daemons' are theirs to report)
         if e.errno not in DISK_ERRORS:
             raise
@@ -905,8 +969,7 @@ def fits_on_disk(args: argparse.Namespace) -> bool:
     return False
 
 
-def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int:
-    run_dir = make_run_dir(args)
+def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_dir: Path) -> int:
     (run_dir / "logs").mkdir(exist_ok=True)
     display = StatusDisplay(score_of(args.env_id))
     console = display.log_handler()
@@ -1011,6 +1074,8 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int
 
 def budget_spent(args: argparse.Namespace, counters: RunCounters) -> str | None:
     """Which budget of the run is spent, in words, or None."""
+    if args.opensim_stage and counters.time >= args.opensim_stage:
+        return f"port's stage of {args.opensim_stage:g} s spent"
     if args.seconds and counters.time >= args.seconds:
         return f"time budget of {args.seconds:g} s spent"
     if args.env_steps and counters.env_steps >= args.env_steps:
