@@ -891,6 +891,8 @@ def cli(argv: list[str] | None = None) -> int:
 def staged(args: argparse.Namespace, argv: list[str], launch: dict | None) -> int:
     """--opensim-stage: the port's stage, then OpenSim's, each a run of its own; a --resume of the
     port's directory goes on with the stage that is unfinished."""
+    if args.resume is None and not fits_on_disk(args):  # before the port's directory is made
+        return EXIT_USAGE
     port_run = args.resume or make_run_dir(args)
     stage_run = opensim_stage.run_dir_of(port_run)
     if not stage_run.is_dir():

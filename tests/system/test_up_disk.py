@@ -21,11 +21,12 @@ from tests.conftest import ROOT, wait_for
 from tests.system.test_up import SMALL, finish, l2r_up
 
 
-def test_a_run_that_may_not_fit_on_its_disk_is_refused_in_one_line(small_disk):
+@pytest.mark.parametrize("staged", [[], ["--opensim-stage", "2"]])
+def test_a_run_that_may_not_fit_on_its_disk_is_refused_in_one_line(small_disk, staged):
     disk = small_disk(8)
     # The default replay table (a million transitions) alone is estimated at about 900 MB.
-    done = subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--runs-dir", str(disk.path), "--seconds", "5"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    done = subprocess.run([sys.executable, "-m", "l2r.cli", "up", "--runs-dir", str(disk.path), "--seconds", "5",
+                           *staged], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "MB free at" in lines[0] and "replay" in lines[0] and "--force" in lines[0], lines
