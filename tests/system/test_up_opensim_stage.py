@@ -69,24 +69,25 @@ def run_up(*argv: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "l2r.cli", "up", *argv], capture_output=True, text=True, timeout=240)
 
 
+@pytest.mark.slow
 def test_a_staged_job_runs_the_port_then_opensim_from_the_port_s_learner_and_resumes_where_it_is(tmp_path):
-    done = run_up("--seconds", "50", "--opensim-stage", "20", "--runs-dir", str(tmp_path), "--name", "staged",
+    done = run_up("--seconds", "24", "--opensim-stage", "10", "--runs-dir", str(tmp_path), "--name", "staged",
                   "--replay-arg=--min-size=100", "--evaluators", "0", "--status-interval", "5")
     assert done.returncode == 0, done.stderr[-3000:]
     port_run, stage_run = sorted(tmp_path.iterdir())
     assert stage_run == opensim_stage.run_dir_of(port_run)
     port, stage = (json.loads((run / "summary.json").read_text()) for run in (port_run, stage_run))
-    assert port["outcome"] == "port's stage of 20 s spent" and port["updates"] > 0
+    assert port["outcome"] == "port's stage of 10 s spent" and port["updates"] > 0
     # The learner went on from the port's counters, and its actor stepped OpenSim alone.
-    assert stage["outcome"] == "time budget of 30 s spent" and stage["updates"] > port["updates"]
+    assert stage["outcome"] == "time budget of 14 s spent" and stage["updates"] > port["updates"]
     launch = json.loads((stage_run / "launch.json").read_text())["args"]
     assert launch["init_from"] == str((port_run / "learner" / "checkpoint.pt").resolve())
-    simulators = {line.split(",")[6] for line in (stage_run / "metrics" / "episodes.csv").read_text().splitlines()[1:]}
-    assert simulators == {"l2r/RunOpenSim-v0"} and stage["env_steps"] > 0
+    assert "actor 0 up: 4 x l2r/RunOpenSim-v0" in (stage_run / "logs" / "actor-0.log").read_text()
+    assert stage["env_steps"] > 0
 
     # Once OpenSim's stage has begun, a resume goes on with it, even where the port's would have time left.
-    resumed = run_up("--resume", str(port_run), "--opensim-stage", "25", "--seconds", "55")
+    resumed = run_up("--resume", str(port_run), "--opensim-stage", "12", "--seconds", "26")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "port's stage of 25 s spent" not in resumed.stderr
+    assert "port's stage of 12 s spent" not in resumed.stderr
     assert f"OpenSim's stage goes on in {stage_run}" in resumed.stderr
-    assert "nothing to do: the run's time budget of 30 s spent" in resumed.stderr
+    assert "nothing to do: the run's time budget of 14 s spent" in resumed.stderr
