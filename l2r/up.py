@@ -58,7 +58,7 @@ from l2r.encoders import DRQ, check_observation
 from l2r.episodes.read import find_episode
 from l2r.families import FAMILIES, PHOTO, PIXELS, RUNNER, Score, family_of, score_of
 from l2r.learner.algorithms import ON_POLICY
-from l2r.learner.checkpoint import CheckpointError, checkpoint_path, find_checkpoint
+from l2r.learner.checkpoint import CheckpointError, checkpoint_path, find_checkpoint, load_checkpoint
 from l2r.learner.sac import HIDDEN_WIDTHS
 from l2r.live_status import StatusDisplay
 from l2r.photo.env import GOALS
@@ -1061,17 +1061,29 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
             metrics.record_status()
             metrics.close()
             token.undeclare()
-    trained_nothing = spent is not None and metrics.updates == metrics.before.updates
+    updates_before = metrics.before.updates if args.resume else updates_carried(args.init_from)
+    trained_nothing = spent is not None and metrics.updates <= updates_before
     if trained_nothing:
         reason[0] += ", but the learner made no update"
         code = 1  # a training job that trained nothing has failed, whatever else ran
     summary = after_run(run_dir, metrics, best, group, reason[0], code)
     print(f"l2r up: {'failed' if code else 'done'}: {reason[0]}\n" + "\n".join(
-        f"        {line}" for line in final_report(run_dir, summary, args, metrics.before.updates)), file=sys.stderr)
+        f"        {line}" for line in final_report(run_dir, summary, args, updates_before)), file=sys.stderr)
     for child in group.failing():  # their own words last, where they are seen
         print(f"l2r up: the last lines of {group.log_path(child)}:\n"
               + "\n".join(f"    {line}" for line in last_lines(group.log_path(child))), file=sys.stderr)
     return code
+
+
+def updates_carried(init_from: Path | None) -> int:
+    """The updates a new run's learner counts from: a training checkpoint's (--init-from), else 0."""
+    if init_from is None:
+        return 0
+    try:
+        saved = load_checkpoint(init_from)
+    except CheckpointError:  # the learner says why, in its log
+        return 0
+    return 0 if saved.config is None else saved.updates
 
 
 def budget_spent(args: argparse.Namespace, counters: RunCounters) -> str | None:

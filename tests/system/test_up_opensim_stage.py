@@ -2,6 +2,7 @@
 checkpoint in a run of its own whose one actor steps OpenSim, learning from that experience alone."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ import pytest
 
 from l2r import opensim_stage
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.learner.checkpoint import load_checkpoint
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.run_metrics import RunCounters
@@ -71,23 +73,27 @@ def run_up(*argv: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_a_staged_job_runs_the_port_then_opensim_from_the_port_s_learner_and_resumes_where_it_is(tmp_path):
-    done = run_up("--seconds", "24", "--opensim-stage", "10", "--runs-dir", str(tmp_path), "--name", "staged",
-                  "--replay-arg=--min-size=100", "--evaluators", "0", "--status-interval", "5")
+    done = run_up("--seconds", "33", "--opensim-stage", "15", "--runs-dir", str(tmp_path), "--name", "staged",
+                  "--replay-arg=--min-size=32", "--evaluators", "0", "--status-interval", "5")
     assert done.returncode == 0, done.stderr[-3000:]
     port_run, stage_run = sorted(tmp_path.iterdir())
     assert stage_run == opensim_stage.run_dir_of(port_run)
     port, stage = (json.loads((run / "summary.json").read_text()) for run in (port_run, stage_run))
-    assert port["outcome"] == "port's stage of 10 s spent" and port["updates"] > 0
+    assert port["outcome"] == "port's stage of 15 s spent" and port["updates"] > 0
     # The learner went on from the port's counters, and its actor stepped OpenSim alone.
-    assert stage["outcome"] == "time budget of 14 s spent" and stage["updates"] > port["updates"]
+    assert stage["outcome"] == "time budget of 18 s spent" and stage["updates"] > port["updates"]
     launch = json.loads((stage_run / "launch.json").read_text())["args"]
     assert launch["init_from"] == str((port_run / "learner" / "checkpoint.pt").resolve())
     assert "actor 0 up: 4 x l2r/RunOpenSim-v0" in (stage_run / "logs" / "actor-0.log").read_text()
+    # Its own updates are those past the checkpoint it started from.
+    in_session = [int(n.replace(",", "")) for n in re.findall(r"updates \(([\d,]+) in this session\)", done.stderr)]
+    carried = load_checkpoint(port_run).updates
+    assert in_session[-1] == stage["updates"] - carried < stage["updates"], in_session
     assert stage["env_steps"] > 0
 
     # Once OpenSim's stage has begun, a resume goes on with it, even where the port's would have time left.
-    resumed = run_up("--resume", str(port_run), "--opensim-stage", "12", "--seconds", "26")
+    resumed = run_up("--resume", str(port_run), "--opensim-stage", "17", "--seconds", "35")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "port's stage of 12 s spent" not in resumed.stderr
+    assert "port's stage of 17 s spent" not in resumed.stderr
     assert f"OpenSim's stage goes on in {stage_run}" in resumed.stderr
-    assert "nothing to do: the run's time budget of 14 s spent" in resumed.stderr
+    assert "nothing to do: the run's time budget of 18 s spent" in resumed.stderr
