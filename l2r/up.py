@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "learner goes on from its newest checkpoint in a run of its own, RUN_DIR-opensim, whose one "
                          "actor steps OpenSim 4.6 and whose replay holds that actor's experience alone (2,000 "
                          "transitions before learning, 128 samples of each, the actor held to the learner; flat "
-                         "ground); --seconds is the whole job's and the evaluators are the job's. Gaits formed on the "
+                         "ground, so the obstacle course is lost); --seconds is the whole job's and the evaluators are the job's. Gaits formed on the "
                          "port part from OpenSim; their experience in OpenSim mends that (docs/training.md, "
                          "\"OpenSim's own experience once the port's gait has parted\"). A --resume of the port's "
                          "directory goes on with whichever stage is unfinished (0: off)")
