@@ -57,9 +57,9 @@ def run_dir_of(port_run: Path) -> Path:
     return port_run.with_name(port_run.name + SUFFIX)
 
 
-def port_stage_over(args: argparse.Namespace, port_run: Path) -> bool:
-    """Whether the port's stage spent its time (not stopped, not failed)."""
-    return RunCounters.read(port_run / "metrics").time >= args.opensim_stage
+def port_stage_over(args: argparse.Namespace, counters: RunCounters) -> bool:
+    """Whether a job with an OpenSim stage has spent the port's time, by its port run's counters."""
+    return bool(args.opensim_stage) and counters.time >= args.opensim_stage
 
 
 def stage_args(args: argparse.Namespace, port_run: Path) -> argparse.Namespace:

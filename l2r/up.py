@@ -238,10 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "learner goes on from its newest checkpoint in a run of its own, RUN_DIR-opensim, whose one "
                          "actor steps OpenSim 4.6 and whose replay holds that actor's experience alone (2,000 "
                          "transitions before learning, 128 samples of each, the actor held to the learner; flat "
-                         "ground, so the obstacle course is lost); --seconds is the whole job's and the evaluators are the job's. Gaits formed on the "
-                         "port part from OpenSim; their experience in OpenSim mends that (docs/training.md, "
-                         "\"OpenSim's own experience once the port's gait has parted\"). A --resume of the port's "
-                         "directory goes on with whichever stage is unfinished (0: off)")
+                         "ground, so the obstacle course is lost); --seconds is the whole job's and the evaluators "
+                         "are the job's. Gaits formed on the port part from OpenSim; their experience in OpenSim "
+                         "mends that (docs/training.md, \"OpenSim's own experience once the port's gait has "
+                         "parted\"). A --resume of the port's directory goes on with whichever stage is unfinished "
+                         "(0: off)")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
@@ -900,7 +901,7 @@ def staged(args: argparse.Namespace, argv: list[str], launch: dict | None) -> in
         print(f"l2r up: {args.opensim_stage:g} s on the port's actors in {port_run}, then OpenSim's stage in "
               f"{stage_run}", file=sys.stderr)
         code = job(args, argv, launch, port_run)
-        if code or not opensim_stage.port_stage_over(args, port_run):
+        if code or not opensim_stage.port_stage_over(args, RunCounters.read(port_run / "metrics")):
             return code
     try:
         stage = opensim_stage.stage_args(args, port_run)
@@ -1089,7 +1090,7 @@ def updates_carried(init_from: Path | None) -> int:
 
 def budget_spent(args: argparse.Namespace, counters: RunCounters) -> str | None:
     """Which budget of the run is spent, in words, or None."""
-    if args.opensim_stage and counters.time >= args.opensim_stage:
+    if opensim_stage.port_stage_over(args, counters):
         return f"port's stage of {args.opensim_stage:g} s spent"
     if args.seconds and counters.time >= args.seconds:
         return f"time budget of {args.seconds:g} s spent"

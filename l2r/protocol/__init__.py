@@ -24,6 +24,6 @@ __all__ = [
     "ExperienceChunk", "Frame", "Gradient", "LearnerVersion", "Message", "NotReady", "PriorityUpdate", "ProtocolError",
     "ReplayAck", "SampleBatch", "SampleRequest", "Stats", "Weights", "decode", "encode", "encode_gathered",
     "FrameCompressor", "FieldSpec", "ObservationSpec", "as_fields", "ReplayClient",
-    "LISTENER_GRACE", "DaemonSettings", "Rejections", "await_listener", "configure_logging", "reuse_large_buffers", "session_config", "wait_alive",
-    "watched", "with_reply_pool",
+    "LISTENER_GRACE", "DaemonSettings", "Rejections", "await_listener", "configure_logging", "reuse_large_buffers",
+    "session_config", "wait_alive", "watched", "with_reply_pool",
 ]
