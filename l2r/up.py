@@ -908,7 +908,11 @@ def staged(args: argparse.Namespace, argv: list[str], launch: dict | None) -> in
     except CheckpointError as e:
         print(f"l2r up: failed: the port's stage left nothing to go on from: {e}", file=sys.stderr)
         return EXIT_FAILURE
-    stage_launch = json.loads((stage_run / "launch.json").read_text()) if stage.resume else None
+    try:
+        stage_launch = json.loads((stage_run / "launch.json").read_text()) if stage.resume else None
+    except (OSError, ValueError) as e:
+        print(f"l2r up: --resume: {stage_run / 'launch.json'} cannot be read ({e})", file=sys.stderr)
+        return EXIT_USAGE
     stage_run.mkdir(exist_ok=True)
     print(f"l2r up: OpenSim's stage goes on in {stage_run}" if stage.resume else
           f"l2r up: the port's stage is over; OpenSim's stage starts from {stage.init_from} in {stage_run}",

@@ -97,3 +97,14 @@ def test_a_staged_job_runs_the_port_then_opensim_from_the_port_s_learner_and_res
     assert "port's stage of 17 s spent" not in resumed.stderr
     assert f"OpenSim's stage goes on in {stage_run}" in resumed.stderr
     assert "nothing to do: the run's time budget of 18 s spent" in resumed.stderr
+
+
+def test_a_resume_whose_opensim_stage_launch_json_is_corrupt_is_refused_in_one_line(tmp_path):
+    port_run = port_run_with_checkpoint(tmp_path)
+    (port_run / "launch.json").write_text(json.dumps({"argv": [], "zenoh_run": port_run.name, "args": {
+        "seconds": 60.0, "opensim_stage": 30.0}}))
+    (opensim_stage.run_dir_of(port_run)).mkdir()
+    (opensim_stage.run_dir_of(port_run) / "launch.json").write_text("{not json")
+    done = run_up("--resume", str(port_run))
+    assert done.returncode == 2 and "launch.json cannot be read" in done.stderr.strip().splitlines()[-1], done.stderr
+    assert "Traceback" not in done.stderr
