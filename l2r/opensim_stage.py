@@ -6,8 +6,9 @@ fall in the simulator that judges (docs/training.md). A few thousand OpenSim ste
 hard (an empty replay, many samples per step), put the two back in agreement; what the port's
 fast actors do best, forming the gait, they do first. The stage is a run of its own beside the
 port's, RUN_DIR-opensim: its own replay, metrics and best.pt, its learner started from the port
-stage's newest checkpoint (networks, optimizers, temperature). Its actor runs flat ground: on two
-runs from scratch the kept policies ran 14-17 m in OpenSim and lost the obstacle course.
+stage's newest checkpoint (networks, optimizers, temperature). Its actor goes on along the job's
+course from where the port's actors left it: with flat ground alone, two runs from scratch kept
+policies of 14-17 m in OpenSim that had lost the obstacle course the port's stage had learnt.
 """
 
 from __future__ import annotations
@@ -27,10 +28,9 @@ SUFFIX = "-opensim"
 # What the stage trains with, whatever the port's stage was given (docs/training.md, "OpenSim's own
 # experience once the port's gait has parted"): one actor, on OpenSim; an OpenSim actor steps its
 # four bodies at 10-16 env steps/s on 2 cores, so learning starts after 2,000 of its transitions
-# and takes 128 samples of each one, the actor held back while it is ahead; flat ground, where the
-# port's course ends at a difficulty OpenSim's evaluators do not run.
+# and takes 128 samples of each one, the actor held back while it is ahead.
 STAGE = dict(actors=1, opensim_actors=1, replay_shards=1, min_replay=2_000, samples_per_insert=128.0,
-             hold_actors=True, difficulty_schedule="")
+             hold_actors=True)
 
 
 def refusal(args: argparse.Namespace) -> str | None:
@@ -64,9 +64,11 @@ def port_stage_over(args: argparse.Namespace, counters: RunCounters) -> bool:
 
 def stage_args(args: argparse.Namespace, port_run: Path) -> argparse.Namespace:
     """The OpenSim stage's flags: the job's, the stage's settings over them, the rest of --seconds,
-    the learner from the port's checkpoint, and --resume of the stage's directory once it exists."""
+    the learner from the port's checkpoint, the course from a port actor's share of its env steps,
+    and --resume of the stage's directory once it exists."""
     run_dir = run_dir_of(port_run)
     started = (run_dir / "launch.json").exists()
     return argparse.Namespace(**vars(args) | STAGE | dict(
         seconds=args.seconds - args.opensim_stage if args.seconds else 0.0, opensim_stage=0.0,
-        init_from=find_checkpoint(port_run).resolve(), resume=run_dir if started else None))
+        init_from=find_checkpoint(port_run).resolve(), resume=run_dir if started else None,
+        course_steps_before=RunCounters.read(port_run / "metrics").env_steps // args.actors))

@@ -308,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--status-interval", type=float, default=2.0, help="seconds between status updates")
     o.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="log level of every process")
+    # Not a flag: an OpenSim stage's actors go on along the course from the port's stage (opensim_stage.stage_args).
+    p.set_defaults(course_steps_before=0)
     return p
 
 
@@ -698,8 +700,10 @@ def plan_children(args: argparse.Namespace, run: str, run_dir: Path, replay_port
     logs = [] if args.no_episode_logs or family_of(args.env_id) not in (RUNNER, PIXELS, PHOTO) else [
         "--episode-log-dir", str(run_dir / "episodes"), "--log-every", str(args.log_every),
         "--log-min-free-mb", f"{disk_budget.LOW_FACTOR * reserve / MB:.1f}"]
-    # Each training actor's share of the env steps of the sessions before: where its course goes on.
-    steps_before = RunCounters.read(args.resume / "metrics").env_steps // args.actors if args.resume else 0
+    # Each training actor's share of the env steps of the sessions before (and of the port's stage
+    # before an OpenSim stage): where its course goes on.
+    steps_before = args.course_steps_before + (
+        RunCounters.read(args.resume / "metrics").env_steps // args.actors if args.resume else 0)
     for i in range(0 if args.colocated else args.actors):
         # Last on the command line, so it overrides an --env-id among the actor arguments.
         opensim = ["--env-id", OPENSIM_ID] if i >= args.actors - args.opensim_actors else []

@@ -22,6 +22,8 @@ def port_run_with_checkpoint(tmp_path: Path) -> Path:
     port_run = tmp_path / "runner-20261127-120000"
     (port_run / "learner").mkdir(parents=True)
     (port_run / "learner" / "checkpoint.pt").write_bytes(b"")  # found here; the learner reads it
+    (port_run / "metrics").mkdir()
+    (port_run / "metrics" / "status.csv").write_text("time,env_steps,updates,episodes\n3600,2600000,100000,9000\n")
     return port_run
 
 
@@ -34,15 +36,23 @@ def test_the_opensim_stage_trains_one_opensim_actor_from_the_port_s_checkpoint_o
     children = {c.name: c.argv[3:] for c in plan_children(stage, "run", Path("runs/x"), [7447], 7448)}
     assert sorted(children) == ["actor-0", "evaluator-0", "evaluator-1", "learner", "replay"]
     actor = actor_settings(children["actor-0"])
-    assert actor.env_id == "l2r/RunOpenSim-v0" and actor.difficulty_schedule is None and not actor.randomize
+    assert actor.env_id == "l2r/RunOpenSim-v0" and not actor.randomize
+    # On along the recipe's course from a port actor's share of the port's 2.6 M env steps.
+    assert (str(actor.difficulty_schedule), actor.env_steps_before) == ("0:0,1000000:2", 1_300_000)
     replay = replay_settings(children["replay"])
     assert (replay.min_size, replay.samples_per_insert, replay.hold_actors) == (2000, 128.0, True)
     assert learner_settings(children["learner"]).init_from == (port_run / "learner" / "checkpoint.pt").resolve()
     assert [actor_settings(children[f"evaluator-{i}"]).env_id for i in (0, 1)] == ["l2r/RunOpenSim-v0", "l2r/Run-v0"]
 
-    (opensim_stage.run_dir_of(port_run)).mkdir()
-    (opensim_stage.run_dir_of(port_run) / "launch.json").write_text("{}")
-    assert opensim_stage.stage_args(args, port_run).resume == tmp_path / "runner-20261127-120000-opensim"
+    stage_run = opensim_stage.run_dir_of(port_run)
+    (stage_run / "metrics").mkdir(parents=True)
+    (stage_run / "launch.json").write_text("{}")
+    (stage_run / "metrics" / "status.csv").write_text("time,env_steps,updates,episodes\n600,30000,20000,40\n")
+    resumed = opensim_stage.stage_args(args, port_run)
+    assert resumed.resume == tmp_path / "runner-20261127-120000-opensim"
+    actor = next(actor_settings(c.argv[3:]) for c in plan_children(resumed, "run", stage_run, [7447], 7448)
+                 if c.name == "actor-0")
+    assert actor.env_steps_before == 1_300_000 + 30_000
 
 
 def test_the_port_s_stage_ends_at_its_seconds_and_the_job_at_its_own():
