@@ -102,10 +102,28 @@ def _before_exec(parent: int, nice: int) -> None:
     even by SIGKILL, so that no daemon outlives the job (the child runs in a session of its own)."""
     if nice:
         os.nice(nice)
+        _nice_autogroup(nice)
     if _prctl is not None:
         _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
         if os.getppid() != parent:  # the parent died before the request took effect
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _nice_autogroup(nice: int) -> None:
+    """Where Linux schedules by autogroup (sched_autogroup_enabled, as most distributions' kernels
+    do), each session is a group that shares the CPU evenly with the others whatever its processes'
+    nice values: a niced child in a session of its own would take as much CPU as the learner. The
+    group's own nice value is what weighs across groups (sched(7)); a kernel without it has no file."""
+    try:
+        fd = os.open("/proc/self/autogroup", os.O_WRONLY)
+    except OSError:
+        return
+    try:
+        os.write(fd, str(nice).encode())
+    except OSError:
+        pass  # a raise of priority needs CAP_SYS_NICE; lowering it, as here, does not
+    finally:
+        os.close(fd)
 
 
 class ProcessGroup:

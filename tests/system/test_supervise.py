@@ -115,3 +115,19 @@ def alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except (FileNotFoundError, ProcessLookupError):
         return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="this kernel schedules without autogroups")
+def test_a_niced_process_in_a_session_of_its_own_is_niced_against_the_other_sessions_too(tmp_path):
+    # Under autogroup scheduling a session's share of the CPU is set by its group's nice value alone.
+    sleeper = [sys.executable, "-c", "import time; time.sleep(60)"]
+    group = ProcessGroup([Child("actor", sleeper, tier=1, progress=("actor", "0", "env_steps"), nice=7),
+                          Child("learner", sleeper, tier=0, progress=("learner", "0", "updates"))],
+                         tmp_path, progress=lambda *key: 0, max_restarts=0, on_exit=lambda c, code: None)
+    group.start()
+    try:
+        actor, learner = (Path(f"/proc/{c.process.pid}/autogroup").read_text().split() for c in group.children)
+        assert actor[-2:] == ["nice", "7"] and learner[-2:] == ["nice", "0"]
+        assert actor[0] != learner[0]  # each a group of its own
+    finally:
+        group.stop()
