@@ -17,6 +17,8 @@ What each line holds, from the run's metrics/ and from `l2r eval` afterwards (ar
 - `opensim_over_port`: after `--after` minutes (default 30), each OpenSim evaluation over the
   port's of the nearest version (at most `--within` apart, default 10, where the port's ran over
   1 m): least, median, count;
+- `parting_0.7_minute`: the minute at which `l2r up --opensim-stage-parting 0.7` would have ended
+  the port's stage on these evaluations (None: never);
 - `kept` (learner/best.pt) and `newest` (the run's checkpoint): OpenSim and port distances at
   difficulty 0 (seed 0, `opensim_d0`, `port_d0`) and the mean over seeds 0-19 at difficulty 2;
 - `updates`, `env_steps`, and the temperature and entropy the learner last reported.
@@ -38,11 +40,14 @@ from pathlib import Path
 
 from env_speed import cpu_flags, cpu_model  # this folder's: the same machine record as the speed figures
 
+from l2r.opensim_stage import Parting
+
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ["--evaluators", "2", "--eval-env-id", "l2r/RunOpenSim-v0", "--eval-env-id", "l2r/Run-v0",
           "--eval-episodes", "1", "--eval-interval", "60"]
 SIMULATORS = {"opensim": "l2r/RunOpenSim-v0", "port": "l2r/Run-v0"}
 OBSTACLE_SEEDS = 20
+PARTING = 0.7  # the issue's bound on OpenSim over the port
 
 
 def rows(path: Path) -> list[dict]:
@@ -56,8 +61,20 @@ def evaluations(run_dir: Path, env_id: str) -> list[tuple[float, int, float, int
             for r in rows(run_dir / "metrics" / "evaluation.csv") if r["simulator"] == env_id]
 
 
+def parting_minute(run_dir: Path, episodes_per_round: int) -> float | None:
+    """The minute at which `l2r up --opensim-stage-parting 0.7` (the same rule) would have ended
+    the port's stage, or None."""
+    parting = Parting(PARTING, episodes_per_round, simulators={})
+    for r in rows(run_dir / "metrics" / "evaluation.csv"):
+        parting.add(r["simulator"], int(r["version"]), float(r["distance"]))
+        if parting.verdict:
+            return round(float(r["time"]) / 60, 1)
+    return None
+
+
 def curve_figures(run_dir: Path, after_s: float, within: int) -> dict:
     opensim, port = (evaluations(run_dir, SIMULATORS[s]) for s in ("opensim", "port"))
+    episodes_per_round = json.loads((run_dir / "launch.json").read_text())["args"].get("eval_episodes", 1)
     first = next(((round(t / 60, 1), u) for t, _, d, u in opensim if d >= 6.0), None)
     ratios = []
     for t, version, distance, _ in opensim:
@@ -75,6 +92,7 @@ def curve_figures(run_dir: Path, after_s: float, within: int) -> dict:
             "best_opensim": best(opensim), "best_port": best(port),
             "opensim_over_port": {"least": round(min(ratios), 2), "median": round(statistics.median(ratios), 2),
                                   "count": len(ratios)} if ratios else None,
+            f"parting_{PARTING:g}_minute": parting_minute(run_dir, episodes_per_round),
             "evaluations": len(opensim), "updates": int(last.get("updates", 0)),
             "env_steps": int(last.get("env_steps", 0)), "alpha": float(last.get("alpha", "nan")),
             "entropy": float(last.get("entropy", "nan"))}

@@ -237,12 +237,18 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the runner's OpenSim stage: after this many seconds of the job on the port's actors, the "
                          "learner goes on from its newest checkpoint in a run of its own, RUN_DIR-opensim, whose one "
                          "actor steps OpenSim 4.6 and whose replay holds that actor's experience alone (2,000 "
-                         "transitions before learning, 128 samples of each, the actor held to the learner; flat "
-                         "ground, so the obstacle course is lost); --seconds is the whole job's and the evaluators "
-                         "are the job's. Gaits formed on the port part from OpenSim; their experience in OpenSim "
-                         "mends that (docs/training.md, \"OpenSim's own experience once the port's gait has "
+                         "transitions before learning, 128 samples of each, the actor held to the learner, on the "
+                         "job's course where the port's actors left it); --seconds is the whole job's and the "
+                         "evaluators are the job's. Gaits formed on the port part from OpenSim; their experience in "
+                         "OpenSim mends that (docs/training.md, \"OpenSim's own experience once the port's gait has "
                          "parted\"). A --resume of the port's directory goes on with whichever stage is unfinished "
                          "(0: off)")
+    rb.add_argument("--opensim-stage-parting", type=float, default=0.0, metavar="RATIO",
+                    help="end the port's stage before --opensim-stage SECONDS once its gait parts from OpenSim: "
+                         f"{opensim_stage.PARTED_ROUNDS} OpenSim evaluations in a row under RATIO (e.g. 0.7) of the "
+                         "port's evaluation of the nearest policy version, where the port's ran "
+                         f"{opensim_stage.GAIT:g} m or more; needs evaluators in both simulators (0: off, the stage "
+                         "starts at SECONDS)")
     le = p.add_argument_group("learner and replay")
     le.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"),
                     help="the learner's device, and the actors' where --env-id steps its worlds as one vector env "
@@ -492,7 +498,7 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpa
         parser.error(f"--replay-shards is for the replay table of sac and td3; --algo {args.algo} takes its "
                      f"batches from one replay server's queue")
     _check_robustness(parser, args)
-    if refused := opensim_stage.refusal(args):
+    if refused := opensim_stage.refusal(args) or opensim_stage.parting_refusal(args, evaluator_env_ids(args)):
         parser.error(refused)
     if args.colocated:
         _check_colocated(parser, args)
@@ -901,11 +907,12 @@ def staged(args: argparse.Namespace, argv: list[str], launch: dict | None) -> in
         return EXIT_USAGE
     port_run = args.resume or make_run_dir(args)
     stage_run = opensim_stage.run_dir_of(port_run)
-    if not stage_run.is_dir():
-        print(f"l2r up: {args.opensim_stage:g} s on the port's actors in {port_run}, then OpenSim's stage in "
+    if not stage_run.is_dir() and not opensim_stage.port_stage_ended(args, port_run):
+        until = " (or until its gait parts from OpenSim's)" if args.opensim_stage_parting else ""
+        print(f"l2r up: {args.opensim_stage:g} s on the port's actors{until} in {port_run}, then OpenSim's stage in "
               f"{stage_run}", file=sys.stderr)
         code = job(args, argv, launch, port_run)
-        if code or not opensim_stage.port_stage_over(args, RunCounters.read(port_run / "metrics")):
+        if code or not opensim_stage.port_stage_ended(args, port_run):
             return code
     try:
         stage = opensim_stage.stage_args(args, port_run)
@@ -1023,6 +1030,9 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
         simulators = simulator_of_each_actor(children) | ({0: args.env_id} if args.colocated else {})
         metrics = RunMetrics(session, Keys(run), run_dir / "metrics", env_id=args.env_id, simulators=simulators,
                              shown_eval_env_id=shown_evaluations(args.env_id, args.eval_env_id))
+        parting = opensim_stage.Parting(args.opensim_stage_parting, args.eval_episodes, simulators) if (
+            args.opensim_stage and args.opensim_stage_parting) else None
+        heard = [parting.listen(session, Keys(run))] if parting else []
         judge = args.eval_env_id[0] if args.eval_env_id else None
         best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, recipe.values["action_repeat"],
                           score_of(args.env_id),
@@ -1046,7 +1056,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
                     if not args.colocated and group.finished("actor-"):  # (colocated: none to finish)
                         reason[0] = "every actor finished"
                         break
-                    spent = budget_spent(args, metrics.counters())
+                    spent = budget_spent(args, metrics.counters()) or (parting and parting.verdict)
                     if spent:
                         reason[0] = spent
                         break
@@ -1068,6 +1078,8 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
             metrics.stop_clock()
             group.stop()
             best.close()
+            for subscriber in heard:
+                subscriber.undeclare()
             metrics.record_status()
             metrics.close()
             token.undeclare()
