@@ -1032,7 +1032,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
                              shown_eval_env_id=shown_evaluations(args.env_id, args.eval_env_id))
         parting = opensim_stage.Parting(args.opensim_stage_parting, args.eval_episodes, simulators) if (
             args.opensim_stage and args.opensim_stage_parting) else None
-        heard = [parting.listen(session, Keys(run))] if parting else []
+        parting_subscribers = [parting.listen(session, Keys(run))] if parting else []
         judge = args.eval_env_id[0] if args.eval_env_id else None
         best = BestPolicy(session, Keys(run), run_dir, args.eval_episodes, recipe.values["action_repeat"],
                           score_of(args.env_id),
@@ -1078,7 +1078,7 @@ def train(args: argparse.Namespace, argv: list[str], launch: dict | None, run_di
             metrics.stop_clock()
             group.stop()
             best.close()
-            for subscriber in heard:
+            for subscriber in parting_subscribers:
                 subscriber.undeclare()
             metrics.record_status()
             metrics.close()
