@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import logging
 import threading
 from pathlib import Path
 
@@ -26,6 +27,8 @@ from l2r.protocol import EpisodeSummary, Keys, watched
 from l2r.run_metrics import RunCounters
 from l2r.sim import OPENSIM_ID, PORT_ID
 from l2r.sim.opensim_env import MISSING_OPENSIM
+
+log = logging.getLogger("l2r.up")
 
 SUFFIX = "-opensim"
 """The OpenSim stage's run directory is the port stage's, named with this after it."""
@@ -166,6 +169,10 @@ class Parting:
                 continue
             opensim = sum(self.rounds[OPENSIM_ID][version]) / self.episodes_per_round
             self.under = self.under + 1 if opensim < self.ratio * port[nearest] else 0
+            if self.under:
+                log.info("OpenSim's evaluation of v%d, %.2f m, under %g of the port's of v%d, %.2f m: %d of %d in a row "
+                         "ends the port's stage", version, opensim, self.ratio, nearest, port[nearest], self.under,
+                         PARTED_ROUNDS)
             if self.under >= PARTED_ROUNDS and self.verdict is None:
                 self.verdict = (f"{PARTED}: {self.under} OpenSim evaluations in a row under {self.ratio:g} of the "
                                 f"port's, the last v{version} {opensim:.2f} m against v{nearest} {port[nearest]:.2f} m")

@@ -3,6 +3,7 @@ from the port's, not at a time that suits one machine. The rule is heard over lo
 evaluator-like peers, and a real staged job goes on to OpenSim's stage when told of a parting."""
 
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -30,10 +31,17 @@ def rounds(parting: Parting, *pairs: tuple[int, float, float], port_after: int =
         parting.add(PORT_ID, version + port_after, port)
 
 
-def test_three_opensim_rounds_in_a_row_under_the_ratio_part_the_gait():
+def test_three_opensim_rounds_in_a_row_under_the_ratio_part_the_gait(caplog):
     parting = Parting(0.7, episodes_per_round=1, simulators=SIMULATORS)
-    rounds(parting, (40, 9.0, 10.0), (80, 2.0, 14.0), (120, 3.0, 15.0))
+    with caplog.at_level(logging.INFO, logger="l2r.up"):
+        rounds(parting, (40, 9.0, 10.0), (80, 2.0, 14.0), (120, 3.0, 15.0))
     assert parting.verdict is None
+    # Each round on the way is said, for whoever watches the run.
+    assert [r.getMessage() for r in caplog.records] == [
+        "OpenSim's evaluation of v80, 2.00 m, under 0.7 of the port's of v83, 14.00 m: 1 of 3 in a row ends the "
+        "port's stage",
+        "OpenSim's evaluation of v120, 3.00 m, under 0.7 of the port's of v123, 15.00 m: 2 of 3 in a row ends the "
+        "port's stage"]
     rounds(parting, (160, 2.5, 16.0))
     assert parting.verdict == (f"{PARTED}: {PARTED_ROUNDS} OpenSim evaluations in a row under 0.7 of the port's, "
                                "the last v160 2.50 m against v163 16.00 m")
