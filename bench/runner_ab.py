@@ -8,13 +8,10 @@
 Each arm is the 2-core recipe (`l2r up --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id
 l2r/Run-v0 --eval-episodes 1 --eval-interval 60`) with the arm's flags, all arms started **at
 once** on this host, so that they share the machine alike: on 2 cores, two arms get about one
-core each, about what one run alone makes in half the time. Every process of every arm runs at
-equal priority (`--actor-nice 0`): with the learners first, as `l2r up` puts a job's learner, two
-learners would take both cores from the actors. The A/Bs of docs/training.md ran so: until
-2026-11-27 the actors' niceness did not weigh across sessions on kernels that schedule by
-autogroup, as these boxes' do (two arms of the stage made 0.078 updates an env step that day, and
-0.076 here the next before the change). The levers and the reasons for judging this way:
-docs/training.md, "Levers for robustness".
+core each, about what one run alone makes in half the time (every process at equal priority,
+`l2r up`'s default `--actor-nice 0`: with the learners first, two would take both cores from the
+actors). The levers and the reasons for judging this way: docs/training.md, "Levers for
+robustness".
 
 What each line holds, from the run's metrics/ and from `l2r eval` afterwards (arms judged at once):
 - `first_opensim_6m`: minutes and updates at the first OpenSim evaluation of 6 m or more;
@@ -49,7 +46,7 @@ from l2r.opensim_stage import Parting
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ["--evaluators", "2", "--eval-env-id", "l2r/RunOpenSim-v0", "--eval-env-id", "l2r/Run-v0",
-          "--eval-episodes", "1", "--eval-interval", "60", "--actor-nice", "0"]
+          "--eval-episodes", "1", "--eval-interval", "60"]
 SIMULATORS = {"opensim": "l2r/RunOpenSim-v0", "port": "l2r/Run-v0"}
 OBSTACLE_SEEDS = 20
 PARTING = 0.7  # the issue's bound on OpenSim over the port

@@ -205,9 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--log-every", type=int, default=10,
                    help="actors log every Nth training episode as MCAP under episodes/ (0: none; the runner, "
                         "camera and photo tasks only); evaluation episodes are always logged")
-    a.add_argument("--actor-nice", type=int, default=10,
-                   help="niceness of actors and evaluators: on a machine with few cores the learner, at normal "
-                        "priority, gets the CPU it needs and the actors use what is left (0: equal priority)")
+    a.add_argument("--actor-nice", type=int, default=0,
+                   help="niceness of actors and evaluators: above 0, on a machine with few cores the learner, at "
+                        "normal priority, gets the CPU it needs and the actors use what is left (which two jobs "
+                        "at once on 2 cores turn into actors all but stopped); 0: the job's processes share the CPU "
+                        "evenly, as every figure in docs/ was measured")
     a.add_argument("--no-episode-logs", action="store_true", help="write no MCAP episode logs at all")
     a.add_argument("--compress-frames", choices=("on", "off"), default="on",
                    help="the actors send a camera task's frames zstd-compressed (l2r-actor --compress-frames): 3.5 "

@@ -66,7 +66,7 @@ def old_launch(env_id: str, algo: str) -> dict:
         "seconds": 100.0, "env_steps": 0, "seed": 0, "max_restarts": 3, "env_id": env_id, "actors": 1,
         "envs_per_actor": 4, "difficulty": 0, "action_repeat": 3 if env_id.startswith("l2r/") else 1,
         "random_steps": None, "evaluators": 1, "eval_episodes": 2, "eval_interval": 20.0, "eval_env_id": [],
-        "opensim_actors": 0, "log_every": 10, "actor_nice": 10, "no_episode_logs": False, "device": "cpu",
+        "opensim_actors": 0, "log_every": 10, "actor_nice": 0, "no_episode_logs": False, "device": "cpu",
         "learner_threads": 0, "algo": algo, "batch_size": None, "hidden": None, "update_repeat": 1, "relative_x": True,
         "normalize_obs": True, "mirror": True, "min_replay": 10000, "samples_per_insert": 0.0, "capacity": 1000000,
         "queue_capacity": None, "queue_max_lag": 3, "keep_checkpoints": 3, "learner_arg": [], "replay_arg": [],
