@@ -25,7 +25,7 @@ SIMULATORS = {ACTOR: PORT_ID, OPENSIM_EVALUATOR: OPENSIM_ID, PORT_EVALUATOR: POR
 
 def rounds(parting: Parting, *pairs: tuple[int, float, float], port_after: int = 3) -> None:
     """Each (version, OpenSim's metres, the port's metres): OpenSim's round, then the port's of a
-    version `port_after` later, as the slower evaluator's rounds lag."""
+    version `port_after` later, as two evaluators start their rounds at different moments."""
     for version, opensim, port in pairs:
         parting.add(OPENSIM_ID, version, opensim)
         parting.add(PORT_ID, version + port_after, port)
