@@ -108,6 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {defaults.episodes})")
     w.add_argument("--updates", type=int, default=defaults.updates,
                    help=f"Adam steps a round, batches of {defaults.batch_size} (default: {defaults.updates})")
+    w.add_argument("--lr-schedule", choices=pretrain.LR_SCHEDULES, default=defaults.lr_schedule,
+                   help=f"the Adam steps' learning rate, {defaults.lr} throughout a round (constant) or falling "
+                        f"to 0 along half a cosine (default: %(default)s)")
     w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
                    help=f"deterministic episodes on the training photos that judge the result (default: "
                         f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
@@ -283,7 +286,8 @@ def run_pretrain(args: argparse.Namespace) -> dict:
 
     try:
         config = pretrain.PretrainConfig(env_id=args.env_id, rounds=args.rounds, episodes=args.episodes,
-                                         updates=args.updates, eval_episodes=args.eval_episodes,
+                                         updates=args.updates, lr_schedule=args.lr_schedule,
+                                         eval_episodes=args.eval_episodes,
                                          source_variety=args.source_variety, residual=args.residual,
                                          seed=args.seed)
     except ValueError as e:

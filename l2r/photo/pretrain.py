@@ -29,6 +29,7 @@ learner's.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ from l2r.photo.pipeline import PARAMETERS, actions_from_params
 from l2r.photo.tune import TUNE_IDS
 
 CPU = torch.device("cpu")
+LR_SCHEDULES = ("constant", "cosine")
 EVAL_SEED = 10**9
 """Seeds of the closing evaluation episodes start here, far from the rounds' (below 10^8)."""
 
@@ -58,6 +60,9 @@ class PretrainConfig:
     """Adam steps a round."""
     batch_size: int = 256
     lr: float = 1e-3
+    lr_schedule: str = "constant"
+    """"cosine": each round's learning rate falls from `lr` to 0 along half a cosine over its
+    `updates`, so that its last steps average the noise of the batches away rather than follow it."""
     first_noise: float = 0.6
     policy_noise: float = 0.2
     eval_episodes: int = 50
@@ -81,6 +86,8 @@ class PretrainConfig:
             raise ValueError("rounds, episodes, updates, batch_size and eval_episodes must be at least 1")
         if self.lr <= 0 or min(self.first_noise, self.policy_noise) < 0:
             raise ValueError("lr must be positive, the noises at least 0")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be {' or '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0.0 <= self.source_variety <= 1.0:
             raise ValueError(f"source_variety must be in [0, 1], got {self.source_variety}")
 
@@ -181,6 +188,8 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
             loss = torch.nn.functional.mse_loss(actor.mean_action(batch), answers[index])
             optimizer.zero_grad()
             loss.backward()
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(config, step)
             optimizer.step()
             if tenth(step, config.updates):
                 progress(f"round {round_ + 1}/{config.rounds}: {step + 1:,} of {config.updates:,} steps, loss "
@@ -196,6 +205,13 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
     return actor, {"score": "psnr", "mean_psnr": float(np.mean(psnr)), "episodes": config.eval_episodes,
                    "losses": losses, "observations": len(episodes.answers),
                    "seconds": round(time.monotonic() - started, 1)}
+
+
+def learning_rate(config: PretrainConfig, step: int) -> float:
+    """The learning rate of a round's `step`-th Adam step (from 0), by `config.lr_schedule`."""
+    if config.lr_schedule == "constant":
+        return config.lr
+    return config.lr * 0.5 * (1.0 + math.cos(math.pi * step / config.updates))
 
 
 def tenth(index: int, count: int) -> bool:

@@ -10,7 +10,7 @@ import torch
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.learner.daemon import _initial_state
 from l2r.learner.__main__ import parse_settings as learner_settings
-from l2r.photo.pretrain import EVAL_SEED, Episodes, PretrainConfig, pretrain
+from l2r.photo.pretrain import EVAL_SEED, Episodes, PretrainConfig, learning_rate, pretrain
 from l2r.up import parse_args, plan_children
 from tests.photo.test_tune import l2r_photo
 
@@ -38,6 +38,28 @@ def test_the_policy_learns_the_answers_of_its_episodes_and_tunes_far_past_the_in
     # The neutral parameters leave the input (12 dB); the answer itself reaches the goal (100 dB, capped).
     assert np.mean(untouched) + 3.0 < evaluation["mean_psnr"] < np.mean(answered), (untouched, evaluation)
     assert policy.spec["kind"] == "deterministic"
+
+
+def test_the_cosine_schedule_falls_from_the_learning_rate_to_nothing_over_a_round():
+    cosine = PretrainConfig(lr=1e-3, updates=1000, lr_schedule="cosine")
+    rates = [learning_rate(cosine, step) for step in range(1000)]
+    assert rates[0] == pytest.approx(1e-3) and rates[500] == pytest.approx(5e-4) and rates[-1] < 1e-7
+    assert all(later < earlier for earlier, later in zip(rates, rates[1:]))
+    assert {learning_rate(PretrainConfig(lr=1e-3, updates=1000), step) for step in (0, 500, 999)} == {1e-3}
+    with pytest.raises(ValueError, match="lr_schedule must be constant or cosine, got 'linear'"):
+        PretrainConfig(lr_schedule="linear")
+
+
+def test_the_steps_follow_the_schedule(one_thread):
+    def weights(schedule: str) -> torch.Tensor:
+        torch.manual_seed(0)
+        policy, _ = pretrain(PretrainConfig(env_id=STATS_ID, episodes=2, updates=20, eval_episodes=1,
+                                            lr_schedule=schedule), progress=lambda _line: None)
+        return torch.cat([p.detach().flatten() for p in policy.parameters()])
+
+    # The same episodes and batches (the seed's), so only the rates of the steps tell them apart.
+    assert torch.equal(weights("cosine"), weights("cosine"))
+    assert not torch.allclose(weights("constant"), weights("cosine"))
 
 
 @pytest.mark.parametrize("residual", [False, True])
