@@ -198,7 +198,7 @@ class LearnerSettings(DaemonSettings):
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
 
     n_step: int = setting(TD3_DEFAULTS.n_step, "steps summed into each sampled reward before the bootstrap "
-                          "(n-step returns, built by the replay server)", group=TD3, ge=1)
+                          "(n-step returns, built by the replay server)", group=OFF_POLICY, ge=1)
     policy_delay: int = setting(TD3_DEFAULTS.policy_delay, "the actor steps and the targets follow on every Nth "
                                 "update; the critics on every one", group=TD3, ge=1)
     critic_warmup: int = setting(TD3_DEFAULTS.critic_warmup, "the run's first N updates train the critics and "
@@ -375,6 +375,9 @@ class LearnerSettings(DaemonSettings):
                              f"time (observation {self.spaces[0]}, --frame-stack {self.frame_stack or 1})")
         if self.prioritized or self.world_size > 1:
             raise UsageError("--colocated-env samples uniformly, on one learner: no --prioritized or --world-size")
+        if self.n_step > 1:
+            raise UsageError(f"--n-step {self.n_step}: colocated worlds keep one-step transitions; n-step returns "
+                             "are built by the replay server")
         if self.colocated_randomize:
             try:
                 Randomization.parse(self.colocated_randomize)
@@ -403,7 +406,7 @@ class LearnerSettings(DaemonSettings):
             return SACConfig(
                 **self._network(SAC_DEFAULTS), tau=self.tau, actor_lr=self._given("lr", SAC_DEFAULTS.actor_lr),
                 critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
-                update_repeat=self.update_repeat,
+                update_repeat=self.update_repeat, n_step=self.n_step,
                 target_entropy=self._given("target_entropy", self.target_entropy_per_action * self.spaces[1]),
                 initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, critics=self.critics,
                 critics_in_min=self._given("critics_in_min", self.critics), mirror=self.mirror,

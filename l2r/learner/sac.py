@@ -71,6 +71,10 @@ class SACConfig:
     """Multiplier on rewards before the Bellman target (per-step rewards here are ~0.01-0.03 m)."""
     update_repeat: int = 3
     """Gradient steps taken on each sampled batch (the reference solution's 3)."""
+    n_step: int = 1
+    """Rewards of n steps summed by the replay server before the bootstrap (`Batch.discounts`), so
+    that a step's reward reaches the value of the state n steps back in one update. The entropy
+    bonus is the bootstrap's alone, as in n-step SAC's usual form."""
     critics: int = 2
     """Q networks trained side by side on each batch, each towards the same target: SAC's twin
     critics, or an ensemble (the 2017 finalists' PKU team trained ensembles; REDQ's 10)."""
@@ -112,8 +116,8 @@ class SACConfig:
     def __post_init__(self) -> None:
         self.hidden = tuple(int(h) for h in self.hidden)
         check_off_policy(self)
-        if self.batch_size < 1 or self.update_repeat < 1 or self.initial_alpha <= 0:
-            raise ValueError("batch_size and update_repeat must be >= 1 and initial_alpha > 0")
+        if min(self.batch_size, self.update_repeat, self.n_step) < 1 or self.initial_alpha <= 0:
+            raise ValueError("batch_size, update_repeat and n_step must be >= 1 and initial_alpha > 0")
         if not 1 <= self.critics_in_min <= self.critics:
             raise ValueError(f"need 1 <= critics_in_min <= critics, got {self.critics_in_min} of {self.critics}")
 
@@ -296,7 +300,7 @@ class Batch(Transitions):
     weights: torch.Tensor | None = None
     """Importance weights from prioritized replay, or None for uniform sampling."""
     discounts: torch.Tensor | None = None
-    """n-step returns (TD3's n_step > 1; SAC asks for none): the discount of each sample's bootstrap,
+    """n-step returns (n_step > 1): the discount of each sample's bootstrap,
     0 where the episode terminated within its window, else gamma^m for a window of m steps; its
     reward is then the window's discounted sum and next_obs the observation after it. None: one step."""
 
@@ -376,11 +380,13 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     embedding, next_embedding = views(state.actor, batch, config.augment_pad)
 
     # 1. Soft Bellman target. Only a real termination cuts the bootstrap; a time limit does not.
+    #    n-step batches carry the discount of theirs.
     with torch.no_grad(), state.autocast():
         next_action, next_log_prob = state.actor.sample_of(next_embedding)
         next_q = least_of_drawn(state.target_critic(next_embedding, next_action), config)
         next_value = next_q - alpha * next_log_prob
-        target = config.reward_scale * batch.reward + config.gamma * (1.0 - batch.terminated) * next_value
+        discount = config.gamma * (1.0 - batch.terminated) if batch.discounts is None else batch.discounts
+        target = config.reward_scale * batch.reward + discount * next_value
 
     # 2. Critic loss, each critic towards the same target (importance-weighted under prioritized replay), and step.
     with state.autocast():

@@ -30,6 +30,7 @@ def test_help_explains_and_exits_zero(capsys):
     (["--algo", "trpo", "--line-search-shrink", "1"], "--line-search-shrink 1: should be less than 1"),
     (["--colocated-env", "Pendulum-v1", "--algo", "a3c"], "--algo a3c takes the actors' gradients"),
     (["--colocated-env", "Pendulum-v1", "--prioritized"], "--colocated-env samples uniformly, on one learner"),
+    (["--colocated-env", "Pendulum-v1", "--n-step", "3"], "--n-step 3: colocated worlds keep one-step transitions"),
     (["--colocated-env", "Pendulum-v1", "--frame-stack", "2"], "colocated worlds give one float32 vector at a time"),
     (["--colocated-env", "Pendulum-v1", "--colocated-randomize", "speed=0.1"],
      "--colocated-randomize: randomize has no speed"),
@@ -41,6 +42,13 @@ def test_help_explains_and_exits_zero(capsys):
 def test_bad_arguments_are_usage_errors(argv, message, capsys):
     assert cli(argv) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_both_off_policy_learners_ask_for_n_step_returns(algo):
+    # The daemon asks the replay server for the n its algorithm's config holds.
+    assert parse_settings(["--algo", algo, "--n-step", "3"]).algorithm().n_step == 3
+    assert parse_settings(["--algo", algo]).algorithm().n_step == 1
 
 
 @pytest.mark.parametrize("variables, message", [

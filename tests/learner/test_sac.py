@@ -79,6 +79,25 @@ def test_soft_bellman_target_bootstraps_with_the_entropy_bonus_unless_terminated
     assert float(truncated["target_mean"]) == pytest.approx(expected, rel=1e-5)
 
 
+def test_an_n_step_batch_bootstraps_with_its_own_discounts():
+    # Critics of 10 everywhere and a temperature of almost 0: each sample's target is its reward plus
+    # its discount times 10, whatever the policy draws.
+    config = small_config(n_step=3, gamma=0.9, reward_scale=2.0, initial_alpha=1e-9, autotune_alpha=False)
+    state = init_state(config, OBS, ACT, seed=3)
+    constant_critics(state, [10.0, 10.0])
+    # Windows of 3 steps, one ended by a termination (discount 0), one cut short after 2 steps by the
+    # end of the data (gamma^2): the replay gives each sample its discount.
+    discounts = np.array([0.9 ** 3, 0.0, 0.9 ** 2, 0.9 ** 3], np.float32)
+    rng = np.random.default_rng(4)
+    batch = batch_from_numpy(rng.normal(size=(4, OBS)), rng.random((4, ACT)), np.full(4, 0.5),
+                             rng.normal(size=(4, OBS)), np.array([0.0, 1.0, 0.0, 0.0]), discounts=discounts)
+    metrics = update(state, batch, config)
+    expected = 2.0 * 0.5 + 10.0 * discounts
+    assert float(metrics["target_mean"]) == pytest.approx(float(expected.mean()), rel=1e-5)
+    # SAC's one-step discount, gamma * (1 - terminated), would have given 1 + 9 for three of the four.
+    assert float(metrics["target_mean"]) != pytest.approx(1.0 + 9.0 * 3 / 4, rel=1e-3)
+
+
 def constant_critics(state, values) -> None:
     """Make critic i output values[i] everywhere (last layer zero, bias the value), online and target."""
     with torch.no_grad():
