@@ -55,7 +55,8 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # with the port for longer (docs/training.md, "The obstacle course from a million steps on").
     (RUNNER, "sac"): dict(
         hidden="256,256", activation="elu", layer_norm=True, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
-        reward_scale=10.0, initial_alpha=0.1, target_entropy_per_action=-0.5, update_repeat=1, publish_every=50,
+        reward_scale=10.0, initial_alpha=0.1, target_entropy_per_action=-0.5, update_repeat=1, n_step=1,
+        publish_every=50,
         relative_x=True, normalize_obs=True, mirror=True,
         min_replay=10_000, samples_per_insert=0.0, hold_actors=False,
         random_steps=0, envs_per_actor=4, action_repeat=3, frame_stack=1, randomize=RUNNER_RANDOMIZATION,
@@ -66,7 +67,8 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # held both ways), the actor acting with each new policy.
     (STANDARD, "sac"): dict(
         hidden="256,256", activation="relu", layer_norm=False, batch_size=256, lr=3e-4, gamma=0.99, tau=0.005,
-        reward_scale=1.0, initial_alpha=1.0, target_entropy_per_action=-1.0, update_repeat=1, publish_every=1,
+        reward_scale=1.0, initial_alpha=1.0, target_entropy_per_action=-1.0, update_repeat=1, n_step=1,
+        publish_every=1,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=5_000, samples_per_insert=256.0, hold_actors=True,
         random_steps=5_000, envs_per_actor=1, action_repeat=1, frame_stack=1,
@@ -218,7 +220,8 @@ RECIPES: dict[tuple[str, str], dict[str, Value]] = {
     # layers shared as DrQ-v2 shares them (no target encoder).
     (PIXELS, "sac"): dict(
         hidden="1024,1024", activation="relu", layer_norm=False, batch_size=512, lr=1e-3, gamma=0.99, tau=0.01,
-        reward_scale=1.0, initial_alpha=0.1, target_entropy_per_action=-1.0, update_repeat=1, publish_every=10,
+        reward_scale=1.0, initial_alpha=0.1, target_entropy_per_action=-1.0, update_repeat=1, n_step=1,
+        publish_every=10,
         relative_x=False, normalize_obs=False, mirror=False,
         min_replay=1_000, samples_per_insert=512.0, hold_actors=True,
         random_steps=1_000, envs_per_actor=1, action_repeat=1, encoder="drq",
@@ -275,7 +278,7 @@ SETTINGS: dict[str, str] = {
     "update_repeat": "gradient steps per sampled batch (SAC, TD3)",
     "publish_every": "updates between weight publications; 1: actors act with the newest weights (SAC, TD3; the "
                      "on-policy algorithms publish after every batch)",
-    "n_step": "steps summed into each sampled reward before the bootstrap (TD3)",
+    "n_step": "steps summed into each sampled reward before the bootstrap (SAC, TD3)",
     "policy_delay": "the actor steps and the targets follow on every Nth update (TD3)",
     "target_noise": "std of the noise on the target action (TD3's target policy smoothing)",
     "scheduled_target_noise": "the target action's noise takes the current exploration std instead of "
