@@ -240,6 +240,7 @@ class PhotoTuneEnv(gym.Env):
             self.draw()
         self.goal_small = photos.downsample(self.goal) if self.shows_goal else None
         self.image, self.params, self.steps = self.source, NEUTRAL, 0
+        self.image_small = photos.downsample(self.image)
         self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
         self.episode_over = False
         return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name, "look": self.look,
@@ -315,6 +316,7 @@ class PhotoTuneEnv(gym.Env):
             raise RuntimeError(f"{self.task}: step() before the first reset() or after the episode ended; call reset()")
         self.params = params_from_actions(checked_action(self.task, action, self.action_space.shape))
         self.image = finish(self.source[None], self.params)[0]
+        self.image_small = photos.downsample(self.image)
         psnr = float(psnr_db(self.image[None], self.goal[None])[0])
         reward = REWARD_SCALE * (psnr - self.psnr)
         self.psnr, self.steps = psnr, self.steps + 1
@@ -328,11 +330,11 @@ class PhotoTuneEnv(gym.Env):
         for episode logs (`info["frames"]`); nothing where the observation shows them."""
         if self.view == "images":
             return {}
-        shown = {"pixels": self.image} | ({"goal": self.goal} if self.shows_goal else {})
-        return {"frames": {name: photos.to_uint8(photos.downsample(image)) for name, image in shown.items()}}
+        shown = {"pixels": self.image_small} | ({"goal": self.goal_small} if self.shows_goal else {})
+        return {"frames": {name: photos.to_uint8(image) for name, image in shown.items()}}
 
     def observation(self) -> dict[str, np.ndarray]:
-        current = photos.downsample(self.image)
+        current = self.image_small
         shown = np.stack([current, self.goal_small]) if self.shows_goal else current[None]
         statistics = image_statistics(shown) if self.view == "images" else image_features(shown)
         compared = comparison_features(current[None], self.goal_small[None]) if self.view == "comparison" else []
