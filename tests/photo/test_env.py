@@ -126,7 +126,10 @@ def test_the_comparison_view_observes_the_statistics_and_the_pair_compared():
         np.testing.assert_array_equal(seen["state"][:50], statistics["state"][:50])
         np.testing.assert_allclose(seen["state"][50:90], comparison_features(current[None], goal[None])[0], atol=1e-6)
         np.testing.assert_array_equal(seen["state"][90:], statistics["state"][50:])
+        # The episode log's frames are the images the observation was made of, after each step as after reset.
         assert set(info["frames"]) == {"pixels", "goal"}
+        np.testing.assert_array_equal(info["frames"]["pixels"], photos.to_uint8(current))
+        np.testing.assert_array_equal(info["frames"]["goal"], photos.to_uint8(goal))
         (seen, _, _, _, info), (statistics, *_) = compare.step(action), stats.step(action)
     check_env(compare, skip_render_check=True)
     with pytest.raises(ValueError, match="compares the image with a goal the task does not show"):
