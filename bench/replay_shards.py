@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from l2r.job_plan import free_ports, loopback
 from l2r.protocol import EXPERIENCE_QOS, Keys, ReplayClient, Stats, decode, encode, session_config, wait_alive
 from l2r.protocol.messages import ExperienceChunk, ReplayAck
-from l2r.up import free_ports, loopback
 
 sys.path.insert(0, str(Path(__file__).parent))
 from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)

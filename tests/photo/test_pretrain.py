@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from l2r.job_plan import plan_children
+from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.learner.checkpoint import load_checkpoint
 from l2r.learner.daemon import _initial_state
-from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.photo.pretrain import EVAL_SEED, Episodes, PretrainConfig, learning_rate, pretrain
-from l2r.up import parse_args, plan_children
+from l2r.up import parse_args
 from tests.photo.test_tune import l2r_photo
 
 STATS_ID = "l2r/PhotoTuneStats-v0"

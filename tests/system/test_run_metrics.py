@@ -8,10 +8,10 @@ import zenoh
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from l2r.families import score_of
+from l2r.job_plan import shown_evaluations
 from l2r.live_status import status_line
 from l2r.protocol import EpisodeSummary, Keys, Stats, encode, session_config
 from l2r.run_metrics import RunMetrics
-from l2r.up import shown_evaluations
 from tests.conftest import free_port, wait_for
 
 PORT, OPENSIM = "l2r/Run-v0", "l2r/RunOpenSim-v0"

@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.job_plan import plan_children
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.learner.colocated import WorldsConfig
-from l2r.up import parse_args, plan_children
+from l2r.up import parse_args
 from tests.conftest import wait_for
 from tests.system.test_up import finish, l2r_up, rows
 

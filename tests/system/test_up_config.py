@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from l2r.up import parse_args, replay_capacity
+from l2r.job_plan import replay_capacity
+from l2r.up import parse_args
 
 
 @pytest.fixture

@@ -8,11 +8,12 @@ import pytest
 
 from l2r.actors.__main__ import parse_settings as actor_settings
 from l2r.config import UsageError
+from l2r.families import PIXELS, RUNNER, family_of
+from l2r.job_plan import plan_children, simulator_of_each_actor
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.replay.__main__ import parse_settings as replay_settings
-from l2r.families import PIXELS, RUNNER, family_of
 from l2r.sim.randomize import Randomization
-from l2r.up import build_parser, parse_args, plan_children, simulator_of_each_actor
+from l2r.up import build_parser, parse_args
 
 
 def env_ids(*argv: str) -> dict[str, str]:

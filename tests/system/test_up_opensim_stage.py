@@ -11,11 +11,12 @@ import pytest
 
 from l2r import opensim_stage
 from l2r.actors.__main__ import parse_settings as actor_settings
-from l2r.learner.checkpoint import load_checkpoint
+from l2r.job_plan import plan_children
 from l2r.learner.__main__ import parse_settings as learner_settings
+from l2r.learner.checkpoint import load_checkpoint
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.run_metrics import RunCounters
-from l2r.up import budget_spent, parse_args, plan_children
+from l2r.up import budget_spent, parse_args
 
 
 def port_run_with_checkpoint(tmp_path: Path) -> Path:

@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
+from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.job_plan import LEARNER_FLAGS, plan_children, recipe_of
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.recipes import PHOTO, PIXELS, RECIPES, RUNNER, RUNNER_CURRICULUM, RUNNER_RANDOMIZATION, SETTINGS, STANDARD
 from l2r.replay.__main__ import parse_settings as replay_settings
-from l2r import disk_budget
-from l2r.up import LEARNER_FLAGS, build_parser, parse_args, plan_children, recipe_of, write_launch
+from l2r.up import build_parser, parse_args, write_launch
 
 REPLAY = "--run run --log-level INFO --listen tcp/127.0.0.1:7447"
 LEARNER = "--run run --log-level INFO --listen tcp/127.0.0.1:7448 --connect tcp/127.0.0.1:7447 --device cpu"

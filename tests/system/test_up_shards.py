@@ -13,11 +13,12 @@ import pytest
 
 from l2r import disk_budget
 from l2r.actors.__main__ import parse_settings as actor_settings
+from l2r.job_plan import plan_children, recipe_of
 from l2r.learner.__main__ import parse_settings as learner_settings
 from l2r.protocol.keys import shard_of
 from l2r.replay.__main__ import parse_settings as replay_settings
 from l2r.replay.storage import StorageConfig, storage_bytes
-from l2r.up import parse_args, plan_children, recipe_of
+from l2r.up import parse_args
 from tests.conftest import wait_for
 from tests.system.test_up import SMALL, finish, l2r_up, pid_of, rows, up_log
 
