@@ -4,7 +4,7 @@ and compare enhancers of degraded held-out photos.
     l2r photo tune INPUT --goal TARGET --out OUT.png [--checkpoint CK | --optimizer cmaes --queries N]
     l2r photo compare [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
     l2r photo enhance [FIVEK_FOLDER] [--checkpoint CK] [--photos N] [--json]
-    l2r photo pretrain --out CK [--rounds N] [--episodes N] [--updates N] [--json]
+    l2r photo pretrain --out CK [--rounds N] [--episodes N] [--updates N] [--workers N] [--json]
 """
 
 from __future__ import annotations
@@ -111,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--lr-schedule", choices=pretrain.LR_SCHEDULES, default=defaults.lr_schedule,
                    help=f"the Adam steps' learning rate, {defaults.lr} throughout a round (constant) or falling "
                         f"to 0 along half a cosine (default: %(default)s)")
+    w.add_argument("--workers", type=int, default=defaults.workers,
+                   help="processes that play the episodes, the most of its time on one core; the result is the "
+                        "same whatever their number (default: %(default)s)")
     w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
                    help=f"deterministic episodes on the training photos that judge the result (default: "
                         f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
@@ -286,7 +289,7 @@ def run_pretrain(args: argparse.Namespace) -> dict:
 
     try:
         config = pretrain.PretrainConfig(env_id=args.env_id, rounds=args.rounds, episodes=args.episodes,
-                                         updates=args.updates, lr_schedule=args.lr_schedule,
+                                         updates=args.updates, lr_schedule=args.lr_schedule, workers=args.workers,
                                          eval_episodes=args.eval_episodes,
                                          source_variety=args.source_variety, residual=args.residual,
                                          seed=args.seed)

@@ -21,6 +21,12 @@ looks), and one round of more episodes gained more (0.9 dB from 1,500 to 3,000, 
 the default is one round of 24,000, the least that passes CMA-ES at 200 queries in PSNR and SSIM
 on every seed tried.
 
+Playing the episodes takes most of the time on one core; `workers` processes play them in
+chunks. Each episode's noise comes from its own seed (the run's seed, the round and the
+episode's index), so the result is the same whatever the number of workers (since 2026-11-28:
+the figures before then drew every episode's noise from one stream, and the same flags now give
+other figures of the same spread).
+
 The networks are those of the photo/td3 recipe (l2r.recipes), so the policy checkpoint it
 writes is one `l2r photo compare`/`tune` run and `l2r up --algo td3 --init-from` starts from.
 Goals from other scenes' looks have no parameters to learn from: they stay the reinforcement
@@ -30,8 +36,9 @@ learner's.
 from __future__ import annotations
 
 import math
+import multiprocessing
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +48,7 @@ import torch
 from l2r.learner import td3
 from l2r.photo.pipeline import PARAMETERS, actions_from_params
 from l2r.photo.tune import TUNE_IDS
+from l2r.policy import build_policy, load_policy_state, policy_state
 
 CPU = torch.device("cpu")
 LR_SCHEDULES = ("constant", "cosine")
@@ -73,6 +81,11 @@ class PretrainConfig:
     show many colourings: over seeds 0-2 at 12,000 episodes the held-out results lie within 0.5 dB
     of each other (28.73-29.23) where without it they spread over 3.0 (27.25-30.26), their median
     0.21 dB lower and SSIM's 0.014 higher (docs/photo.md)."""
+    workers: int = 1
+    """Processes that play the episodes (one: this one). Each episode's noise is drawn from its own
+    seed (`episode_rng`) and the workers' episodes are kept in order, so the result does not depend
+    on how many play them: on a 16-core box the episodes, most of the time on one core, take a
+    sixteenth of it."""
     residual: bool = False
     """Each query a change to the last one (the "residual" policy kind, l2r.policy): a query nearly
     right then stays so where the head gives nearly 0. Off: on held-out problems it gained 0.2 dB
@@ -82,8 +95,8 @@ class PretrainConfig:
     def __post_init__(self) -> None:
         if self.env_id not in TUNE_IDS:
             raise ValueError(f"the warm start learns the tuner's tasks, {' or '.join(TUNE_IDS)}, not {self.env_id}")
-        if min(self.rounds, self.episodes, self.updates, self.batch_size, self.eval_episodes) < 1:
-            raise ValueError("rounds, episodes, updates, batch_size and eval_episodes must be at least 1")
+        if min(self.rounds, self.episodes, self.updates, self.batch_size, self.eval_episodes, self.workers) < 1:
+            raise ValueError("rounds, episodes, updates, batch_size, eval_episodes and workers must be at least 1")
         if self.lr <= 0 or min(self.first_noise, self.policy_noise) < 0:
             raise ValueError("lr must be positive, the noises at least 0")
         if self.lr_schedule not in LR_SCHEDULES:
@@ -149,38 +162,105 @@ class Episodes:
         return np.concatenate(self.observations), np.stack(self.answers)
 
 
+CHUNK = 250
+"""Most episodes a worker plays at a call: enough that the observations sent back outweigh the call."""
+
+
+class Player:
+    """Plays a round's episodes, in this process or in a worker: round 1's queries are the answer
+    blurred, later rounds' the policy's own with noise, each episode's noise from its own seed."""
+
+    def __init__(self, config: PretrainConfig, episodes: Episodes, actor: td3.DeterministicPolicy):
+        self.config, self.episodes, self.actor = config, episodes, actor
+
+    def deterministic(self, observation, _answer=None) -> np.ndarray:
+        with torch.no_grad():
+            return self.actor.mean_action(self.actor.observation_tensors(observation, CPU))[0].numpy()
+
+    def play(self, round_: int, indices: range) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray, list[float]]:
+        """Episodes `indices` of the round: their observations and answers, stacked, and each one's last PSNR."""
+        self.episodes.observations, self.episodes.answers = [], []
+        first_seed = self.config.seed * 10**7 + round_ * 10**5
+        ends = [self.episodes.play(first_seed + i, self.queries(round_, episode_rng(self.config, round_, i)))
+                for i in indices]
+        return *self.episodes.kept(), ends
+
+    def queries(self, round_: int, rng: np.random.Generator) -> Callable[[object, np.ndarray], np.ndarray]:
+        scale = rng.uniform(0.0, self.config.first_noise if round_ == 0 else self.config.policy_noise)
+        if round_ == 0:
+            return lambda _observation, answer: answer + rng.normal(0.0, scale, answer.shape) * rng.random(answer.shape)
+        return lambda observation, answer: self.deterministic(observation) + rng.normal(0.0, scale, answer.shape)
+
+
+def episode_rng(config: PretrainConfig, round_: int, index: int) -> np.random.Generator:
+    """The noise of a round's `index`-th episode, the same whichever process plays it."""
+    return np.random.default_rng((config.seed, round_, index))
+
+
+def played(player: Player, round_: int, count: int) -> Iterator[tuple]:
+    """The round's `count` episodes as `Player.play` gives them, in chunks, in order: played here,
+    or by `config.workers` processes each with its own copy of the task and of the policy."""
+    size = max(1, min(CHUNK, count // 10))
+    chunks = [range(first, min(first + size, count)) for first in range(0, count, size)]
+    config = player.config
+    if config.workers == 1:
+        yield from (player.play(round_, chunk) for chunk in chunks)
+        return
+    weights = (dict(player.actor.spec), policy_state(player.actor)) if round_ > 0 else None
+    with multiprocessing.get_context("spawn").Pool(config.workers, _start_worker, (config, weights)) as pool:
+        yield from pool.imap(_play_in_worker, [(round_, chunk) for chunk in chunks])
+
+
+_worker: Player | None = None
+"""A worker process's player (`_start_worker`)."""
+
+
+def _start_worker(config: PretrainConfig, weights: tuple[dict, dict] | None) -> None:
+    global _worker
+    torch.set_num_threads(1)
+    actor = None
+    if weights is not None:
+        actor = build_policy(weights[0])
+        load_policy_state(actor, weights[1])
+        actor.eval()
+    _worker = Player(config, Episodes(config.env_id, config.source_variety), actor)
+
+
+def _play_in_worker(job: tuple[int, range]) -> tuple:
+    return _worker.play(*job)
+
+
+def joined(kept: list[tuple]) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray]:
+    """The chunks' observations (one array, or arrays by field) and answers, each stacked in order."""
+    observations = [o for o, _ in kept]
+    answers = np.concatenate([a for _, a in kept])
+    if isinstance(observations[0], dict):
+        return {name: np.concatenate([o[name] for o in observations]) for name in observations[0]}, answers
+    return np.concatenate(observations), answers
+
+
 def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) -> tuple[td3.DeterministicPolicy, dict]:
     """The policy learnt as the module says, and how it did: `mean_psnr` over `eval_episodes`
     deterministic episodes on the training photos, the rounds' losses, samples and seconds."""
     started = time.monotonic()
-    rng = np.random.default_rng(config.seed)
     episodes = Episodes(config.env_id, config.source_variety)
     residual = episodes.env.unwrapped.parameters_at if config.residual else None
     actor = td3.init_state(recipe_networks(residual), episodes.spec, len(PARAMETERS), seed=config.seed).actor
     optimizer = torch.optim.Adam(actor.parameters(), lr=config.lr)
+    player = Player(config, episodes, actor)
 
-    def deterministic(observation, _answer) -> np.ndarray:
-        with torch.no_grad():
-            return actor.mean_action(actor.observation_tensors(observation, CPU))[0].numpy()
-
-    def blurred_answer(scale: float):
-        return lambda _observation, answer: answer + rng.normal(0.0, scale, answer.shape) * rng.random(answer.shape)
-
-    def noisy_policy(scale: float):
-        return lambda observation, answer: deterministic(observation, answer) + rng.normal(0.0, scale, answer.shape)
-
-    losses, ends = [], []
+    losses, ends, kept = [], [], []
     for round_ in range(config.rounds):
-        first_seed = config.seed * 10**7 + round_ * 10**5
         count = config.episodes if round_ == 0 else config.episodes // 2
-        for i in range(count):
-            scale = rng.uniform(0.0, config.first_noise if round_ == 0 else config.policy_noise)
-            queries = blurred_answer(scale) if round_ == 0 else noisy_policy(scale)
-            ends.append(episodes.play(first_seed + i, queries))
-            if tenth(i, count):
-                progress(f"round {round_ + 1}/{config.rounds}: {i + 1:,} of {count:,} episodes played "
+        done = 0
+        for observations, answers, chunk_ends in played(player, round_, count):
+            kept.append((observations, answers))
+            ends += chunk_ends
+            before, done = done, done + len(chunk_ends)
+            if passed_a_tenth(before, done, count):
+                progress(f"round {round_ + 1}/{config.rounds}: {done:,} of {count:,} episodes played "
                          f"({time.monotonic() - started:.0f} s)")
-        observations, answers = episodes.kept()
+        observations, answers = joined(kept)
         inputs, answers = actor.observation_tensors(observations, CPU), torch.as_tensor(answers)
         for step in range(config.updates):
             index = torch.randint(len(answers), (config.batch_size,))
@@ -191,7 +271,7 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(config, step)
             optimizer.step()
-            if tenth(step, config.updates):
+            if passed_a_tenth(step, step + 1, config.updates):
                 progress(f"round {round_ + 1}/{config.rounds}: {step + 1:,} of {config.updates:,} steps, loss "
                          f"{float(loss.detach()):.4f} ({time.monotonic() - started:.0f} s)")
         losses.append(float(loss.detach()))
@@ -199,11 +279,11 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
                  f"{count} new episode{'s' if count != 1 else ''} ended at {np.mean(ends[-count:]):.2f} dB "
                  f"({time.monotonic() - started:.0f} s)")
     actor.eval()
-    psnr = [episodes.play(EVAL_SEED + i, deterministic, keep=False) for i in range(config.eval_episodes)]
+    psnr = [episodes.play(EVAL_SEED + i, player.deterministic, keep=False) for i in range(config.eval_episodes)]
     progress(f"the policy's 10 queries on {config.eval_episodes} training episodes: {np.mean(psnr):.2f} dB")
     episodes.env.close()
     return actor, {"score": "psnr", "mean_psnr": float(np.mean(psnr)), "episodes": config.eval_episodes,
-                   "losses": losses, "observations": len(episodes.answers),
+                   "losses": losses, "observations": len(answers),
                    "seconds": round(time.monotonic() - started, 1)}
 
 
@@ -214,16 +294,17 @@ def learning_rate(config: PretrainConfig, step: int) -> float:
     return config.lr * 0.5 * (1.0 + math.cos(math.pi * step / config.updates))
 
 
-def tenth(index: int, count: int) -> bool:
-    """Whether the `index`-th of `count` items (from 0) completes another tenth of them (count // 10,
-    at least 1), the last aside (its round's line says it): where long work reports its progress."""
-    return (index + 1) % max(count // 10, 1) == 0 and index + 1 < count
+def passed_a_tenth(before: int, after: int, count: int) -> bool:
+    """Whether `after` of `count` items done completes another tenth of them (count // 10, at least
+    1) that `before` did not, the last aside (its round's line says it): where long work reports
+    its progress."""
+    every = max(count // 10, 1)
+    return after // every > before // every and after < count
 
 
 def save(path: Path, actor: td3.DeterministicPolicy, config: PretrainConfig, evaluation: dict) -> Path:
     """The policy as a policy checkpoint (what best.pt is), its evaluation beside it."""
     from l2r.learner.checkpoint import save_policy_checkpoint
-    from l2r.policy import policy_state
 
     return save_policy_checkpoint(path, policy_state(actor), dict(actor.spec), version=config.rounds,
                                   updates=config.rounds * config.updates, action_repeat=1,

@@ -63,6 +63,20 @@ def test_the_steps_follow_the_schedule(one_thread):
     assert not torch.allclose(weights("constant"), weights("cosine"))
 
 
+def test_the_workers_play_the_episodes_one_process_would(one_thread):
+    """Two rounds, so that the workers also play the policy's own queries (DAgger), with its weights of the time."""
+    def learnt(workers: int) -> tuple[torch.Tensor, dict]:
+        torch.manual_seed(0)
+        policy, evaluation = pretrain(PretrainConfig(env_id=STATS_ID, rounds=2, episodes=6, updates=20, eval_episodes=2,
+                                                     workers=workers), progress=lambda _line: None)
+        return torch.cat([p.detach().flatten() for p in policy.parameters()]), evaluation
+
+    (alone, here), (shared, there) = learnt(1), learnt(2)
+    assert torch.equal(alone, shared)
+    assert (here["mean_psnr"], here["losses"], here["observations"]) == \
+        (there["mean_psnr"], there["losses"], there["observations"])
+
+
 @pytest.mark.parametrize("residual", [False, True])
 def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_starts_from(tmp_path, residual):
     out = tmp_path / "tuner.pt"
@@ -96,7 +110,10 @@ def test_the_command_writes_a_checkpoint_compare_runs_and_the_recipe_s_learner_s
 
 @pytest.mark.parametrize("argv, message", [
     (["--out", "/nonexistent/tuner.pt"], "/nonexistent: no such directory for --out"),
-    (["--out", "x.pt", "--rounds", "0"], "rounds, episodes, updates, batch_size and eval_episodes must be at least 1"),
+    (["--out", "x.pt", "--rounds", "0"],
+     "rounds, episodes, updates, batch_size, eval_episodes and workers must be at least 1"),
+    (["--out", "x.pt", "--workers", "0"],
+     "rounds, episodes, updates, batch_size, eval_episodes and workers must be at least 1"),
     (["--out", "x.pt", "--source-variety", "1.5"], "source_variety must be in [0, 1], got 1.5"),
 ])
 def test_the_command_says_in_one_line_what_is_wrong(argv, message):
