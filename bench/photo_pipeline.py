@@ -10,6 +10,8 @@ queries_per_s_<side>px: one image a call, at 64 and 256 pixels a side (the obser
 batched_queries_per_s_<side>px: 64 images a call, each with its own parameters (a population of
     CMA-ES, or a batch of environments).
 env_steps_per_s: `l2r/PhotoTune-v0` steps with random actions, resets included.
+compare_env_steps_per_s: the same of `l2r/PhotoTuneCompare-v0`, whose episodes `l2r photo pretrain`
+    plays (the statistics of both images and the pair compared).
 """
 
 from __future__ import annotations
@@ -46,8 +48,8 @@ def query_rate(side: int, batch: int, seconds: float) -> float:
     return calls * batch / (time.thread_time() - start)
 
 
-def env_rate(seconds: float) -> float:
-    env = gymnasium.make("l2r/PhotoTune-v0").unwrapped
+def env_rate(seconds: float, env_id: str = "l2r/PhotoTune-v0") -> float:
+    env = gymnasium.make(env_id).unwrapped
     env.reset(seed=0)  # loads the photos, outside the timing
     steps, start = 0, time.thread_time()
     while time.thread_time() - start < seconds:
@@ -70,6 +72,7 @@ def main() -> None:
         figures[f"queries_per_s_{side}px"] = round(query_rate(side, 1, seconds), 1)
         figures[f"batched_queries_per_s_{side}px"] = round(query_rate(side, BATCH, seconds), 1)
     figures["env_steps_per_s"] = round(env_rate(seconds), 1)
+    figures["compare_env_steps_per_s"] = round(env_rate(seconds, "l2r/PhotoTuneCompare-v0"), 1)
     figures.update({
         "batch": BATCH,
         "numpy": np.__version__,
