@@ -4,6 +4,7 @@
     python bench/runner_ab.py --seed 2 --arm recipe= --arm before="--randomize '' --target-entropy-per-action -1"
     python bench/runner_ab.py --judge RUN_DIR [RUN_DIR ...]      # judge runs made before
     python bench/runner_ab.py --plot docs/ab.png RUN_DIR [RUN_DIR ...]   # their evaluations, a panel each
+    python bench/runner_ab.py --plot docs/staged.png RUN RUN-opensim    # a staged job's two stages in one
 
 Each arm is the 2-core recipe (`l2r up --evaluators 2 --eval-env-id l2r/RunOpenSim-v0 --eval-env-id
 l2r/Run-v0 --eval-episodes 1 --eval-interval 60`) with the arm's flags, all arms started **at
@@ -42,7 +43,8 @@ from pathlib import Path
 
 from env_speed import cpu_flags, cpu_model  # this folder's: the same machine record as the speed figures
 
-from l2r.opensim_stage import Parting
+from l2r.opensim_stage import Parting, run_dir_of
+from l2r.run_metrics import RunCounters
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ["--evaluators", "2", "--eval-env-id", "l2r/RunOpenSim-v0", "--eval-env-id", "l2r/Run-v0",
@@ -119,24 +121,34 @@ def judge(run_dir: Path, after_s: float, within: int) -> dict:
 
 
 def plot(run_dirs: list[Path], out: Path) -> None:
-    """Each run's evaluations in both simulators against wall-clock minutes, a panel each."""
+    """Each run's evaluations in both simulators against its minutes of training, a panel each; a
+    staged job's OpenSim stage (`RUN-opensim`, given beside `RUN`) drawn on in its port stage's
+    panel from where that stage ended."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(run_dirs), 1, figsize=(9, 2.6 * len(run_dirs)), sharex=True, squeeze=False)
-    for ax, run_dir in zip(axes[:, 0], run_dirs):
-        for sim, colour in (("port", "tab:orange"), ("opensim", "tab:red")):
-            evals = evaluations(run_dir, SIMULATORS[sim])
-            ax.plot([t / 60 for t, *_ in evals], [d for _, _, d, _ in evals], "o-", color=colour, markersize=3,
-                    linewidth=0.8, label=SIMULATORS[sim])
+    stages = {run_dir_of(d): d for d in run_dirs}
+    panels = [d for d in run_dirs if d not in stages]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(9, 2.6 * len(panels)), sharex=True, squeeze=False)
+    for ax, run_dir in zip(axes[:, 0], panels):
+        stage = run_dir_of(run_dir)
+        parts = [(run_dir, 0.0)] + ([(stage, RunCounters.read(run_dir / "metrics").time)] if stage in run_dirs else [])
+        for part, (directory, offset) in enumerate(parts):
+            for sim, colour in (("port", "tab:orange"), ("opensim", "tab:red")):
+                evals = evaluations(directory, SIMULATORS[sim])
+                ax.plot([(offset + t) / 60 for t, *_ in evals], [d for _, _, d, _ in evals], "o-", color=colour,
+                        markersize=3, linewidth=0.8, label=SIMULATORS[sim] if part == 0 else None)
+            if offset:
+                ax.axvline(offset / 60, color="black", linewidth=0.8)
+                ax.text(offset / 60, ax.get_ylim()[1], " OpenSim's stage", fontsize=8, va="top")
         ax.axhline(6.0, color="gray", linestyle=":", linewidth=0.8)
         ax.set_title(run_dir.name, fontsize=9)
         ax.set_ylabel("distance (m)")
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="upper left", fontsize=8)
-    axes[-1, 0].set_xlabel("wall-clock minutes (arms run at once, about one core each)")
+    axes[-1, 0].set_xlabel("minutes of training")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
