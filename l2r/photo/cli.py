@@ -112,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"the Adam steps' learning rate, {defaults.lr} throughout a round (constant) or falling "
                         f"to 0 along half a cosine (default: %(default)s)")
     w.add_argument("--workers", type=int, default=defaults.workers,
-                   help="processes that play the episodes, the most of its time on one core; the result is the "
-                        "same whatever their number (default: %(default)s)")
+                   help="processes that play the episodes, most of the warm start's time on one core; the "
+                        "result is the same whatever their number (default: %(default)s)")
     w.add_argument("--eval-episodes", type=int, default=defaults.eval_episodes,
                    help=f"deterministic episodes on the training photos that judge the result (default: "
                         f"{defaults.eval_episodes}); the held-out photos are `l2r photo compare`'s")
