@@ -153,13 +153,19 @@ class Episodes:
             over = terminated or truncated
         return float(info["psnr_db"])
 
-    def kept(self) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray]:
-        """Every kept observation (one array, or arrays by field) and its answer, stacked."""
-        first = self.observations[0]
-        if isinstance(first, dict):
-            return {name: np.concatenate([o[name] for o in self.observations]) for name in first}, \
-                np.stack(self.answers)
-        return np.concatenate(self.observations), np.stack(self.answers)
+    def taken(self) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray]:
+        """Every observation kept since the last call (one array, or arrays by field) and its answer,
+        stacked; none kept after it."""
+        kept = concatenated(self.observations), np.stack(self.answers)
+        self.observations, self.answers = [], []
+        return kept
+
+
+def concatenated(observations: list) -> np.ndarray | dict[str, np.ndarray]:
+    """Observations (arrays, or maps of arrays by field) joined in order along their first axis."""
+    if isinstance(observations[0], dict):
+        return {name: np.concatenate([o[name] for o in observations]) for name in observations[0]}
+    return np.concatenate(observations)
 
 
 CHUNK = 250
@@ -179,11 +185,10 @@ class Player:
 
     def play(self, round_: int, indices: range) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray, list[float]]:
         """Episodes `indices` of the round: their observations and answers, stacked, and each one's last PSNR."""
-        self.episodes.observations, self.episodes.answers = [], []
         first_seed = self.config.seed * 10**7 + round_ * 10**5
         ends = [self.episodes.play(first_seed + i, self.queries(round_, episode_rng(self.config, round_, i)))
                 for i in indices]
-        return *self.episodes.kept(), ends
+        return *self.episodes.taken(), ends
 
     def queries(self, round_: int, rng: np.random.Generator) -> Callable[[object, np.ndarray], np.ndarray]:
         scale = rng.uniform(0.0, self.config.first_noise if round_ == 0 else self.config.policy_noise)
@@ -230,15 +235,6 @@ def _play_in_worker(job: tuple[int, range]) -> tuple:
     return _worker.play(*job)
 
 
-def joined(kept: list[tuple]) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray]:
-    """The chunks' observations (one array, or arrays by field) and answers, each stacked in order."""
-    observations = [o for o, _ in kept]
-    answers = np.concatenate([a for _, a in kept])
-    if isinstance(observations[0], dict):
-        return {name: np.concatenate([o[name] for o in observations]) for name in observations[0]}, answers
-    return np.concatenate(observations), answers
-
-
 def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) -> tuple[td3.DeterministicPolicy, dict]:
     """The policy learnt as the module says, and how it did: `mean_psnr` over `eval_episodes`
     deterministic episodes on the training photos, the rounds' losses, samples and seconds."""
@@ -260,7 +256,7 @@ def pretrain(config: PretrainConfig, progress: Callable[[str], None] = print) ->
             if passed_a_tenth(before, done, count):
                 progress(f"round {round_ + 1}/{config.rounds}: {done:,} of {count:,} episodes played "
                          f"({time.monotonic() - started:.0f} s)")
-        observations, answers = joined(kept)
+        observations, answers = concatenated([o for o, _ in kept]), np.concatenate([a for _, a in kept])
         inputs, answers = actor.observation_tensors(observations, CPU), torch.as_tensor(answers)
         for step in range(config.updates):
             index = torch.randint(len(answers), (config.batch_size,))
