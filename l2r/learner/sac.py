@@ -304,6 +304,11 @@ class Batch(Transitions):
     0 where the episode terminated within its window, else gamma^m for a window of m steps; its
     reward is then the window's discounted sum and next_obs the observation after it. None: one step."""
 
+    def bootstrap_discounts(self, gamma: float) -> torch.Tensor:
+        """What multiplies each sample's bootstrapped value: its n-step discount, or for one step
+        gamma where the episode went on (a time limit included) and 0 where it terminated."""
+        return gamma * (1.0 - self.terminated) if self.discounts is None else self.discounts
+
 
 def batch_from_numpy(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                      terminated: np.ndarray, weights: np.ndarray | None = None,
@@ -385,8 +390,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
         next_action, next_log_prob = state.actor.sample_of(next_embedding)
         next_q = least_of_drawn(state.target_critic(next_embedding, next_action), config)
         next_value = next_q - alpha * next_log_prob
-        discount = config.gamma * (1.0 - batch.terminated) if batch.discounts is None else batch.discounts
-        target = config.reward_scale * batch.reward + discount * next_value
+        target = config.reward_scale * batch.reward + batch.bootstrap_discounts(config.gamma) * next_value
 
     # 2. Critic loss, each critic towards the same target (importance-weighted under prioritized replay), and step.
     with state.autocast():

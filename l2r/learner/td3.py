@@ -267,8 +267,7 @@ def update(state: TrainState, batch: Batch, config: TD3Config, actor_step: bool,
         smoothing = (torch.randn_like(next_action) * noise_std).clamp(-config.noise_clip, config.noise_clip)
         next_action = (next_action + smoothing).clamp(-1.0, 1.0)
         next_q = state.target_critic(next_embedding, next_action).min(0).values
-        discount = config.gamma * (1.0 - batch.terminated) if batch.discounts is None else batch.discounts
-        target = config.reward_scale * batch.reward + discount * next_q
+        target = config.reward_scale * batch.reward + batch.bootstrap_discounts(config.gamma) * next_q
 
     # 2. Twin critic loss (importance-weighted under prioritized replay) and step, every update.
     with state.autocast():
