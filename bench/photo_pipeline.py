@@ -12,6 +12,8 @@ batched_queries_per_s_<side>px: 64 images a call, each with its own parameters (
 env_steps_per_s: `l2r/PhotoTune-v0` steps with random actions, resets included.
 compare_env_steps_per_s: the same of `l2r/PhotoTuneCompare-v0`, whose episodes `l2r photo pretrain`
     plays (the statistics of both images and the pair compared).
+compare_detail_env_steps_per_s: the same of `l2r/PhotoTuneCompareDetail-v0` (that and the working
+    images' detail compared).
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ def main() -> None:
         figures[f"batched_queries_per_s_{side}px"] = round(query_rate(side, BATCH, seconds), 1)
     figures["env_steps_per_s"] = round(env_rate(seconds), 1)
     figures["compare_env_steps_per_s"] = round(env_rate(seconds, "l2r/PhotoTuneCompare-v0"), 1)
+    figures["compare_detail_env_steps_per_s"] = round(env_rate(seconds, "l2r/PhotoTuneCompareDetail-v0"), 1)
     figures.update({
         "batch": BATCH,
         "numpy": np.__version__,

@@ -37,6 +37,10 @@ With `view="comparison"` (`l2r/PhotoTuneCompare-v0`) `state` is float32[100]: th
 view's 60 values and `comparison_features` of the current image against the goal, which read
 both images on the same pixels: how the edits between them changed each tone and each colour,
 what the separate statistics of two images of the same scene leave the policy to guess.
+`l2r/PhotoTuneCompareDetail-v0` (`detail=True`) adds two values, float32[102]: `detail_features`, how
+much more detail the goal's working image has than the current one's at 256 pixels, and how
+much more of it at 256 than at 128. Sharpening's 3 x 3 kernel acts on the working image and is
+averaged away in the 64-pixel images every other feature reads.
 
 The reward is the change in PSNR to the goal (on the working images, capped at 100 dB) times
 0.01. An episode ends after 10 steps, or early when the image collapses, its mean brightness
@@ -144,6 +148,35 @@ def comparison_features(images: np.ndarray, goals: np.ndarray) -> np.ndarray:
     return np.concatenate([share[..., None], _RATIO_SCALE * ratios], axis=2).reshape(n, -1).astype(np.float32)
 
 
+DETAIL_FEATURES = 2
+_DETAIL_FLOOR = 1e-3
+"""Added to both details of a ratio: a flat image's detail is 0."""
+
+
+def detail(images: np.ndarray) -> np.ndarray:
+    """[N, 2] of float images [N, 3, H, W] in [0, 1] (H and W even): the mean absolute 4-neighbour
+    Laplacian of the luminance at full resolution and at half (2 x 2 means)."""
+    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
+    n, height, width = luminance.shape
+    halved = luminance.reshape(n, height // 2, 2, width // 2, 2).mean(axis=(2, 4))
+
+    def laplacian(x: np.ndarray) -> np.ndarray:
+        return np.abs(4 * x[:, 1:-1, 1:-1] - x[:, :-2, 1:-1] - x[:, 2:, 1:-1] - x[:, 1:-1, :-2] - x[:, 1:-1, 2:]).mean(
+            axis=(1, 2))
+
+    return np.stack([laplacian(luminance), laplacian(halved)], axis=1)
+
+
+def detail_features(image_detail: np.ndarray, goal_detail: np.ndarray) -> np.ndarray:
+    """[N, 2] of the `detail` of images and of their goals. With r the log of (the goal's + 0.001)
+    / (the image's + 0.001) at each resolution: r at full resolution times 0.25, and r at full
+    resolution less r at half, each clipped to [-1, 1]. The tone filters scale detail at both
+    resolutions alike, sharpening the full resolution's most: the second reads sharpening."""
+    ratios = np.log((goal_detail + _DETAIL_FLOOR) / (image_detail + _DETAIL_FLOOR))
+    features = np.stack([_RATIO_SCALE * ratios[:, 0], ratios[:, 0] - ratios[:, 1]], axis=1)
+    return np.clip(features, -1.0, 1.0).astype(np.float32)
+
+
 def image_statistics(images: np.ndarray) -> np.ndarray:
     """[N, 3]: per image the mean luminance (0.27 R + 0.67 G + 0.06 B), the variance of that
     luminance (its contrast) and the mean of (max - min) / (min(max + min, 2 - max - min) + 0.01)
@@ -178,6 +211,8 @@ class PhotoTuneEnv(gym.Env):
         FiveK folder's, say).
     view: "images" (both images and their statistics), "statistics" (`image_features` alone) or
         "comparison" (those and `comparison_features` of the current image against the goal).
+    detail: with view "comparison", `detail_features` of the working images too
+        (`l2r/PhotoTuneCompareDetail-v0`).
     goals: "random" (RLPixTuner's FiveK-Random), "looks" (another scene's look; the tuner's task alone)
         or "mixed" (either, drawn with even odds each episode: a tuner trained on both).
     source_variety: each random goal's input crop first flipped left-right with even odds and
@@ -195,7 +230,7 @@ class PhotoTuneEnv(gym.Env):
 
     def __init__(self, split: str = "train", max_steps: int = MAX_STEPS,
                  sources: Mapping[str, np.ndarray] | None = None, view: str = "images", goals: str = "random",
-                 source_variety: float = 0.0):
+                 source_variety: float = 0.0, detail: bool = False):
         photos.check_split(split)
         if view not in VIEWS:
             raise ValueError(f"{self.task}: view must be one of {', '.join(VIEWS)}, got {view!r}")
@@ -205,19 +240,22 @@ class PhotoTuneEnv(gym.Env):
             raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
         if view == "comparison" and not self.shows_goal:
             raise ValueError(f"{self.task}: view 'comparison' compares the image with a goal the task does not show")
+        if not isinstance(detail, bool) or detail and view != "comparison":
+            raise ValueError(f"{self.task}: detail must be true or false, and true with view 'comparison' alone, "
+                             f"got {detail!r} with view {view!r}")
         if sources is not None and not sources:
             raise ValueError(f"{self.task}: sources holds no photo")
         if isinstance(source_variety, bool) or not isinstance(source_variety, (int, float)) \
                 or not 0.0 <= source_variety <= 1.0:
             raise ValueError(f"{self.task}: source_variety must be a number in [0, 1], got {source_variety!r}")
-        self.split, self.max_steps, self.view, self.goals = split, max_steps, view, goals
+        self.split, self.max_steps, self.view, self.goals, self.detail = split, max_steps, view, goals, detail
         self.source_variety = float(source_variety)
         # loaded at the first reset: the spaces need none
         self.photos: dict[str, np.ndarray] | None = None if sources is None else dict(sources)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (len(PARAMETERS),), np.float32)
         images_shown = 2 if self.shows_goal else 1
         statistics = 3 if view == "images" else FEATURES_PER_IMAGE
-        comparison = COMPARISON_FEATURES if view == "comparison" else 0
+        comparison = (COMPARISON_FEATURES if view == "comparison" else 0) + (DETAIL_FEATURES if detail else 0)
         self.parameters_at = images_shown * statistics + comparison
         """Where `state` holds the current parameters as actions (a residual policy's last action)."""
         state = gym.spaces.Box(-1.0, 1.0, (self.parameters_at + len(PARAMETERS) + 1,), np.float32)
@@ -239,8 +277,9 @@ class PhotoTuneEnv(gym.Env):
         else:
             self.draw()
         self.goal_small = photos.downsample(self.goal) if self.shows_goal else None
+        self.goal_detail = detail(self.goal[None]) if self.detail else None
         self.image, self.params, self.steps = self.source, NEUTRAL, 0
-        self.image_small = photos.downsample(self.image)
+        self.seen()
         self.psnr = float(psnr_db(self.source[None], self.goal[None])[0])
         self.episode_over = False
         return self.observation(), {"psnr_db": self.psnr, "photo": self.photo_name, "look": self.look,
@@ -316,7 +355,7 @@ class PhotoTuneEnv(gym.Env):
             raise RuntimeError(f"{self.task}: step() before the first reset() or after the episode ended; call reset()")
         self.params = params_from_actions(checked_action(self.task, action, self.action_space.shape))
         self.image = finish(self.source[None], self.params)[0]
-        self.image_small = photos.downsample(self.image)
+        self.seen()
         psnr = float(psnr_db(self.image[None], self.goal[None])[0])
         reward = REWARD_SCALE * (psnr - self.psnr)
         self.psnr, self.steps = psnr, self.steps + 1
@@ -324,6 +363,11 @@ class PhotoTuneEnv(gym.Env):
         self.episode_over = ruined or self.steps >= self.max_steps
         return self.observation(), reward, self.episode_over, False, {"psnr_db": psnr, "collapsed": ruined,
                                                                       **self.frames()}
+
+    def seen(self) -> None:
+        """What the observation reads of the current image, made once for each image."""
+        self.image_small = photos.downsample(self.image)
+        self.image_detail = detail(self.image[None]) if self.detail else None
 
     def frames(self) -> dict[str, dict[str, np.ndarray]]:
         """The images an observation of statistics leaves out, as the images view would show them,
@@ -338,7 +382,8 @@ class PhotoTuneEnv(gym.Env):
         shown = np.stack([current, self.goal_small]) if self.shows_goal else current[None]
         statistics = image_statistics(shown) if self.view == "images" else image_features(shown)
         compared = comparison_features(current[None], self.goal_small[None]) if self.view == "comparison" else []
-        state = np.concatenate([statistics.ravel(), np.ravel(compared), actions_from_params(self.params),
+        finer = detail_features(self.image_detail, self.goal_detail) if self.detail else []
+        state = np.concatenate([statistics.ravel(), np.ravel(compared), np.ravel(finer), actions_from_params(self.params),
                                 [self.steps / self.max_steps]])
         if self.view != "images":
             return {"state": state.astype(np.float32)}

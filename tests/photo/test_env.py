@@ -10,7 +10,8 @@ import pytest
 
 import l2r.photo.env  # registers the id (l2r.photo)
 from l2r.photo import photos
-from l2r.photo.env import collapsed, comparison_features, image_features, image_statistics, psnr_db, transfer_look
+from l2r.photo.env import (collapsed, comparison_features, detail, detail_features, image_features, image_statistics,
+                           psnr_db, transfer_look)
 from l2r.photo.pipeline import actions_from_params, finish, params_from_actions
 from l2r.protocol.observations import ObservationSpec
 
@@ -134,6 +135,55 @@ def test_the_comparison_view_observes_the_statistics_and_the_pair_compared():
     check_env(compare, skip_render_check=True)
     with pytest.raises(ValueError, match="compares the image with a goal the task does not show"):
         gymnasium.make("l2r/PhotoEnhance-v0", view="comparison")
+
+
+def test_detail_by_hand():
+    # A white line down column 1 of a black 8 x 8 image. Full resolution, of the 6 x 6 inner
+    # Laplacians the line's are |4 - 1 - 1 - 0 - 0| = 2 and its right neighbours' |0 - 1| = 1:
+    # (6 x 2 + 6 x 1) / 36. Half (2 x 2 means, column 0 at 0.5): of the 2 x 2 inner ones, column 1's
+    # are |0 - 0.5|: 2 x 0.5 / 4.
+    image = np.zeros((1, 3, 8, 8), np.float32)
+    image[:, :, :, 1] = 1.0
+    assert detail(image)[0].tolist() == pytest.approx([0.5, 0.25])
+    checker = np.zeros((1, 3, 8, 8), np.float32)
+    checker[..., ::2, ::2] = checker[..., 1::2, 1::2] = 1.0  # the finest detail there is: gone at half resolution
+    assert detail(checker)[0].tolist() == pytest.approx([4.0, 0.0])
+    features = detail_features(np.array([[0.1, 0.2]]), np.array([[0.2, 0.2]]))
+    assert features.dtype == np.float32
+    assert features[0].tolist() == pytest.approx([0.25 * np.log(0.201 / 0.101), np.log(0.201 / 0.101) - 0.0])
+    assert detail_features(np.array([[0.0, 0.1]]), np.array([[1.0, 0.1]]))[0].tolist() == [1.0, 1.0]  # clipped
+
+
+def test_sharpening_shows_in_the_detail_of_the_working_images_alone(env):
+    env.reset(seed=4)
+    crop = env.source[None]
+    neutral, sharp = (finish(crop, params_from_actions(np.array([0] * 8 + [k], np.float32))) for k in (0, 1))
+    brighter = finish(crop, params_from_actions(np.array([0.5] + [0] * 8, np.float32)))
+    # What the 64-pixel images see of it: nearly nothing, against an exposure change.
+    small = image_features(photos.downsample(np.concatenate([neutral, sharp, brighter])))
+    assert np.abs(small[1] - small[0]).max() < 0.2 * np.abs(small[2] - small[0]).max()
+    finer = detail_features(detail(neutral), detail(sharp))[0]
+    assert finer[0] > 0.05 and finer[1] > 0.1
+    brighter_detail = detail_features(detail(neutral), detail(brighter))[0]
+    assert brighter_detail[0] > 0.05 and abs(brighter_detail[1]) < 0.25 * finer[1]
+
+
+def test_the_detail_view_adds_the_working_images_detail_compared():
+    plain = gymnasium.make("l2r/PhotoTuneCompare-v0").unwrapped
+    finer = gymnasium.make("l2r/PhotoTuneCompareDetail-v0").unwrapped
+    assert ObservationSpec.from_space(finer.observation_space) == ObservationSpec.parse("state: float32[102]")
+    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
+    (seen, _), (without, _) = finer.reset(seed=3), plain.reset(seed=3)
+    for _ in range(2):
+        np.testing.assert_array_equal(seen["state"][:90], without["state"][:90])
+        np.testing.assert_allclose(seen["state"][90:92], detail_features(detail(finer.image[None]),
+                                                                         detail(finer.goal[None]))[0], atol=1e-6)
+        np.testing.assert_array_equal(seen["state"][92:], without["state"][90:])
+        (seen, *_), (without, *_) = finer.step(action), plain.step(action)
+    check_env(finer, skip_render_check=True)
+    for view, given in (("statistics", True), ("comparison", 1)):
+        with pytest.raises(ValueError, match="detail must be true or false, and true with view 'comparison' alone"):
+            gymnasium.make("l2r/PhotoTune-v0", view=view, detail=given)
 
 
 def test_the_reward_is_the_psnr_change_times_a_hundredth(env):
