@@ -213,8 +213,10 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
         bfloat16 = getattr(state, "bfloat16", False)  # PPO's state has no such option: it runs float32
         critics = getattr(algo, "critics", 2)  # SAC's ensemble, named where it is not the twin pair
         ensemble = "" if critics == 2 else f" with {critics} critics (the least of {algo.critics_in_min})"
-        log.info("%s%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
-                 algorithm_of(algo).upper(), ensemble, config.rank, device, "bfloat16" if bfloat16 else "float32",
+        n_step = getattr(algo, "n_step", 1)  # SAC's and TD3's; the on-policy family's returns are their own
+        returns = "" if n_step == 1 else f" on {n_step}-step returns"
+        log.info("%s%s%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
+                 algorithm_of(algo).upper(), ensemble, returns, config.rank, device, "bfloat16" if bfloat16 else "float32",
                  torch.get_num_threads(), config.compile, state.version, state.updates)
         _serve(config, algo, state, conf, device, stop)
         return 0

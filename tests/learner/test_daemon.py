@@ -160,10 +160,11 @@ def test_a_diverging_learner_stops_without_overwriting_its_checkpoint(network, t
         # Rewards scaled past float32's range make the critics' targets infinite at once, however many.
         learner = network.start("l2r.learner", *learner_args(network, run_dir, "--reward-scale", "1e39",
                                                              "--precision", "float32", "--critics", "3",
-                                                             "--critics-in-min", "2"), name="learner")
+                                                             "--critics-in-min", "2", "--n-step", "2"),
+                                name="learner")
         assert learner.proc.wait(60) == 1, learner.log()
         assert "NaN or infinity" in learner.log()
-        assert "SAC with 3 critics (the least of 2) rank 0" in learner.log()
+        assert "SAC with 3 critics (the least of 2) on 2-step returns rank 0" in learner.log()
         assert not (run_dir / "learner" / "checkpoint.pt").exists()
     finally:
         feeder.stop()
