@@ -116,22 +116,29 @@ def test_comparison_features_tell_which_way_each_colour_moved():
     assert np.all(brighter[occupied, 1:] > 0) and np.all(np.abs(brighter[:, 1:]) <= 1)
 
 
+def side_by_side(wider, narrower):
+    """A view and one it extends, from the same seed and actions: after the reset and after a step,
+    the wider env, its observation and info, and the narrower's observation."""
+    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
+    (seen, info), (without, _) = wider.reset(seed=3), narrower.reset(seed=3)
+    for _ in range(2):
+        yield seen["state"], info, without["state"]
+        (seen, _, _, _, info), (without, *_) = wider.step(action), narrower.step(action)
+
+
 def test_the_comparison_view_observes_the_statistics_and_the_pair_compared():
     compare = gymnasium.make("l2r/PhotoTuneCompare-v0").unwrapped
     stats = gymnasium.make("l2r/PhotoTuneStats-v0").unwrapped
     assert ObservationSpec.from_space(compare.observation_space) == ObservationSpec.parse("state: float32[100]")
-    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
-    (seen, info), (statistics, _) = compare.reset(seed=3), stats.reset(seed=3)
-    for _ in range(2):
+    for seen, info, statistics in side_by_side(compare, stats):
         current, goal = photos.downsample(np.stack([compare.image, compare.goal]))
-        np.testing.assert_array_equal(seen["state"][:50], statistics["state"][:50])
-        np.testing.assert_allclose(seen["state"][50:90], comparison_features(current[None], goal[None])[0], atol=1e-6)
-        np.testing.assert_array_equal(seen["state"][90:], statistics["state"][50:])
+        np.testing.assert_array_equal(seen[:50], statistics[:50])
+        np.testing.assert_allclose(seen[50:90], comparison_features(current[None], goal[None])[0], atol=1e-6)
+        np.testing.assert_array_equal(seen[90:], statistics[50:])
         # The episode log's frames are the images the observation was made of, after each step as after reset.
         assert set(info["frames"]) == {"pixels", "goal"}
         np.testing.assert_array_equal(info["frames"]["pixels"], photos.to_uint8(current))
         np.testing.assert_array_equal(info["frames"]["goal"], photos.to_uint8(goal))
-        (seen, _, _, _, info), (statistics, *_) = compare.step(action), stats.step(action)
     check_env(compare, skip_render_check=True)
     with pytest.raises(ValueError, match="compares the image with a goal the task does not show"):
         gymnasium.make("l2r/PhotoEnhance-v0", view="comparison")
@@ -172,14 +179,11 @@ def test_the_detail_view_adds_the_working_images_detail_compared():
     plain = gymnasium.make("l2r/PhotoTuneCompare-v0").unwrapped
     finer = gymnasium.make("l2r/PhotoTuneCompareDetail-v0").unwrapped
     assert ObservationSpec.from_space(finer.observation_space) == ObservationSpec.parse("state: float32[102]")
-    action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
-    (seen, _), (without, _) = finer.reset(seed=3), plain.reset(seed=3)
-    for _ in range(2):
-        np.testing.assert_array_equal(seen["state"][:90], without["state"][:90])
-        np.testing.assert_allclose(seen["state"][90:92], detail_features(detail(finer.image[None]),
-                                                                         detail(finer.goal[None]))[0], atol=1e-6)
-        np.testing.assert_array_equal(seen["state"][92:], without["state"][90:])
-        (seen, *_), (without, *_) = finer.step(action), plain.step(action)
+    for seen, _, without in side_by_side(finer, plain):
+        np.testing.assert_array_equal(seen[:90], without[:90])
+        np.testing.assert_allclose(seen[90:92], detail_features(detail(finer.image[None]), detail(finer.goal[None]))[0],
+                                   atol=1e-6)
+        np.testing.assert_array_equal(seen[92:], without[90:])
     check_env(finer, skip_render_check=True)
     for view, given in (("statistics", True), ("comparison", 1)):
         with pytest.raises(ValueError, match="detail must be true or false, and true with view 'comparison' alone"):
