@@ -216,8 +216,9 @@ def main(config: LearnerConfig, algo: AlgorithmConfig, conf: zenoh.Config) -> in
         n_step = getattr(algo, "n_step", 1)  # SAC's and TD3's; the on-policy family's returns are their own
         returns = "" if n_step == 1 else f" on {n_step}-step returns"
         log.info("%s%s%s rank %d on %s (%s matmuls, %d threads, compile %s), version %d, %d updates so far",
-                 algorithm_of(algo).upper(), ensemble, returns, config.rank, device, "bfloat16" if bfloat16 else "float32",
-                 torch.get_num_threads(), config.compile, state.version, state.updates)
+                 algorithm_of(algo).upper(), ensemble, returns, config.rank, device,
+                 "bfloat16" if bfloat16 else "float32", torch.get_num_threads(), config.compile, state.version,
+                 state.updates)
         _serve(config, algo, state, conf, device, stop)
         return 0
     except Diverged as e:

@@ -383,8 +383,8 @@ class PhotoTuneEnv(gym.Env):
         statistics = image_statistics(shown) if self.view == "images" else image_features(shown)
         compared = comparison_features(current[None], self.goal_small[None]) if self.view == "comparison" else []
         finer = detail_features(self.image_detail, self.goal_detail) if self.detail else []
-        state = np.concatenate([statistics.ravel(), np.ravel(compared), np.ravel(finer), actions_from_params(self.params),
-                                [self.steps / self.max_steps]])
+        state = np.concatenate([statistics.ravel(), np.ravel(compared), np.ravel(finer),
+                                actions_from_params(self.params), [self.steps / self.max_steps]])
         if self.view != "images":
             return {"state": state.astype(np.float32)}
         images = {"pixels": photos.to_uint8(current)} | (

@@ -118,7 +118,7 @@ def test_comparison_features_tell_which_way_each_colour_moved():
 
 def side_by_side(wider, narrower):
     """A view and one it extends, from the same seed and actions: after the reset and after a step,
-    the wider env, its observation and info, and the narrower's observation."""
+    the wider's `state` and info, and the narrower's `state`."""
     action = np.linspace(-0.9, 0.9, 9, dtype=np.float32)
     (seen, info), (without, _) = wider.reset(seed=3), narrower.reset(seed=3)
     for _ in range(2):
