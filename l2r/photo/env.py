@@ -95,6 +95,17 @@ HISTOGRAM_BINS = 8
 FEATURES_PER_IMAGE = 3 * 5 + HISTOGRAM_BINS + 2
 
 
+def luminance(images: np.ndarray) -> np.ndarray:
+    """[N, H, W]: 0.27 R + 0.67 G + 0.06 B of float images [N, 3, H, W]."""
+    return 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
+
+
+def mean_abs_laplacian(planes: np.ndarray) -> np.ndarray:
+    """[N]: the mean absolute 4-neighbour Laplacian of [N, H, W] planes over their inner pixels."""
+    return np.abs(4 * planes[:, 1:-1, 1:-1] - planes[:, :-2, 1:-1] - planes[:, 2:, 1:-1]
+                  - planes[:, 1:-1, :-2] - planes[:, 1:-1, 2:]).mean(axis=(1, 2))
+
+
 def image_features(images: np.ndarray) -> np.ndarray:
     """[N, 25] of float images [N, 3, H, W] in [0, 1]: per channel the mean, the standard
     deviation and the 10th, 50th and 90th percentiles (exposure, white balance, contrast); the
@@ -105,12 +116,10 @@ def image_features(images: np.ndarray) -> np.ndarray:
     pixels = images.reshape(n, 3, -1)
     percentiles = np.percentile(pixels, (10, 50, 90), axis=2).transpose(1, 2, 0)  # [N, 3, 3]
     channels = np.concatenate([pixels.mean(axis=2)[..., None], pixels.std(axis=2)[..., None], percentiles], axis=2)
-    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
-    bins = np.minimum((luminance.reshape(n, -1) * HISTOGRAM_BINS).astype(np.int64), HISTOGRAM_BINS - 1)
+    lit = luminance(images)
+    bins = np.minimum((lit.reshape(n, -1) * HISTOGRAM_BINS).astype(np.int64), HISTOGRAM_BINS - 1)
     histogram = np.stack([np.bincount(row, minlength=HISTOGRAM_BINS) for row in bins]) / bins.shape[1]
-    laplacian = (4 * luminance[:, 1:-1, 1:-1] - luminance[:, :-2, 1:-1] - luminance[:, 2:, 1:-1]
-                 - luminance[:, 1:-1, :-2] - luminance[:, 1:-1, 2:])
-    sharpness = np.minimum(np.abs(laplacian).mean(axis=(1, 2)), 1.0)
+    sharpness = np.minimum(mean_abs_laplacian(lit), 1.0)
     return np.concatenate([channels.reshape(n, -1), histogram, image_statistics(images)[:, 2:3], sharpness[:, None]],
                           axis=1)
 
@@ -156,15 +165,10 @@ _DETAIL_FLOOR = 1e-3
 def detail(images: np.ndarray) -> np.ndarray:
     """[N, 2] of float images [N, 3, H, W] in [0, 1] (H and W even): the mean absolute 4-neighbour
     Laplacian of the luminance at full resolution and at half (2 x 2 means)."""
-    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
-    n, height, width = luminance.shape
-    halved = luminance.reshape(n, height // 2, 2, width // 2, 2).mean(axis=(2, 4))
-
-    def laplacian(x: np.ndarray) -> np.ndarray:
-        return np.abs(4 * x[:, 1:-1, 1:-1] - x[:, :-2, 1:-1] - x[:, 2:, 1:-1] - x[:, 1:-1, :-2] - x[:, 1:-1, 2:]).mean(
-            axis=(1, 2))
-
-    return np.stack([laplacian(luminance), laplacian(halved)], axis=1)
+    lit = luminance(images)
+    n, height, width = lit.shape
+    halved = lit.reshape(n, height // 2, 2, width // 2, 2).mean(axis=(2, 4))
+    return np.stack([mean_abs_laplacian(lit), mean_abs_laplacian(halved)], axis=1)
 
 
 def detail_features(image_detail: np.ndarray, goal_detail: np.ndarray) -> np.ndarray:
@@ -181,10 +185,10 @@ def image_statistics(images: np.ndarray) -> np.ndarray:
     """[N, 3]: per image the mean luminance (0.27 R + 0.67 G + 0.06 B), the variance of that
     luminance (its contrast) and the mean of (max - min) / (min(max + min, 2 - max - min) + 0.01)
     over R, G, B (its saturation, HSL's but for the 0.01): each in [0, 1]."""
-    luminance = 0.27 * images[:, 0] + 0.67 * images[:, 1] + 0.06 * images[:, 2]
+    lit = luminance(images)
     high, low = images.max(axis=1), images.min(axis=1)
     saturation = (high - low) / (np.minimum(high + low, 2.0 - high - low) + 0.01)
-    return np.stack([luminance.mean(axis=(1, 2)), luminance.var(axis=(1, 2)), saturation.mean(axis=(1, 2))], axis=1)
+    return np.stack([lit.mean(axis=(1, 2)), lit.var(axis=(1, 2)), saturation.mean(axis=(1, 2))], axis=1)
 
 
 def transfer_look(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
