@@ -3,7 +3,8 @@
     python bench/pixel_learning.py                                    # cartpole-swingup, 48 x 48 frames, one hour
     python bench/pixel_learning.py --task cartpole-balance            # the same on cartpole-balance
     python bench/pixel_learning.py --task cartpole-balance --algo sac # DrQ: SAC's pixels recipe
-    python bench/pixel_learning.py --image-size 84 --batch-size 256 --seconds 1200   # DrQ-v2's own sizes (a GPU)
+    python bench/pixel_learning.py --task cheetah-run --image-size 84 --batch-size 256 --seconds 470 \
+        --up-arg=--device=cuda --up-arg=--actors=5 --up-arg=--replay-shards=3   # DrQ-v2's own sizes, a GPU box
     python bench/pixel_learning.py --run-dir RUN --plot docs/pixel_curve.png         # a run already made
 
 The job is `l2r up --env-id l2r/dmc-<task>-v0 --algo td3` (the pixels recipe, DrQ-v2's
@@ -16,8 +17,8 @@ needs; 48 x 48 frames and batches of 128 make about 4 on one thread. Evaluation:
 
 Frames are the suite's steps, as DrQ-v2 counts them: 2 per env step (the task holds each action
 for 2). At each milestone the newest evaluation round by then is set against DrQ-v2's 10 seeds
-at that frame (their repository's curves/dmc_<task>.csv: median, mean and range of the
-evaluation return; 84 x 84 frames, batch 256, on a GPU).
+at that frame (bench/drqv2_curves.csv, read off their repository's curves/dmc_<task>.csv: median,
+mean and range of the evaluation return every 20,000 frames; 84 x 84 frames, batch 256, on a GPU).
 
 Prints one JSON line: the run, frames and updates reached and their rates, the evaluation
 returns at each milestone beside the published ones, the machine (CPU model and flags, load
@@ -39,28 +40,20 @@ from learning_curve import read_rows, rolling
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES_PER_STEP = 2  # the camera tasks' action repeat (l2r.control.env.ACTION_REPEAT), DrQ-v2's
-# DrQ-v2's evaluation return over its 10 seeds (curves/dmc_<task>.csv of its repository):
-# frames -> (median, mean, lowest, highest).
-DRQV2 = {
-    "cartpole-swingup": {
-        0: (17.5, 16.7, 1.2, 37.5),
-        20_000: (75.1, 101.8, 54.8, 240.3),
-        40_000: (183.0, 203.3, 74.0, 421.7),
-        60_000: (271.1, 325.7, 65.6, 664.6),
-        80_000: (498.6, 483.8, 90.4, 800.7),
-        100_000: (774.9, 626.4, 168.3, 824.4),
-        120_000: (794.7, 714.4, 258.7, 843.8),
-    },
-    "cartpole-balance": {
-        0: (340.4, 373.9, 308.6, 508.4),
-        20_000: (411.1, 374.7, 135.3, 492.4),
-        40_000: (959.4, 834.9, 429.4, 984.8),
-        60_000: (988.3, 984.5, 962.8, 994.6),
-        80_000: (991.0, 988.8, 976.1, 997.0),
-        100_000: (990.1, 987.4, 953.2, 998.0),
-        120_000: (989.4, 982.0, 934.4, 997.2),
-    },
-}
+# DrQ-v2's evaluation return over its 10 seeds at every 20,000 frames (from its repository's
+# curves/dmc_<task>.csv): task -> frames -> (median, mean, lowest, highest).
+CURVES_CSV = Path(__file__).with_name("drqv2_curves.csv")
+
+
+def published_curves() -> dict[str, dict[int, tuple[float, float, float, float]]]:
+    curves: dict[str, dict[int, tuple[float, float, float, float]]] = {}
+    for row in read_rows(CURVES_CSV):
+        curves.setdefault(row["task"], {})[int(row["frames"])] = (
+            row["median"], row["mean"], row["lowest"], row["highest"])
+    return curves
+
+
+DRQV2 = published_curves()
 
 
 def run_job(args: argparse.Namespace) -> Path:
