@@ -4,8 +4,9 @@ same update through RLPixTuner's dual-path encoder instead of DrQ-v2's.
 
 A batch arrives in the replay's frames form: each distinct uint8 frame once (here 6 per transition,
 what a stack of 3 and n-step 3 touch when no frames are shared), the obs and next-obs stacks as
-rows into them. `batch_from_frames` copies the frames to the device and stacks them there; the
-update shifts every image (pad 4) and steps the encoder, critics and actor.
+rows into them, all read-only as a decoded reply's arrays are. `batch_from_frames` copies the
+frames to the device and stacks them there; the update shifts every image (pad 4) and steps the
+encoder, critics and actor.
 
 Prints one JSON line. Figures:
   fed_updates_per_s           a fresh batch each update: the copy to the device, the stacking, the update
@@ -52,7 +53,8 @@ def drqv2_config(batch_size: int, encoder: str) -> TD3Config:
 
 
 class FramesBatches:
-    """Batches in the frames form from a pool of random frames on the host."""
+    """Batches in the frames form from a pool of random frames on the host, read-only as the
+    learner's decoded replies are (views of the message's bytes)."""
 
     def __init__(self, size: int, batch_size: int, device: str, pool: int = 4):
         rng = np.random.default_rng(0)
@@ -64,6 +66,9 @@ class FramesBatches:
         self.reward = rng.random(batch_size, dtype=np.float32)
         self.terminated = np.zeros(batch_size, bool)
         self.discounts = np.full(batch_size, 0.99 ** 3, np.float32)
+        for a in (*self.frames, self.obs_rows, self.next_rows, self.action, self.reward, self.terminated,
+                  self.discounts):
+            a.setflags(write=False)
         self.device, self.calls = device, 0
 
     def next(self):

@@ -3,6 +3,7 @@ and replay arrays as tensors."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,10 +94,19 @@ def float_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
 
 def device_tensor(a: np.ndarray, device: str | torch.device) -> torch.Tensor:
     """A tensor of a replay array on `device`, in the array's dtype. Decoded messages are read-only
-    views; torch wants memory it may write, so those are copied once. For a GPU the array goes
-    through pinned memory, so the copy is queued behind the device's work without the host waiting
-    for it."""
-    tensor = torch.from_numpy(np.require(a, requirements="W"))
+    views; torch wants memory it may write, so on a CPU those are copied once. For a GPU the array
+    is copied once, straight into pinned memory (not first into writable memory: a batch of
+    84 x 84 frames at n-step 3 is 31 MB, and the learner's host work bounds DrQ-v2 on a GPU,
+    docs/performance.md), and the copy to the device is queued behind the device's work without
+    the host waiting for it."""
     if torch.device(device).type == "cuda":
-        tensor = tensor.pin_memory()
-    return tensor.to(device, non_blocking=True)
+        pinned = torch.empty(a.shape, dtype=torch_dtype(a.dtype), pin_memory=True)
+        np.copyto(pinned.numpy(), a)
+        return pinned.to(device, non_blocking=True)
+    return torch.from_numpy(np.require(a, requirements="W")).to(device)
+
+
+@functools.cache
+def torch_dtype(dtype: np.dtype) -> torch.dtype:
+    """torch's dtype of numpy's `dtype`."""
+    return torch.from_numpy(np.empty(0, dtype)).dtype
