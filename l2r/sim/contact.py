@@ -8,6 +8,13 @@ against the slip v_t of the contact point, which lies midway between the sphere'
 and the ground. While f < 0 (the sphere leaving faster than the dissipation allows) there is no
 force at all: Simbody's formula would turn friction around there, but OpenSim 4.6 applies none
 (measured: the toe's friction reads 0 in OpenSim's records where this formula gives 450 N).
+Nor does it apply any to the contacts listed after that one in the same force element: Simbody's
+HuntCrossleyForce returns from its loop over an element's contacts at the first whose force is
+not positive. Each foot is one element (`foot_r`: its heel and toe spheres), its contacts listed
+in the order of a sweep along x, where the runner's feet lie, by each sphere's rearmost x: so a
+heel leaving the ground fast takes the force off its toe, though the toe still presses (measured
+in OpenSim at a two-footed push-off: both toes' 852 and 630 N gone as their heels left, the toes
+unmoved; docs/model.md).
 
 The env applies each force through two MuJoCo actuators on a site it moves to the contact point
 (one along x, one along y, against a world site), and hands MuJoCo's implicit integrator the
@@ -49,6 +56,12 @@ class ContactLaw:
                          self.viscous_friction, self.transition_velocity])
 
 
+def contact_elements(osim: Osim, spheres: tuple[str, ...]) -> np.ndarray:
+    """Each sphere's Hunt-Crossley force element in the .osim, numbered (`ground_forces`' element)."""
+    names = sorted({osim.contact_elements[s] for s in spheres})
+    return np.array([names.index(osim.contact_elements[s]) for s in spheres])
+
+
 def contact_law(osim: Osim) -> ContactLaw:
     c = osim.contact
     return ContactLaw(c["stiffness"], c["dissipation"], c["static_friction"], c["dynamic_friction"],
@@ -69,18 +82,20 @@ def _friction(f: float, slip: float, law: np.ndarray) -> tuple[float, float]:
 
 @numba.njit(cache=True, error_model="numpy")
 def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body: np.ndarray,
-                  root: np.ndarray, geom_xpos: np.ndarray, xpos: np.ndarray, xmat: np.ndarray,
+                  root: np.ndarray, element: np.ndarray, geom_xpos: np.ndarray, xpos: np.ndarray, xmat: np.ndarray,
                   cvel: np.ndarray, subtree_com: np.ndarray, point: np.ndarray, local: np.ndarray,
                   force: np.ndarray, damping: np.ndarray) -> None:
     """Hunt-Crossley forces of spheres on the ground plane y = 0.
 
     radius (n,); sphere (n,) the spheres' geoms; body (n,) their bodies, root (n,) those bodies'
-    roots; geom_xpos, xpos, xmat, cvel, subtree_com: MuJoCo's arrays. Writes the
+    roots; element (n,) their force elements (see the module text); geom_xpos, xpos, xmat, cvel,
+    subtree_com: MuJoCo's arrays. Writes the
     contact points in world (`point`, n x 3) and in their body's frame (`local`), the force on
     each sphere (`force`, n x 2: x, y) and d force / d speed of the contact point along x and y
     (`damping`, n x 2, never positive: only dampers go to the implicit integrator).
     """
     k, c = law[0], law[1]
+    cut = np.zeros(radius.shape[0], np.bool_)  # in contact, with no force: Simbody's loop ends there
     for i in range(radius.shape[0]):
         centre = geom_xpos[sphere[i]]
         depth = radius[i] - centre[1]
@@ -106,9 +121,21 @@ def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body:
         hertz = 4.0 / 3.0 * k * depth * np.sqrt(radius[i] * k * depth)
         f = hertz * (1.0 - 1.5 * c * vy)  # penetration rate is -vy
         if f <= 0.0:
-            continue  # leaving faster than the dissipation allows: no force at all
+            cut[i] = True  # leaving faster than the dissipation allows: no force at all
+            continue
         force[i, 1] = f
         damping[i, 1] = -1.5 * c * hertz
         magnitude, slope = _friction(f, abs(vx), law)
         force[i, 0] = -magnitude if vx > 0.0 else magnitude
         damping[i, 0] = min(-slope, 0.0)
+    for i in range(radius.shape[0]):
+        for j in range(radius.shape[0]):
+            if cut[j] and listed_before(j, i, element, radius, geom_xpos[sphere[j], 0], geom_xpos[sphere[i], 0]):
+                force[i, 0] = force[i, 1] = damping[i, 0] = damping[i, 1] = 0.0
+
+
+@numba.njit(cache=True)
+def listed_before(j: int, i: int, element: np.ndarray, radius: np.ndarray, xj: float, xi: float) -> bool:
+    """Whether Simbody lists sphere j's contact before sphere i's in one force element: the sweep
+    along x orders them by their rearmost points (x - radius)."""
+    return j != i and element[j] == element[i] and xj - radius[j] < xi - radius[i]

@@ -162,6 +162,9 @@ class Osim:
     muscles: list[Muscle]
     spheres: list[Sphere]
     contact: dict[str, float]
+    contact_elements: dict[str, str]
+    """Each contact geometry's Hunt-Crossley force element (`foot_r` holds the platform, r_heel and
+    r_toe): Simbody lists an element's contacts together and stops at a contact with no force."""
 
     def coordinate(self, name: str) -> Coordinate:
         for body in self.bodies.values():
@@ -240,7 +243,10 @@ def _read_model(model: ET.Element) -> Osim:
     hc = next(force.iter("HuntCrossleyForce__ContactParameters"))
     contact = {k: _num(hc, k) for k in ("stiffness", "dissipation", "static_friction", "dynamic_friction", "viscous_friction")}
     contact["transition_velocity"] = _num(force, "transition_velocity")
-    return Osim(_vec(model, "gravity"), bodies, muscles, spheres, contact)
+    elements = {geometry: f.get("name") for f in model.iter("HuntCrossleyForce")
+                for parameters in f.iter("HuntCrossleyForce__ContactParameters")
+                for geometry in parameters.findtext("geometry").split()}
+    return Osim(_vec(model, "gravity"), bodies, muscles, spheres, contact, elements)
 
 
 def _axis_rotation(axis: np.ndarray, angle) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 
 from l2r.sim import model as body
 from l2r.sim import thelen
-from l2r.sim.contact import contact_law, ground_forces
+from l2r.sim.contact import contact_elements, contact_law, ground_forces
 from l2r.sim.knee import KneeCoupling, follow_splines, project
 from l2r.sim.ligaments import default_limits, engage, ligament_table
 from l2r.sim.mujoco_numba import mj_forward, mj_step1, mj_step2, mj_transmission
@@ -98,7 +98,7 @@ class Physics:
         )
         self._feet = (
             self.contact, m.geom_size[spheres, 0].copy(), spheres, sphere_body,
-            m.body_rootid[sphere_body].copy(),
+            m.body_rootid[sphere_body].copy(), contact_elements(osim, feet),
             np.array([m.site(f"{g}_contact").id for g in feet]),
             np.array([m.actuator(f"{g}_x").id for g in feet]),
             np.array([m.actuator(f"{g}_y").id for g in feet]),
@@ -182,7 +182,8 @@ def _drive(dt, mj, muscles, switches, moving, feet):
      subtree_com, geom_xpos, site_xpos, site_pos, biasprm, dof_damping) = mj
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
     table, slope, coordinate, site, neighbours, body, tendon, dof, actuator, torque_actuators, rate = moving
-    law, radius, sphere, sphere_body, sphere_root, contact_site, x_actuator, y_actuator, point, local, ground, damping = feet
+    (law, radius, sphere, sphere_body, sphere_root, element, contact_site, x_actuator, y_actuator, point, local, ground,
+     damping) = feet
 
     point_rates(slope, coordinate, site, neighbours, body, qpos, site_xpos, xmat, rate)
     speed[:] = ten_velocity
@@ -190,7 +191,7 @@ def _drive(dt, mj, muscles, switches, moving, feet):
     _muscle_actuation(dt, params, activation, fiber, excitation, end_force, stiffness, tension, tendons,
                       qpos, ten_length, speed, ten_velocity, ctrl, biasprm, switches)
     point_torques(torque_actuators, actuator, tendon, rate, tension, ctrl)
-    ground_forces(law, radius, sphere, sphere_body, sphere_root, geom_xpos, xpos, xmat, cvel, subtree_com,
+    ground_forces(law, radius, sphere, sphere_body, sphere_root, element, geom_xpos, xpos, xmat, cvel, subtree_com,
                   point, local, ground, damping)
     _contact_actuation(ground, damping, point, local, contact_site, x_actuator, y_actuator,
                        site_pos, site_xpos, actuator_velocity, ctrl, biasprm)
@@ -222,11 +223,12 @@ def _read_state(mj, muscles, switches, feet, ligaments):
     (qpos, qvel, ctrl, actuator_velocity, ten_length, ten_velocity, qfrc_applied, xpos, xmat, cvel,
      subtree_com, geom_xpos, site_xpos, site_pos, biasprm, dof_damping) = mj
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
-    law, radius, sphere, sphere_body, sphere_root, contact_site, x_actuator, y_actuator, point, local, ground, damping = feet
+    (law, radius, sphere, sphere_body, sphere_root, element, contact_site, x_actuator, y_actuator, point, local, ground,
+     damping) = feet
     limits, qpos_adr, dof_adr, springs, dampings, total = ligaments
     _select_lengths(mj, switches, tendons, length)
     thelen.tendon_forces(params, fiber, length, force)
-    ground_forces(law, radius, sphere, sphere_body, sphere_root, geom_xpos, xpos, xmat, cvel, subtree_com,
+    ground_forces(law, radius, sphere, sphere_body, sphere_root, element, geom_xpos, xpos, xmat, cvel, subtree_com,
                   point, local, ground, damping)
     for i in range(dof_adr.shape[0]):
         total[i] = springs[i] - dampings[i] * qvel[dof_adr[i]]
