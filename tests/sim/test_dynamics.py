@@ -1,6 +1,7 @@
 """The MuJoCo body's muscle and contact dynamics against live OpenSim 4.6."""
 
 import json
+from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -113,6 +114,18 @@ def test_feet_push_as_opensims_contacts(short_rollouts):
         np.testing.assert_allclose(ours.foot_force[0], theirs.foot_force[0], atol=0.01)
         error = ours.foot_force[:11] - theirs.foot_force[:11]
         assert np.sqrt(np.mean(error**2, axis=0)).max() < 0.1 and np.abs(error).max() < 0.2, label
+
+
+def test_a_push_off_loses_the_ground_as_opensims_does():
+    """A learnt gait's two-footed push-off (its excitations, 40 steps): both feet press alike in
+    the two simulators, then at step 38 both heels leave the ground faster than the contacts'
+    dissipation allows, and with them both toes lose their force, though they still press:
+    OpenSim's foot is one force element, which gives no force after a contact with none."""
+    excitations = np.load(Path(__file__).with_name("pushoff_excitations.npy"))
+    ours, theirs = dynamics.rollout("l2r/Run-v0", excitations), dynamics.rollout("l2r/RunOpenSim-v0", excitations)
+    np.testing.assert_allclose(ours.foot_force[30:38], theirs.foot_force[30:38], atol=0.05)
+    assert (theirs.foot_force[37] > 0.5).all() and (theirs.foot_force[38] == 0.0).all()
+    assert (ours.foot_force[38] == 0.0).all()
 
 
 def test_compare_sees_a_difference():

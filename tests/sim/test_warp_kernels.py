@@ -100,19 +100,29 @@ def test_ground_forces_match_numba(rollout):
     root = m.body_rootid[sphere_body]
     radius = m.geom_size[spheres, 0]
     law = contact.contact_law(osim).table()
+    element = contact.contact_elements(osim, feet)
+    # and the reset state (both feet flat) with its right heel, then its left toe, leaving the
+    # ground fast: a cut contact with and without one listed after it in its foot's element
+    env = gymnasium.make("l2r/Run-v0").unwrapped
+    env.reset(seed=0)
+    for lifted in ("r_heel", "l_toe"):
+        d = copy.copy(env.data)
+        d.cvel[sphere_body[feet.index(lifted)]] = (0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+        states = [*states, d]
     worlds = len(states)
     want = {k: np.zeros((worlds, len(feet), s)) for k, s in (("point", 3), ("local", 3), ("force", 2), ("damping", 2))}
     for w, d in enumerate(states):
-        contact.ground_forces(law, radius, spheres, sphere_body, root, d.geom_xpos, d.xpos, d.xmat, d.cvel,
+        contact.ground_forces(law, radius, spheres, sphere_body, root, element, d.geom_xpos, d.xpos, d.xmat, d.cvel,
                               d.subtree_com, want["point"][w], want["local"][w], want["force"][w], want["damping"][w])
     assert (want["force"][..., 1] > 0).any() and (want["force"][..., 1] == 0).any(), "feet both on and off the ground"
+    assert (want["force"][-2, :2, 1] == 0).all() and (want["force"][-2, 2:, 1] > 0).all(), "the heel's cut takes its toe"
 
     got = {k: wp.zeros((worlds, len(feet)), dtype=t) for k, t in
            (("point", wp.vec3), ("local", wp.vec3), ("force", wp.vec2), ("damping", wp.vec2))}
     i32 = lambda x: wp.array(np.asarray(x, np.int32), dtype=int)  # noqa: E731
     wp.launch(warp_contact.ground_forces, (worlds, len(feet)),
               [wp.array(law.astype(np.float32)), wp.array(radius.astype(np.float32)), i32(spheres), i32(sphere_body),
-               i32(root), stacked(states, "geom_xpos"), stacked(states, "xpos"),
+               i32(root), i32(element), stacked(states, "geom_xpos"), stacked(states, "xpos"),
                wp.array(np.stack([d.xmat for d in states]).astype(np.float32).reshape(worlds, -1, 3, 3), dtype=wp.mat33),
                stacked(states, "cvel"), stacked(states, "subtree_com"), got["point"], got["local"], got["force"], got["damping"]])
     weight = 79.66 * 9.80665

@@ -28,10 +28,10 @@ def _friction(f: float, slip: float, law: wp.array(dtype=float)):
 
 
 @wp.func
-def sphere_force(law: wp.array(dtype=float), radius: float, centre: wp.vec3, body_pos: wp.vec3, body_mat: wp.mat33,
-                 cvel: wp.spatial_vector, root_com: wp.vec3):
-    """One sphere on the ground plane y = 0: the contact point in the world and in its body, the
-    force (x, y) and d force / d speed of the point along x and y (never positive)."""
+def _normal(law: wp.array(dtype=float), radius: float, centre: wp.vec3, cvel: wp.spatial_vector, root_com: wp.vec3):
+    """One sphere on the ground plane y = 0: its depth, its contact point, the velocity of its
+    body's material point there (cvel is (angular, linear) at the root's subtree com), the Hertz
+    force and the normal force before it is clamped at 0."""
     k = law[0]
     c = law[1]
     depth = radius - centre[1]
@@ -39,38 +39,64 @@ def sphere_force(law: wp.array(dtype=float), radius: float, centre: wp.vec3, bod
     if depth > 0.0:
         py = -0.5 * depth
     point = wp.vec3(centre[0], py, centre[2])
+    v = wp.spatial_bottom(cvel) + wp.cross(wp.spatial_top(cvel), point - root_com)
+    hertz = 0.0
+    if depth > 0.0:
+        hertz = 4.0 / 3.0 * k * depth * wp.sqrt(radius * k * depth)
+    return depth, point, v, hertz, hertz * (1.0 - 1.5 * c * v[1])  # penetration rate is -vy
+
+
+@wp.func
+def sphere_force(law: wp.array(dtype=float), radius: float, centre: wp.vec3, body_pos: wp.vec3, body_mat: wp.mat33,
+                 cvel: wp.spatial_vector, root_com: wp.vec3):
+    """One sphere on the ground plane y = 0: the contact point in the world and in its body, the
+    force (x, y) and d force / d speed of the point along x and y (never positive)."""
+    depth, point, v, hertz, f = _normal(law, radius, centre, cvel, root_com)
     local = wp.transpose(body_mat) * (point - body_pos)  # xmat is body-to-world
     force = wp.vec2(0.0, 0.0)
     damping = wp.vec2(0.0, 0.0)
-    if depth > 0.0:
-        # the body's material point at the contact: cvel is (angular, linear) at the root's subtree com
-        r = point - root_com
-        w = wp.spatial_top(cvel)
-        v = wp.spatial_bottom(cvel) + wp.cross(w, r)
-        hertz = 4.0 / 3.0 * k * depth * wp.sqrt(radius * k * depth)
-        f = hertz * (1.0 - 1.5 * c * v[1])  # penetration rate is -vy
-        if f > 0.0:  # otherwise leaving faster than the dissipation allows: no force at all
-            magnitude, slope = _friction(f, wp.abs(v[0]), law)
-            fx = magnitude
-            if v[0] > 0.0:
-                fx = -magnitude
-            force = wp.vec2(fx, f)
-            damping = wp.vec2(wp.min(-slope, 0.0), -1.5 * c * hertz)
+    if depth > 0.0 and f > 0.0:  # otherwise off the ground, or leaving faster than the dissipation allows
+        magnitude, slope = _friction(f, wp.abs(v[0]), law)
+        fx = magnitude
+        if v[0] > 0.0:
+            fx = -magnitude
+        force = wp.vec2(fx, f)
+        damping = wp.vec2(wp.min(-slope, 0.0), -1.5 * law[1] * hertz)
+    return point, local, force, damping
+
+
+@wp.func
+def foot_force(law: wp.array(dtype=float), radius: wp.array(dtype=float), sphere: wp.array(dtype=int),
+               body: wp.array(dtype=int), root: wp.array(dtype=int), element: wp.array(dtype=int), w: int, i: int,
+               geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33),
+               cvel: wp.array2d(dtype=wp.spatial_vector), subtree_com: wp.array2d(dtype=wp.vec3)):
+    """`sphere_force` of world w's sphere i, with none where a sphere listed before it in its force
+    element is in contact with no force (`contact.ground_forces`: Simbody's loop ends there)."""
+    b = body[i]
+    centre = geom_xpos[w, sphere[i]]
+    point, local, force, damping = sphere_force(law, radius[i], centre, xpos[w, b], xmat[w, b], cvel[w, b],
+                                                subtree_com[w, root[i]])
+    for j in range(radius.shape[0]):
+        other = geom_xpos[w, sphere[j]]
+        if j != i and element[j] == element[i] and other[0] - radius[j] < centre[0] - radius[i]:
+            depth, p, v, hertz, f = _normal(law, radius[j], other, cvel[w, body[j]], subtree_com[w, root[j]])
+            if depth > 0.0 and f <= 0.0:
+                force = wp.vec2(0.0, 0.0)
+                damping = wp.vec2(0.0, 0.0)
     return point, local, force, damping
 
 
 @wp.kernel
 def ground_forces(law: wp.array(dtype=float), radius: wp.array(dtype=float), sphere: wp.array(dtype=int),
-                  body: wp.array(dtype=int), root: wp.array(dtype=int), geom_xpos: wp.array2d(dtype=wp.vec3),
-                  xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33),
-                  cvel: wp.array2d(dtype=wp.spatial_vector), subtree_com: wp.array2d(dtype=wp.vec3),
-                  point: wp.array2d(dtype=wp.vec3), local: wp.array2d(dtype=wp.vec3),
-                  force: wp.array2d(dtype=wp.vec2), damping: wp.array2d(dtype=wp.vec2)):
+                  body: wp.array(dtype=int), root: wp.array(dtype=int), element: wp.array(dtype=int),
+                  geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3),
+                  xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
+                  subtree_com: wp.array2d(dtype=wp.vec3), point: wp.array2d(dtype=wp.vec3),
+                  local: wp.array2d(dtype=wp.vec3), force: wp.array2d(dtype=wp.vec2),
+                  damping: wp.array2d(dtype=wp.vec2)):
     """`contact.ground_forces`, one thread per world and sphere."""
     w, i = wp.tid()
-    b = body[i]
-    p, q, f, c = sphere_force(law, radius[i], geom_xpos[w, sphere[i]], xpos[w, b], xmat[w, b], cvel[w, b],
-                              subtree_com[w, root[i]])
+    p, q, f, c = foot_force(law, radius, sphere, body, root, element, w, i, geom_xpos, xpos, xmat, cvel, subtree_com)
     point[w, i] = p
     local[w, i] = q
     force[w, i] = f

@@ -24,7 +24,7 @@ import warp as wp
 
 from l2r.sim import model as body
 from l2r.sim import thelen
-from l2r.sim.contact import contact_law
+from l2r.sim.contact import contact_elements, contact_law
 from l2r.sim.knee import KneeCoupling
 from l2r.sim.ligaments import default_limits, ligament_table
 from l2r.sim.opensim import Muscle, Osim
@@ -101,6 +101,7 @@ class Feet:
     sphere: wp.array(dtype=int)
     body: wp.array(dtype=int)
     root: wp.array(dtype=int)
+    element: wp.array(dtype=int)  # each sphere's Hunt-Crossley force element (`contact.contact_elements`)
     site: wp.array(dtype=int)
     x_actuator: wp.array(dtype=int)
     y_actuator: wp.array(dtype=int)
@@ -181,9 +182,8 @@ def _contact_actuation(ft: Feet, geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.
     """`physics._contact_actuation` with the ground forces, for one world and sphere: the contact
     site moves to the contact point, ctrl cancels the actuator speed MuJoCo took at its old place."""
     w, i = wp.tid()
-    b = ft.body[i]
-    point, local, force, damping = feet.sphere_force(ft.law[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
-                                                     xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
+    point, local, force, damping = feet.foot_force(ft.law[w], ft.radius, ft.sphere, ft.body, ft.root, ft.element, w, i,
+                                                   geom_xpos, xpos, xmat, cvel, subtree_com)
     ft.force[w, i] = force
     site_pos[w, ft.site[i]] = local
     site_xpos[w, ft.site[i]] = point
@@ -223,9 +223,8 @@ def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=flo
         mu.length[w, i] = ten_length[w, tendon]
         mu.force[w, i] = muscles.tendon_force(mu.fiber[w, i], mu.length[w, i], mu.params[w, i])
     for i in range(ft.sphere.shape[0]):
-        b = ft.body[i]
-        point, local, force, damping = feet.sphere_force(ft.law[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xpos[w, b],
-                                                         xmat[w, b], cvel[w, b], subtree_com[w, ft.root[i]])
+        point, local, force, damping = feet.foot_force(ft.law[w], ft.radius, ft.sphere, ft.body, ft.root, ft.element, w,
+                                                       i, geom_xpos, xpos, xmat, cvel, subtree_com)
         ft.force[w, i] = force
     for i in range(lg.dof.shape[0]):
         lg.force[w, i] = lg.spring[w, i] - lg.damping[w, i] * qvel[w, lg.dof[i]]
@@ -355,6 +354,7 @@ class WarpPhysics:
         law = contact_law(osim).table()
         ft.law, ft.radius = _floats(np.broadcast_to(law, (nworld, len(law)))), _floats(m.geom_size[spheres, 0])
         ft.sphere, ft.body, ft.root = _ints(spheres), _ints(sphere_body), _ints(m.body_rootid[sphere_body])
+        ft.element = _ints(contact_elements(osim, names))
         ft.site = _ints([m.site(f"{g}_contact").id for g in names])
         ft.x_actuator = _ints([m.actuator(f"{g}_x").id for g in names])
         ft.y_actuator = _ints([m.actuator(f"{g}_y").id for g in names])
