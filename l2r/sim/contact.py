@@ -13,7 +13,7 @@ HuntCrossleyForce returns from its loop over an element's contacts at the first 
 not positive. Each foot is one element (`foot_r`: its heel and toe spheres), its contacts listed
 in the order of a sweep along x, where the runner's feet lie, by each sphere's rearmost x: so a
 heel leaving the ground fast takes the force off its toe, though the toe still presses (measured
-in OpenSim at a two-footed push-off: both toes' 852 and 630 N gone as their heels left, the toes
+in OpenSim at a two-footed push-off: both toes' 853 and 631 N gone as their heels left, the toes
 unmoved; docs/model.md).
 
 The env applies each force through two MuJoCo actuators on a site it moves to the contact point
@@ -89,10 +89,10 @@ def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body:
 
     radius (n,); sphere (n,) the spheres' geoms; body (n,) their bodies, root (n,) those bodies'
     roots; element (n,) their force elements (see the module text); geom_xpos, xpos, xmat, cvel,
-    subtree_com: MuJoCo's arrays. Writes the
-    contact points in world (`point`, n x 3) and in their body's frame (`local`), the force on
-    each sphere (`force`, n x 2: x, y) and d force / d speed of the contact point along x and y
-    (`damping`, n x 2, never positive: only dampers go to the implicit integrator).
+    subtree_com: MuJoCo's arrays. Writes the contact points in world (`point`, n x 3) and in their
+    body's frame (`local`), the force on each sphere (`force`, n x 2: x, y) and d force / d speed of
+    the contact point along x and y (`damping`, n x 2, never positive: only dampers go to the
+    implicit integrator).
     """
     k, c = law[0], law[1]
     cut = np.zeros(radius.shape[0], np.bool_)  # in contact, with no force: Simbody's loop ends there
