@@ -25,7 +25,7 @@ def standing():
     return env.model, copy.copy(env.data)
 
 
-def vertical_forces(m, d, lifted: str | None = None) -> np.ndarray:
+def vertical_forces(m, d, lifted: str | None = None) -> dict[str, float]:
     """Each sphere's vertical force at state d, the body of sphere `lifted` moving up at LEAVING."""
     feet = body.CONTACT_SPHERES
     spheres = np.array([m.geom(g).id for g in feet])

@@ -117,10 +117,11 @@ def test_feet_push_as_opensims_contacts(short_rollouts):
 
 
 def test_a_push_off_loses_the_ground_as_opensims_does():
-    """A learnt gait's two-footed push-off (its excitations, 40 steps): both feet press alike in
-    the two simulators, then at step 38 both heels leave the ground faster than the contacts'
-    dissipation allows, and with them both toes lose their force, though they still press:
-    OpenSim's foot is one force element, which gives no force after a contact with none."""
+    """A learnt gait's two-footed push-off (the excitations of an `--n-step 3` policy's evaluation,
+    seed 2, its first 40 steps; docs/training.md): both feet press alike in the two simulators,
+    then at step 38 both heels leave the ground faster than the contacts' dissipation allows, and
+    with them both toes lose their force, though they still press: OpenSim's foot is one force
+    element, which gives no force after a contact with none."""
     excitations = np.load(Path(__file__).with_name("pushoff_excitations.npy"))
     ours, theirs = dynamics.rollout("l2r/Run-v0", excitations), dynamics.rollout("l2r/RunOpenSim-v0", excitations)
     np.testing.assert_allclose(ours.foot_force[30:38], theirs.foot_force[30:38], atol=0.05)
