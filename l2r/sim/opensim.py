@@ -163,8 +163,8 @@ class Osim:
     spheres: list[Sphere]
     contact: dict[str, float]
     contact_elements: dict[str, str]
-    """Each contact geometry's Hunt-Crossley force element (`foot_r` holds the platform, r_heel and
-    r_toe): Simbody lists an element's contacts together and stops at a contact with no force."""
+    """Each contact sphere's Hunt-Crossley force element (`foot_r` holds r_heel and r_toe against
+    the platform): Simbody lists an element's contacts together and stops at a contact with no force."""
 
     def coordinate(self, name: str) -> Coordinate:
         for body in self.bodies.values():
@@ -243,9 +243,10 @@ def _read_model(model: ET.Element) -> Osim:
     hc = next(force.iter("HuntCrossleyForce__ContactParameters"))
     contact = {k: _num(hc, k) for k in ("stiffness", "dissipation", "static_friction", "dynamic_friction", "viscous_friction")}
     contact["transition_velocity"] = _num(force, "transition_velocity")
+    names = {s.name for s in spheres}
     elements = {geometry: f.get("name") for f in model.iter("HuntCrossleyForce")
                 for parameters in f.iter("HuntCrossleyForce__ContactParameters")
-                for geometry in parameters.findtext("geometry").split()}
+                for geometry in parameters.findtext("geometry").split() if geometry in names}
     return Osim(_vec(model, "gravity"), bodies, muscles, spheres, contact, elements)
 
 
