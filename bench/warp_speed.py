@@ -1,8 +1,8 @@
 """MuJoCo Warp against MuJoCo's C step on the runner's MJCF; prints one JSON line.
 
 The model is the env's (`runner.xml` with the env's sensors), from the default pose, its
-actuators idle, contacts off as at difficulty 0 (the feet's forces are the env's own kernels,
-not MuJoCo contacts). Only MuJoCo's rigid-body step is timed here, not the env's muscles.
+actuators idle, MuJoCo's collisions off (the feet's forces, on the ground and the obstacles, are
+the env's own kernels). Only MuJoCo's rigid-body step is timed here, not the env's muscles.
 
 first_step_s: the first `mujoco_warp.step` on the device, kernel compilation included (cold when
     Warp's kernel cache, ~/.cache/warp, is empty; run with `--clear-cache` to make it so).
@@ -14,7 +14,7 @@ env_N_steps_per_s: `l2r/RunWarp-v0` env steps (0.01 s, `substeps` physics steps 
     muscles, feet, ligaments and knee kernels) per second summed over N worlds, random
     excitations, at difficulty 0, as the env runs by default (captured graphs);
     env_N_eager_steps_per_s: with graphs=False; env_N_difficultyD_steps_per_s: at difficulty D
-    (1: three obstacles per world and MuJoCo Warp's contacts on).
+    (1: three obstacles per world, the feet's forces on them computed by the env's kernels).
 port_env_steps_per_s: `l2r/Run-v0` (numba, one core) the same way, for comparison
     (port_env_difficultyD_steps_per_s at difficulty D).
 """
@@ -36,7 +36,7 @@ import warp as wp
 
 import l2r.sim  # noqa: F401  (registers the environments)
 from l2r.sim import model as body
-from l2r.sim.env import NO_CONTACTS, with_sensors
+from l2r.sim.env import with_sensors
 
 sys.path.insert(0, str(Path(__file__).parent))
 from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the same machine record)
@@ -44,7 +44,6 @@ from env_speed import cpu_flags, cpu_model  # noqa: E402  (this folder's: the sa
 
 def runner_at_rest() -> tuple[mujoco.MjModel, mujoco.MjData]:
     m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
-    m.opt.disableflags |= NO_CONTACTS
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, m.keyframe(body.DEFAULT_KEYFRAME).id)
     mujoco.mj_forward(m, d)
@@ -112,7 +111,7 @@ def main() -> None:
     parser.add_argument("--env-steps", type=int, default=10,
                         help="timed env steps of l2r/RunWarp-v0 per world count (0: skip the env)")
     parser.add_argument("--difficulties", type=int, nargs="+", default=[0, 1], choices=[0, 1, 2],
-                        help="env difficulties to time (0 flat ground; 1 obstacles, MuJoCo's contacts on)")
+                        help="env difficulties to time (0 flat ground; 1 obstacles)")
     parser.add_argument("--clear-cache", action="store_true",
                         help="empty Warp's kernel cache first, so that first_step_s is a cold compile")
     args = parser.parse_args()

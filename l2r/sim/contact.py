@@ -1,4 +1,5 @@
-"""The feet on the ground as OpenSim's `HuntCrossleyForce` pushes them (Simbody's law).
+"""The feet on the ground and on the obstacles as OpenSim's `HuntCrossleyForce` pushes them
+(Simbody's law).
 
 For a sphere of radius R sunk d into the ground at penetration rate v_n (positive going in):
     f_H = 4/3 · k · d · sqrt(R · k · d),   k = stiffness^(2/3) / 2  (two equally stiff surfaces)
@@ -21,6 +22,15 @@ The env applies each force through two MuJoCo actuators on a site it moves to th
 force's derivative with respect to the contact point's speed as actuator damping: the friction
 below the transition speed (0.8 f / 0.1 m/s) is a damper far too stiff for an explicit 5 ms step
 on a foot.
+
+The obstacles are spheres fixed to the ground, each with a force element of its own against the
+four foot spheres, as the 2017 env made them: both surfaces of stiffness 10^6 / the obstacle's
+radius, dissipation 1e-5 s/m, no friction. Sphere on sphere, d is the overlap of the two along
+the line between their centres, R = r1 r2 / (r1 + r2), and the force acts along that line at
+the middle of the overlap: an elastic, frictionless push that a foot slides off. (MuJoCo's soft
+contact, which the port used before, let a foot stand on an obstacle with the ground's
+friction.) Its dissipation is too small for a force to turn negative, so the element's early
+end above never happens there.
 """
 
 from __future__ import annotations
@@ -31,6 +41,10 @@ import numba
 import numpy as np
 
 from l2r.sim.opensim import Osim
+
+
+OBSTACLE_STIFFNESS_TIMES_RADIUS = 1e6  # N/m: an obstacle's stiffness (N/m^2) is this over its radius
+OBSTACLE_DISSIPATION = 1e-5  # s/m
 
 
 @dataclass(frozen=True)
@@ -139,3 +153,55 @@ def listed_before(j: int, i: int, element: np.ndarray, radius: np.ndarray, xj: f
     """Whether Simbody lists sphere j's contact before sphere i's in one force element: the sweep
     along x orders them by their rearmost points (x - radius)."""
     return j != i and element[j] == element[i] and xj - radius[j] < xi - radius[i]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def obstacle_forces(course: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body: np.ndarray,
+                    root: np.ndarray, geom_xpos: np.ndarray, xipos: np.ndarray, cvel: np.ndarray,
+                    subtree_com: np.ndarray, force: np.ndarray, xfrc_applied: np.ndarray) -> None:
+    """Hunt-Crossley forces of the obstacles on the foot spheres (see the module text).
+
+    course (m, 3): each obstacle's centre x, y (z = 0) and radius, radius 0 for none; radius,
+    sphere, body, root: the foot spheres' as in `ground_forces`, each sphere alone on its body.
+    Writes the force on each sphere (`force`, n x 3) and sets it, with its moment about the
+    body's centre of mass, as MuJoCo's `xfrc_applied` of the sphere's body.
+    """
+    for i in range(radius.shape[0]):
+        b = body[i]
+        force[i, :] = 0.0
+        xfrc_applied[b, :] = 0.0
+        centre = geom_xpos[sphere[i]]
+        for o in range(course.shape[0]):
+            r = course[o, 2]
+            if r <= 0.0:
+                continue
+            nx, ny, nz = centre[0] - course[o, 0], centre[1] - course[o, 1], centre[2]
+            gap = np.sqrt(nx * nx + ny * ny + nz * nz)
+            depth = radius[i] + r - gap
+            if depth <= 0.0 or gap == 0.0:
+                continue
+            nx, ny, nz = nx / gap, ny / gap, nz / gap  # from the obstacle's centre to the sphere's
+            reach = r - 0.5 * depth
+            px, py, pz = course[o, 0] + reach * nx, course[o, 1] + reach * ny, reach * nz
+            # the body's material point there (cvel: angular, linear at the root's subtree centre of mass)
+            rx, ry, rz = px - subtree_com[root[i], 0], py - subtree_com[root[i], 1], pz - subtree_com[root[i], 2]
+            w = cvel[b, 0:3]
+            vx = cvel[b, 3] + w[1] * rz - w[2] * ry
+            vy = cvel[b, 4] + w[2] * rx - w[0] * rz
+            vz = cvel[b, 5] + w[0] * ry - w[1] * rx
+            k = (OBSTACLE_STIFFNESS_TIMES_RADIUS / r) ** (2.0 / 3.0) / 2.0
+            hertz = 4.0 / 3.0 * k * depth * np.sqrt(radius[i] * r / (radius[i] + r) * k * depth)
+            f = hertz * (1.0 - 1.5 * OBSTACLE_DISSIPATION * (vx * nx + vy * ny + vz * nz))
+            if f <= 0.0:
+                continue
+            fx, fy, fz = f * nx, f * ny, f * nz
+            force[i, 0] += fx
+            force[i, 1] += fy
+            force[i, 2] += fz
+            ax, ay, az = px - xipos[b, 0], py - xipos[b, 1], pz - xipos[b, 2]
+            xfrc_applied[b, 0] += fx
+            xfrc_applied[b, 1] += fy
+            xfrc_applied[b, 2] += fz
+            xfrc_applied[b, 3] += ay * fz - az * fy
+            xfrc_applied[b, 4] += az * fx - ax * fz
+            xfrc_applied[b, 5] += ax * fy - ay * fx

@@ -27,10 +27,8 @@ ASSETS = Path(__file__).parent / "assets"
 MJCF_PATH = ASSETS / "runner.xml"
 TIMESTEP = 0.0025  # four physics steps per 0.01 s env step (docs/model.md: what a longer step costs in accuracy)
 OBSTACLE_PARK = (-100.0, -10.0, 0.0)  # far behind and below the start until the env places them
-# The feet meet the ground through the env's Hunt-Crossley forces (`l2r.sim.contact`); only
-# the obstacles touch them through MuJoCo's own soft contact, with its default stiffness.
-OBSTACLE_SOLREF = (0.02, 1.0)
-OBSTACLE_SOLIMP = (0.9, 0.95, 0.001)
+# The feet meet the ground and the obstacles through the env's Hunt-Crossley forces
+# (`l2r.sim.contact`): MuJoCo's collision detection is off and its geoms are for drawing.
 GROUND_SITE = "ground_origin"
 # MuJoCo softens a joint coupling by the summed inverse weights of both joints, and the light
 # shank makes that large; an impedance near 1 keeps the knee translation on its curve.
@@ -60,23 +58,21 @@ def build_mjcf(osim: Osim, paths: dict[str, MusclePaths]) -> str:
     one per coordinate that moves path points, for the work of that motion (`l2r.sim.paths`)."""
     root = ET.Element("mujoco", model="l2r_runner")
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
-    ET.SubElement(root, "option", timestep=_fmt(TIMESTEP), gravity=_fmt(osim.gravity), integrator="implicitfast")
+    option = ET.SubElement(root, "option", timestep=_fmt(TIMESTEP), gravity=_fmt(osim.gravity), integrator="implicitfast")
+    ET.SubElement(option, "flag", contact="disable")
     default = ET.SubElement(root, "default")
     ET.SubElement(default, "joint", limited="false", armature="0", damping="0")
     ET.SubElement(default, "site", size="0.005", group="3")
-    contact_attrs = dict(condim="3", friction=_fmt(osim.contact["static_friction"], 0.005, 0.0001), solref=_fmt(OBSTACLE_SOLREF), solimp=_fmt(OBSTACLE_SOLIMP))
+    ET.SubElement(default, "geom", contype="0", conaffinity="0")
     foot = ET.SubElement(default, "default", attrib={"class": "foot"})
-    ET.SubElement(foot, "geom", type="sphere", contype="1", conaffinity="2", rgba="0.8 0.3 0.3 1", **contact_attrs)
+    ET.SubElement(foot, "geom", type="sphere", rgba="0.8 0.3 0.3 1")
     bone = ET.SubElement(default, "default", attrib={"class": "bone"})
-    ET.SubElement(bone, "geom", type="capsule", size="0.025", contype="0", conaffinity="0", group="1", mass="0", rgba="0.9 0.85 0.75 1")
+    ET.SubElement(bone, "geom", type="capsule", size="0.025", group="1", mass="0", rgba="0.9 0.85 0.75 1")
     world_geom = ET.SubElement(default, "default", attrib={"class": "world"})
-    ET.SubElement(world_geom, "geom", contype="2", conaffinity="1", rgba="0.6 0.6 0.6 1", **contact_attrs)
+    ET.SubElement(world_geom, "geom", rgba="0.6 0.6 0.6 1")
 
     world = ET.SubElement(root, "worldbody")
-    # the ground collides with nothing (the env computes the feet's contact), yet keeps a collision
-    # class: the world body's bounding box for the broad phase comes from its colliding geoms, and
-    # the infinite plane keeps it wide enough for obstacles the env moves at run time
-    ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 1", zaxis="0 1 0", contype="4", conaffinity="4", attrib={"class": "world"})
+    ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 1", zaxis="0 1 0", attrib={"class": "world"})
     ET.SubElement(world, "site", name=GROUND_SITE)
     for i in range(3):
         ET.SubElement(world, "geom", name=f"obstacle_{i}", type="sphere", size="0.05", pos=_fmt(OBSTACLE_PARK), attrib={"class": "world"})

@@ -41,10 +41,8 @@ PSOAS_RIGHT = "iliopsoas_r"
 # The 2017 code scaled muscle index 11 with the left psoas strength: glut_max_l, not iliopsoas_l.
 LEFT_PSOAS_CHOICES = ("glut_max_l", "iliopsoas_l")
 
-NET_FORCE = 3  # MuJoCo's contact-sensor reduction "netforce" (no Python enum for it)
 NUM_MUSCLES = 18
 
-NO_CONTACTS = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
 # Warnings MuJoCo counts when it resets a diverging simulation.
 DIVERGENCE_WARNINGS = tuple(
     int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{what}")) for what in ("QACC", "QPOS", "QVEL")
@@ -116,12 +114,12 @@ class RunEnv(gym.Env):
         self._contact_law = contact_law(osim)
         self._segment_mass, self._segment_inertia = m.body_mass[1:].copy(), m.body_inertia[1:].copy()
 
-        # Observation values 0..35, and the obstacles' forces on the feet, are gathers from the
-        # sensors `with_sensors` added.
-        self._obs_gather, self._obstacle_contact = sensor_gathers(m)
+        # Observation values 0..35 are a gather from the sensors `with_sensors` added.
+        self._obs_gather = sensor_gathers(m)
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))
 
-        # Obstacles: three spheres of the world body, parked where the model put them when unused.
+        # Obstacles: three spheres of the world body for the renderer, parked where the model put
+        # them when unused; the physics pushes the feet off this episode's `course`.
         self._obstacle_geoms = [
             _id(m, mujoco.mjtObj.mjOBJ_GEOM, f"obstacle_{i}") for i in range(NUM_OBSTACLES)
         ]
@@ -168,22 +166,18 @@ class RunEnv(gym.Env):
         """
         start_episode(self, seed, options)
         m, d = self._m, self._d
+        course = self._physics.course
+        course[:] = 0.0
         for i, g in enumerate(self._obstacle_geoms):
             if i < len(self.obstacles):
                 x, y, r = self.obstacles[i]
                 pos = (x, y, 0.0)
+                course[i] = self.obstacles[i]
             else:
                 pos, r = self._parked[i]
             m.geom_pos[g] = pos
             m.geom_size[g, 0] = r
-            m.geom_rbound[g] = r
-            m.geom_aabb[g, 3:] = r  # the broad phase reads the box, not only rbound
-        # Without obstacles every MuJoCo contact the body can make is with the parked ones, 10 m
-        # underground: collision detection, a tenth of MuJoCo's step, could only find nothing.
-        if self.obstacles:
-            m.opt.disableflags &= ~NO_CONTACTS
-        else:
-            m.opt.disableflags |= NO_CONTACTS
+            m.geom_rbound[g] = r  # MuJoCo's bound of the geom, kept with its size
         params = self._physics.params
         params[:] = self._muscle_table
         params[list(self._psoas), thelen.MAX_FORCE] *= self.psoas
@@ -258,8 +252,7 @@ class RunEnv(gym.Env):
 
     def _info(self) -> dict[str, Any]:
         physics = self._physics
-        # The sensors report the force the sphere exerts on obstacles; the force on it is the opposite.
-        contact = -self._sensordata[self._obstacle_contact].reshape(len(FOOT_SPHERES), 3)
+        contact = physics.obstacle_force.copy()
         contact[:, :2] += physics.ground_force
         return {
             "distance": self._x,
@@ -276,9 +269,8 @@ class RunEnv(gym.Env):
 
 def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
     """Compile the body with the sensors the env reads: the observed coordinates and speeds,
-    centre of mass position and velocity, tracked body positions, and the net force of MuJoCo's
-    contacts (the obstacles') on each foot sphere. MuJoCo computes them inside the step, so the
-    env only gathers."""
+    centre of mass position and velocity, tracked body positions. MuJoCo computes them inside
+    the step, so the env only gathers."""
     sensor, obj = mujoco.mjtSensor, mujoco.mjtObj
 
     def add(name: str, kind: mujoco.mjtSensor, objtype: mujoco.mjtObj, objname: str) -> mujoco.MjsSensor:
@@ -293,10 +285,6 @@ def with_sensors(spec: mujoco.MjSpec) -> mujoco.MjModel:
     add("l2r_com_vel", sensor.mjSENS_SUBTREELINVEL, obj.mjOBJ_BODY, "world")
     for b in TRACKED_BODIES:
         add(f"l2r_pos_{b}", sensor.mjSENS_FRAMEPOS, obj.mjOBJ_XBODY, b)  # the body frame's origin
-    force = 1 << int(mujoco.mjtConDataField.mjCONDATA_FORCE)
-    for g in FOOT_SPHERES:
-        # intprm: data fields, reduction (3 = net force of all the geom's contacts, world frame), count
-        add(f"l2r_contact_{g}", sensor.mjSENS_CONTACT, obj.mjOBJ_GEOM, g).intprm[:3] = [force, NET_FORCE, 1]
     return spec.compile()
 
 
@@ -309,20 +297,18 @@ def subtree_masses(body_mass: np.ndarray, body_parentid: np.ndarray) -> np.ndarr
     return mass
 
 
-def sensor_gathers(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-    """Indices into sensordata of a model compiled by `with_sensors`: observation values 0..35,
-    and the obstacles' forces on the foot spheres (3 per sphere, `FOOT_SPHERES` order)."""
+def sensor_gathers(m: mujoco.MjModel) -> np.ndarray:
+    """Indices into sensordata of a model compiled by `with_sensors`: observation values 0..35."""
     def sensor(name: str, size: int) -> np.ndarray:
         adr = m.sensor_adr[_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)]
         return np.arange(adr, adr + size)
 
     pos = [sensor(f"l2r_q_{c}", 1) for c in PELVIS + JOINTS]
     vel = [sensor(f"l2r_qdot_{c}", 1) for c in PELVIS + JOINTS]
-    observation = np.concatenate(
+    return np.concatenate(
         pos[:3] + vel[:3] + pos[3:] + vel[3:] + [sensor("l2r_com", 2), sensor("l2r_com_vel", 2)]
         + [sensor(f"l2r_pos_{b}", 2) for b in TRACKED_BODIES]
     )
-    return observation, np.concatenate([sensor(f"l2r_contact_{g}", 3) for g in FOOT_SPHERES])
 
 
 def check_arguments(difficulty: Any, left_psoas: Any, max_steps: Any) -> None:

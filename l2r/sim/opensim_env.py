@@ -38,6 +38,7 @@ from l2r.sim.env import (
     OBS_SIZE, PELVIS, PSOAS_RIGHT, STEP_SECONDS, TRACKED_BODIES, Obstacle, check_arguments,
     checked_excitations, next_obstacle, start_episode,
 )  # fmt: skip
+from l2r.sim.contact import OBSTACLE_DISSIPATION, OBSTACLE_STIFFNESS_TIMES_RADIUS
 from l2r.sim.ligaments import LIGAMENTS
 from l2r.sim.model import BODIES, MUSCLES, OBSTACLES, OSIM_PATH
 
@@ -46,9 +47,6 @@ log = logging.getLogger(__name__)
 MISSING_OPENSIM = "l2r/RunOpenSim-v0 needs OpenSim 4.6: pip install 'l2r[opensim]' (or make setup)"
 ACCURACY = 5e-5  # the 2017 env's integrator accuracy
 INITIAL_ACTIVATION = 0.05  # OpenSim's default activation, every muscle's at reset
-# The 2017 obstacles' contact: stiffness (N/m²) is this over the radius; no friction.
-OBSTACLE_STIFFNESS_TIMES_RADIUS = 1e6
-OBSTACLE_DISSIPATION = 1e-5  # s/m
 PARKED = (0.0, 0.0, 0.05)  # (x, y, r) of an unused obstacle sphere; it applies no force
 WORLD = "world"  # MuJoCo's name for the ground; `body_names` follow the MuJoCo body's order
 

@@ -3,7 +3,8 @@
 Before every physics step the kernels compute what OpenSim computes inside its integrator and
 MuJoCo does not: the Thelen muscles' activation and fibre dynamics (`thelen.py`), pulling
 through the tendon each conditional path point selects and with the moving path points' share
-of speed and work (`paths.py`), and the feet's Hunt-Crossley ground contact (`contact.py`);
+of speed and work (`paths.py`), and the feet's Hunt-Crossley contact with the ground and the
+obstacles (`contact.py`; MuJoCo's own collisions are off);
 after MuJoCo's integration they set the six joint-limit ligaments (`ligaments.py`) and move the
 moving points for the new joint positions. Stiff parts go to MuJoCo's implicit integrator as
 damping: tendon stiffness and contact friction through their actuators' velocity bias, ligament
@@ -30,7 +31,7 @@ import numpy as np
 
 from l2r.sim import model as body
 from l2r.sim import thelen
-from l2r.sim.contact import contact_elements, contact_law, ground_forces
+from l2r.sim.contact import contact_elements, contact_law, ground_forces, obstacle_forces
 from l2r.sim.knee import KneeCoupling, follow_splines, project
 from l2r.sim.ligaments import default_limits, engage, ligament_table
 from l2r.sim.mujoco_numba import mj_forward, mj_step1, mj_step2, mj_transmission
@@ -47,11 +48,12 @@ class Physics:
     """The muscles', feet's, path points' and ligaments' state for one MjModel and MjData, and
     the kernels that advance it with MuJoCo's.
 
-    The kernels take the arrays in seven groups, tuples built once here: MuJoCo's arrays, the
+    The kernels take the arrays in eight groups, tuples built once here: MuJoCo's arrays, the
     muscles, the conditional points, the moving points, the feet (`body.CONTACT_SPHERES`), the
-    ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`). The public
-    arrays are updated in place; `params` is this episode's muscle table and `contact` its ground
-    contact law (`ContactLaw.table`), which the env may scale before `reset`.
+    obstacles, the ligaments (`ligaments.LIGAMENTS`) and the knee couplings (`knee.KneeCoupling`).
+    The public arrays are updated in place; `params` is this episode's muscle table, `contact` its
+    ground contact law (`ContactLaw.table`) and `course` its obstacles (x, y, radius; radius 0 for
+    none), which the env sets before `reset`.
     """
 
     def __init__(self, m: mujoco.MjModel, d: mujoco.MjData, osim: Osim, muscles: list[Muscle]):
@@ -75,6 +77,8 @@ class Physics:
         sphere_body = m.geom_bodyid[spheres].copy()
         self.ground_force = np.zeros((len(feet), 2))  # N along x and y on each sphere, of the current state
         self.contact = contact_law(osim).table()
+        self.course = np.zeros((len(body.OBSTACLES), 3))
+        self.obstacle_force = np.zeros((len(feet), 3))  # N on each sphere, of the current state
 
         limits = default_limits()
         joints = np.array([m.joint(c).id for c in limits.coordinates])
@@ -105,6 +109,7 @@ class Physics:
             np.zeros((len(feet), 3)), np.zeros((len(feet), 3)),  # contact points in the world, in their body
             self.ground_force, np.zeros((len(feet), 2)),  # and the forces' damping along x and y
         )
+        self._obstacles = (self.course, self.obstacle_force, d.xfrc_applied, d.xipos)
         self._ligaments = (
             ligament_table(limits), m.jnt_qposadr[joints].copy(), m.jnt_dofadr[joints].copy(),
             np.zeros(len(joints)), np.zeros(len(joints)),  # spring forces and engaged dampings in effect
@@ -120,28 +125,29 @@ class Physics:
         self.excitation[:] = 0.0
         self.activation[:] = thelen.DEFAULT_ACTIVATION
         _start(self._model, self._data, self._mujoco, self._muscles, self._switches, self._moving, self._feet,
-               self._ligaments, self._knees)
+               self._obstacles, self._ligaments, self._knees)
 
     def step(self, substeps: int, delay: int = 0) -> None:
         """Hold `excitation` (in [0, 1]) over `substeps` physics steps; with a `delay`, over the
         first `delay` of them, then `next_excitation`, which `excitation` becomes, over the rest."""
-        _advance(self._model, self._data, substeps, delay, self.next_excitation, self.dt,
-                 self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._ligaments, self._knees)
+        _advance(self._model, self._data, substeps, delay, self.next_excitation, self.dt, self._mujoco,
+                 self._muscles, self._switches, self._moving, self._feet, self._obstacles, self._ligaments, self._knees)
 
     def drive(self) -> None:
         """The first part of a physics step alone: the actuators for the coming one."""
-        _drive(self.dt, self._mujoco, self._muscles, self._switches, self._moving, self._feet)
+        _drive(self.dt, self._mujoco, self._muscles, self._switches, self._moving, self._feet, self._obstacles)
         mujoco.mj_transmission(self._m, self._d)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _advance(model, data, substeps, delay, next_excitation, dt, mj, muscles, switches, moving, feet, ligaments, knees):
+def _advance(model, data, substeps, delay, next_excitation, dt, mj, muscles, switches, moving, feet, obstacles, ligaments,
+             knees):
     """`substeps` physics steps, the excitations turning to `next_excitation` after `delay` of
     them (none when 0), then the state the env reports."""
     for k in range(substeps):
         if delay > 0 and k == delay:
             muscles[1][:] = next_excitation
-        _drive(dt, mj, muscles, switches, moving, feet)
+        _drive(dt, mj, muscles, switches, moving, feet, obstacles)
         mj_transmission(model, data)  # the contact sites moved: their actuators' moment arms
         mj_step2(model, data)
         # the knee slides back onto their splines before anything reads the new positions
@@ -152,11 +158,11 @@ def _advance(model, data, substeps, delay, next_excitation, dt, mj, muscles, swi
         # moved the joints and before step1 computes the passive forces and the constraints.
         _place(mj, moving, ligaments, knees)
         mj_step1(model, data)
-    _read_state(mj, muscles, switches, feet, ligaments)
+    _read_state(mj, muscles, switches, feet, obstacles, ligaments)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _start(model, data, mj, muscles, switches, moving, feet, ligaments, knees):
+def _start(model, data, mj, muscles, switches, moving, feet, obstacles, ligaments, knees):
     """`Physics.reset`'s forward pass; the ligaments and knee couplings come before it, so that
     the passive forces include their damping and the constraints follow the splines."""
     _place(mj, moving, ligaments, knees)
@@ -164,12 +170,13 @@ def _start(model, data, mj, muscles, switches, moving, feet, ligaments, knees):
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
     _select_lengths(mj, switches, tendons, length)
     thelen.equilibrate(params, activation, length, fiber, end_force)
-    _read_state(mj, muscles, switches, feet, ligaments)
+    _read_state(mj, muscles, switches, feet, obstacles, ligaments)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _drive(dt, mj, muscles, switches, moving, feet):
-    """Muscle, moving-point and ground forces for the coming physics step, into the actuators.
+def _drive(dt, mj, muscles, switches, moving, feet, obstacles):
+    """Muscle, moving-point and ground forces for the coming physics step, into the actuators,
+    and the obstacles' forces on the feet, into MuJoCo's applied body forces.
 
     Each actuator's force is ctrl + bias·(its speed). The muscles' forces are those at the
     step's end with the tendon lengths moving at their current speed; the bias carries the
@@ -195,6 +202,9 @@ def _drive(dt, mj, muscles, switches, moving, feet):
                   point, local, ground, damping)
     _contact_actuation(ground, damping, point, local, contact_site, x_actuator, y_actuator,
                        site_pos, site_xpos, actuator_velocity, ctrl, biasprm)
+    course, obstacle_force, xfrc_applied, xipos = obstacles
+    obstacle_forces(course, radius, sphere, sphere_body, sphere_root, geom_xpos, xipos, cvel, subtree_com,
+                    obstacle_force, xfrc_applied)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -217,9 +227,9 @@ def _place(mj, moving, ligaments, knees):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _read_state(mj, muscles, switches, feet, ligaments):
+def _read_state(mj, muscles, switches, feet, obstacles, ligaments):
     """What the env reports of the current state: muscle lengths and tendon forces, ground
-    forces, whole ligament forces."""
+    and obstacle forces, whole ligament forces."""
     (qpos, qvel, ctrl, actuator_velocity, ten_length, ten_velocity, qfrc_applied, xpos, xmat, cvel,
      subtree_com, geom_xpos, site_xpos, site_pos, biasprm, dof_damping) = mj
     params, excitation, activation, fiber, length, force, tendons, end_force, stiffness, tension, speed = muscles
@@ -230,6 +240,9 @@ def _read_state(mj, muscles, switches, feet, ligaments):
     thelen.tendon_forces(params, fiber, length, force)
     ground_forces(law, radius, sphere, sphere_body, sphere_root, element, geom_xpos, xpos, xmat, cvel, subtree_com,
                   point, local, ground, damping)
+    course, obstacle_force, xfrc_applied, xipos = obstacles
+    obstacle_forces(course, radius, sphere, sphere_body, sphere_root, geom_xpos, xipos, cvel, subtree_com,
+                    obstacle_force, xfrc_applied)
     for i in range(dof_adr.shape[0]):
         total[i] = springs[i] - dampings[i] * qvel[dof_adr[i]]
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import l2r.sim  # noqa: F401  (registers l2r/Run-v0)
+import l2r.sim.env
 from l2r.sim.env import FALL_HEIGHT, MAX_STEPS, NO_OBSTACLE, RunEnv, draw_episode, next_obstacle
 from l2r.sim.ligaments import LIGAMENTS, default_limits, ligament_forces
 from l2r.sim.model import OSIM_PATH
@@ -245,17 +246,18 @@ def test_difficulty_places_obstacles_and_scales_the_psoas():
     assert all(m.geom(f"obstacle_{i}").pos[0] < -10 for i in range(3))
 
 
-def test_feet_collide_with_obstacles():
+def test_the_course_pushes_the_feet_and_leaves_with_the_episode(monkeypatch):
+    """An obstacle drawn under the right heel pushes it at reset, sideways too (the ground's
+    forces have no z); the next episode's flat ground, and then an obstacle far ahead, push
+    nothing."""
     env = RunEnv(difficulty=1)
-    env.reset(seed=0)
-    m, d = env.model, env.data
-    heel = m.geom("r_heel")
-    # Put the first obstacle where the right heel is and ask MuJoCo for contacts.
-    env.obstacles[0] = (*d.geom_xpos[heel.id][:2], 0.1)
-    m.geom_pos[m.geom("obstacle_0").id] = (*d.geom_xpos[heel.id][:2], 0.0)
-    mujoco.mj_forward(m, d)
-    pairs = {tuple(sorted((m.geom(g1).name, m.geom(g2).name))) for g1, g2 in d.contact.geom}
-    assert ("obstacle_0", "r_heel") in pairs
+    heel = env.reset(seed=0)[1]["body_pos"][env.body_names.index("calcn_r")]
+    courses = iter([[(heel[0], 0.0, 0.1)], [], [(3.0, 0.0, 0.1)]])
+    monkeypatch.setattr(l2r.sim.env, "draw_episode", lambda rng, difficulty: (next(courses), (1.0, 1.0)))
+    pushed = env.reset(seed=0)[1]["contact_force"]
+    assert abs(pushed[0, 2]) > 100.0 and not pushed[[1, 3], 2].any()
+    for _ in range(2):
+        assert not env.reset(seed=0)[1]["contact_force"][:, 2].any()
 
 
 def test_bad_difficulty_and_options():

@@ -117,7 +117,7 @@ def test_warp_worlds_meet_an_obstacle_as_the_port_does(monkeypatch):
     drawn obstacle's centre lies at x >= 1 m): random excitation presses a toe on it from the second
     step to the fourth and takes it off; over 0.1 s the joints stay within 0.01 degrees and the
     pelvis within 0.01 cm of the port's, the obstacle's forces on the feet within 0.1 N of the
-    port's (up to 200 N; MuJoCo Warp's contacts in float32 against MuJoCo's in float64)."""
+    port's (up to 200 N; the same law in float32 against float64)."""
     course = [(0.158, 0.02, 0.1), (4.0, 0.0, 0.05), (4.5, 0.0, 0.05)]
     for backend in (port_env, warp_env):
         monkeypatch.setattr(backend, "draw_episode", lambda rng, difficulty: (course, (1.0, 1.0)))
@@ -167,8 +167,8 @@ def test_reset_options_change_the_difficulty():
 def test_graphs_replay_what_the_launches_do(monkeypatch):
     """The captured steps and resets (the default) give the states launching each kernel from
     Python gives, bit for bit: through resets of one world at a time (the graph reads which from
-    the same array each time) and a change of difficulty, which switches MuJoCo Warp's contacts
-    on and needs graphs of its own (a sphere under the toes, as above, so that contacts matter)."""
+    the same array each time) and a change of difficulty, which puts obstacles in the course the
+    graph reads (a sphere under the toes, as above, so that they push)."""
     course = [(0.158, 0.02, 0.1), (4.0, 0.0, 0.05), (4.5, 0.0, 0.05)]
     monkeypatch.setattr(warp_env, "draw_episode", lambda rng, difficulty: (course, (1.0, 1.0)))
     actions = np.random.default_rng(0).uniform(0.0, 1.0, (6, 3, 18))

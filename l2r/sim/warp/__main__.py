@@ -13,11 +13,10 @@ import l2r.sim  # noqa: F401  (registers the environments)
 
 def main() -> None:
     started = time.monotonic()
-    for difficulty in (0, 1):  # without MuJoCo Warp's contacts and with them (the obstacles)
-        worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=1, difficulty=difficulty, device="cpu")
-        worlds.reset(seed=0)
-        worlds.step(np.zeros((1, worlds.single_action_space.shape[0]), np.float32))
-        worlds.close()
+    worlds = gymnasium.make_vec("l2r/RunWarp-v0", num_envs=1, device="cpu")
+    worlds.reset(seed=0)
+    worlds.step(np.zeros((1, worlds.single_action_space.shape[0]), np.float32))
+    worlds.close()
     print(f"l2r/RunWarp-v0: Warp's CPU kernels compiled or found in its cache in {time.monotonic() - started:.0f} s")
 
 

@@ -1,4 +1,5 @@
-"""`l2r.sim.contact`'s Hunt-Crossley feet as a Warp kernel over many worlds, in float32.
+"""`l2r.sim.contact`'s Hunt-Crossley feet, on the ground and on the obstacles, as Warp functions
+over many worlds, in float32.
 
 The law's table is the numba module's (`ContactLaw.table`); MuJoCo Warp's arrays hold one row
 per world.
@@ -8,8 +9,13 @@ from __future__ import annotations
 
 import warp as wp
 
+from l2r.sim import contact
+
 # Forward only: no adjoint code to compile (half the cold compile time)
 wp.set_module_options({"enable_backward": False})
+
+OBSTACLE_STIFFNESS_TIMES_RADIUS = wp.constant(contact.OBSTACLE_STIFFNESS_TIMES_RADIUS)
+OBSTACLE_DISSIPATION = wp.constant(contact.OBSTACLE_DISSIPATION)
 
 
 @wp.func
@@ -101,3 +107,29 @@ def ground_forces(law: wp.array(dtype=float), radius: wp.array(dtype=float), sph
     local[w, i] = q
     force[w, i] = f
     damping[w, i] = c
+
+
+@wp.func
+def obstacle_push(course: wp.array(dtype=wp.vec3), radius: float, centre: wp.vec3, body_com: wp.vec3,
+                  cvel: wp.spatial_vector, root_com: wp.vec3):
+    """`contact.obstacle_forces` for one foot sphere: the force of the obstacles (x, y, radius;
+    centres at z = 0) on it and that force's moment about its body's centre of mass."""
+    force = wp.vec3(0.0, 0.0, 0.0)
+    moment = wp.vec3(0.0, 0.0, 0.0)
+    for o in range(course.shape[0]):
+        r = course[o][2]
+        if r > 0.0:
+            normal = centre - wp.vec3(course[o][0], course[o][1], 0.0)
+            gap = wp.length(normal)
+            depth = radius + r - gap
+            if depth > 0.0 and gap > 0.0:
+                normal = normal / gap  # from the obstacle's centre to the sphere's
+                point = wp.vec3(course[o][0], course[o][1], 0.0) + (r - 0.5 * depth) * normal
+                v = wp.spatial_bottom(cvel) + wp.cross(wp.spatial_top(cvel), point - root_com)
+                k = wp.pow(OBSTACLE_STIFFNESS_TIMES_RADIUS / r, 2.0 / 3.0) / 2.0
+                hertz = 4.0 / 3.0 * k * depth * wp.sqrt(radius * r / (radius + r) * k * depth)
+                f = hertz * (1.0 - 1.5 * OBSTACLE_DISSIPATION * wp.dot(v, normal))
+                if f > 0.0:
+                    force += f * normal
+                    moment += wp.cross(point - body_com, f * normal)
+    return force, moment

@@ -10,10 +10,9 @@ seed and difficulty it is given (as an actor resets its single envs); `gymnasium
 
 Difficulties 1 and 2 draw each world's obstacles and psoas strengths as `l2r/Run-v0` does, from
 a generator per world seeded as gymnasium seeds a vector env's worlds (world w: seed + w), so a
-world's episodes are those of `RunEnv` reset with that seed. The obstacles are the model's three
-sphere geoms in each world's row of MuJoCo Warp's per-world geom fields, met through MuJoCo
-Warp's contacts (on at difficulties 1 and 2, off at 0 as in the port); their forces on the feet
-come from MuJoCo Warp's contact sensors, as the port's from MuJoCo's. A world whose state turns
+world's episodes are those of `RunEnv` reset with that seed. Each world's obstacles push its
+feet as the port's do (`l2r.sim.contact`, OpenSim's law), and are drawn as the model's three
+sphere geoms in that world's row of MuJoCo Warp's per-world geom fields. A world whose state turns
 non-finite ends its episode with reward 0 and `info["diverged"]` (MuJoCo Warp resets no world on
 its own and counts no warnings per world).
 
@@ -33,7 +32,7 @@ import warp as wp
 
 from l2r.sim import model as body
 from l2r.sim import thelen
-from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_CONTACTS, NO_OBSTACLE, NUM_MUSCLES, NUM_OBSTACLES,
+from l2r.sim.env import (FALL_HEIGHT, LIGAMENT_PENALTY, MAX_STEPS, NO_OBSTACLE, NUM_MUSCLES, NUM_OBSTACLES,
                          PSOAS_RIGHT, STEP_SECONDS, check_arguments, check_difficulty, draw_episode, sensor_gathers,
                          subtree_masses, with_sensors)
 from l2r.sim.contact import contact_law
@@ -78,7 +77,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         self.device = wp.get_device(device)
         m = with_sensors(mujoco.MjSpec.from_file(str(body.MODEL_PATH)))
         self.substeps = round(STEP_SECONDS / m.opt.timestep)
-        self._obs_gather, self._obstacle_contact = sensor_gathers(m)
+        self._obs_gather = sensor_gathers(m)
         self._x_adr, self._y_adr = (int(m.joint(c).qposadr[0]) for c in ("pelvis_tx", "pelvis_ty"))
         self.muscle_names, self.ligament_names = tuple(body.MUSCLES), LIGAMENTS
         self.body_names = tuple(m.body(i).name for i in range(m.nbody))  # the rows of info["body_pos"]
@@ -99,7 +98,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         physics, data = self._physics, self._physics.data
         self._state = HostState(self.device, {
             "qpos": data.qpos, "sensordata": data.sensordata, "xpos": data.xpos, "xquat": data.xquat,
-            "acc_sensordata": physics.acc_sensordata, "ground_force": physics.ground_force,
+            "obstacle_force": physics.obstacle_force, "ground_force": physics.ground_force,
             "activation": physics.activation, "muscle_length": physics.muscle_length,
             "muscle_force": physics.muscle_force, "fiber": physics.fiber, "ligament_force": physics.ligament_force})
 
@@ -162,9 +161,6 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         if options and "difficulty" in options:
             check_difficulty(options["difficulty"])
             self.difficulties[worlds] = options["difficulty"]
-        # Contacts only where there are obstacles: collision detection could find nothing else.
-        opt = self._physics.model.opt
-        opt.disableflags = opt.disableflags & ~NO_CONTACTS if self.difficulties.any() else opt.disableflags | NO_CONTACTS
         self._draw_episodes(worlds)
         with wp.ScopedDevice(self.device):
             self._physics.reset(None if len(worlds) == self.num_envs else worlds)
@@ -266,9 +262,7 @@ class RunWarpVectorEnv(gym.vector.VectorEnv):
         return obs
 
     def _info(self, state: dict[str, np.ndarray]) -> dict[str, Any]:
-        # The sensors report the force each sphere exerts on the obstacles; the force on it is the opposite.
-        contact = -state["acc_sensordata"][:, self._obstacle_contact].astype(np.float64)
-        contact = contact.reshape(self.num_envs, len(body.CONTACT_SPHERES), 3)
+        contact = state["obstacle_force"].astype(np.float64)
         contact[:, :, :2] += state["ground_force"]
         return {"distance": state["qpos"][:, self._x_adr].astype(np.float64),
                 **{name: state[field].astype(np.float64) for name, field in INFO_FIELDS.items()},

@@ -39,9 +39,8 @@ from l2r.sim.warp import thelen as muscles
 wp.set_module_options({"enable_backward": False})
 log = logging.getLogger(__name__)
 
-# Model fields the kernels change per world: per physics step, and per episode (the obstacles).
-# The obstacles' bounds for the broad phase, geom_rbound and geom_aabb, stay shared: MuJoCo Warp
-# builds its broad phase anew for each batch size of those, that is for each number of worlds.
+# Model fields the kernels change per world: per physics step, and per episode (the obstacles,
+# drawn where the physics pushes the feet off them).
 PER_WORLD_FIELDS = ("site_pos", "actuator_biasprm", "dof_damping", "eq_data", "geom_pos", "geom_size")
 BODY_FIELDS = ("body_mass", "body_inertia", "body_subtreemass")
 
@@ -105,7 +104,8 @@ class Feet:
     site: wp.array(dtype=int)
     x_actuator: wp.array(dtype=int)
     y_actuator: wp.array(dtype=int)
-    force: wp.array2d(dtype=wp.vec2)
+    force: wp.array2d(dtype=wp.vec2)  # the ground's on each sphere
+    obstacle_force: wp.array2d(dtype=wp.vec3)  # the obstacles' on each sphere
 
 
 @wp.struct
@@ -174,14 +174,23 @@ def _point_torques(mv: Moving, tension: wp.array2d(dtype=float), ctrl: wp.array2
 
 
 @wp.kernel
-def _contact_actuation(ft: Feet, geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3),
+def _contact_actuation(ft: Feet, course: wp.array2d(dtype=wp.vec3), geom_xpos: wp.array2d(dtype=wp.vec3),
+                       xpos: wp.array2d(dtype=wp.vec3), xipos: wp.array2d(dtype=wp.vec3),
                        xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
                        subtree_com: wp.array2d(dtype=wp.vec3), site_pos: wp.array2d(dtype=wp.vec3),
                        site_xpos: wp.array2d(dtype=wp.vec3), actuator_velocity: wp.array2d(dtype=float),
-                       ctrl: wp.array2d(dtype=float), biasprm: wp.array2d(dtype=wp.types.vector(length=10, dtype=float))):
+                       ctrl: wp.array2d(dtype=float), biasprm: wp.array2d(dtype=wp.types.vector(length=10, dtype=float)),
+                       xfrc_applied: wp.array2d(dtype=wp.spatial_vector)):
     """`physics._contact_actuation` with the ground forces, for one world and sphere: the contact
-    site moves to the contact point, ctrl cancels the actuator speed MuJoCo took at its old place."""
+    site moves to the contact point, ctrl cancels the actuator speed MuJoCo took at its old place;
+    and the obstacles' force on the sphere as its body's applied force (each sphere alone on its
+    body)."""
     w, i = wp.tid()
+    b = ft.body[i]
+    push, moment = feet.obstacle_push(course[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xipos[w, b], cvel[w, b],
+                                      subtree_com[w, ft.root[i]])
+    ft.obstacle_force[w, i] = push
+    xfrc_applied[w, b] = wp.spatial_vector(push, moment)
     point, local, force, damping = feet.foot_force(ft.law[w], ft.radius, ft.sphere, ft.body, ft.root, ft.element, w, i,
                                                    geom_xpos, xpos, xmat, cvel, subtree_com)
     ft.force[w, i] = force
@@ -210,12 +219,12 @@ def _ligaments(lg: Ligaments, qpos: wp.array2d(dtype=float), qfrc_applied: wp.ar
 
 
 @wp.kernel
-def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float),
-                ten_length: wp.array2d(dtype=float), geom_xpos: wp.array2d(dtype=wp.vec3), xpos: wp.array2d(dtype=wp.vec3),
-                xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
-                subtree_com: wp.array2d(dtype=wp.vec3)):
+def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, course: wp.array2d(dtype=wp.vec3), qpos: wp.array2d(dtype=float),
+                qvel: wp.array2d(dtype=float), ten_length: wp.array2d(dtype=float), geom_xpos: wp.array2d(dtype=wp.vec3),
+                xpos: wp.array2d(dtype=wp.vec3), xipos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33),
+                cvel: wp.array2d(dtype=wp.spatial_vector), subtree_com: wp.array2d(dtype=wp.vec3)):
     """What the env reports of each world's current state: muscle lengths and tendon forces,
-    ground forces, whole ligament forces."""
+    ground and obstacle forces, whole ligament forces."""
     w = wp.tid()
     for i in range(mu.on.shape[0]):
         tendon = points.selected_tendon(mu.on[i], mu.switch_row[i], mu.switch_qpos, mu.low, mu.high, mu.off_tendon, qpos[w])
@@ -226,6 +235,10 @@ def _read_state(mu: Muscles, ft: Feet, lg: Ligaments, qpos: wp.array2d(dtype=flo
         point, local, force, damping = feet.foot_force(ft.law[w], ft.radius, ft.sphere, ft.body, ft.root, ft.element, w,
                                                        i, geom_xpos, xpos, xmat, cvel, subtree_com)
         ft.force[w, i] = force
+        b = ft.body[i]
+        push, moment = feet.obstacle_push(course[w], ft.radius[i], geom_xpos[w, ft.sphere[i]], xipos[w, b], cvel[w, b],
+                                          subtree_com[w, ft.root[i]])
+        ft.obstacle_force[w, i] = push
     for i in range(lg.dof.shape[0]):
         lg.force[w, i] = lg.spring[w, i] - lg.damping[w, i] * qvel[w, lg.dof[i]]
 
@@ -245,19 +258,6 @@ def _place_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec
         size = geom_size[w, g]
         size[0] = r
         geom_size[w, g] = size
-
-
-@wp.kernel
-def _bound_obstacles(geoms: wp.array(dtype=int), course: wp.array2d(dtype=wp.vec3),
-                     geom_rbound: wp.array2d(dtype=float), geom_aabb: wp.array3d(dtype=wp.vec3)):
-    """Each obstacle's bounds for the broad phase, shared by the worlds: its largest radius in
-    any world (the narrow phase reads each world's own)."""
-    i = wp.tid()
-    r = float(0.0)
-    for w in range(course.shape[0]):
-        r = wp.max(r, course[w, i][2])
-    geom_rbound[0, geoms[i]] = r
-    geom_aabb[0, geoms[i], 1] = wp.vec3(r, r, r)  # the broad phase reads the box, not only rbound
 
 
 @wp.kernel
@@ -298,9 +298,9 @@ class WarpPhysics:
     `excitation` over each world's first `delay` physics steps (0 at first) and it over the rest;
     `strength`, `fiber_scale` and `slack_scale` (each muscle's max isometric force, optimal fibre
     length and tendon slack length as fractions of the .osim's, 1 at first), `contact_law` (the
-    feet's `ContactLaw.table`) and `obstacles` (the obstacle spheres as (x, y, radius), at first
-    where the model parks them) are the next episode's, which the env may write before resetting
-    a world; `params` is the muscles' table per world, the scales applied. With
+    feet's `ContactLaw.table`) are the next episode's, which the env may write before resetting
+    a world; `obstacles` is each world's course (x, y, radius per obstacle sphere, where the model
+    parks them when unused), which the env writes whole with a reset; `params` is the muscles' table per world, the scales applied. With
     `per_world_bodies` each world has its own segment masses and inertias in `model`
     (`BODY_FIELDS`), which the env may write before resetting a world.
     """
@@ -316,7 +316,6 @@ class WarpPhysics:
         batched = PER_WORLD_FIELDS + (BODY_FIELDS if per_world_bodies else ())
         self.model = mjw.put_model(m, batch_sizes={f: nworld for f in batched})
         self.data = mjw.put_data(m, d, nworld=nworld)
-        self._acc_sensordata = wp.zeros_like(self.data.sensordata)
         n = len(muscle_list)
 
         switches = PathSwitches(m, muscle_list)
@@ -359,6 +358,7 @@ class WarpPhysics:
         ft.x_actuator = _ints([m.actuator(f"{g}_x").id for g in names])
         ft.y_actuator = _ints([m.actuator(f"{g}_y").id for g in names])
         ft.force = wp.zeros((nworld, len(names)), dtype=wp.vec2)
+        ft.obstacle_force = wp.zeros((nworld, len(names)), dtype=wp.vec3)
         self._feet = ft
 
         lim = default_limits()
@@ -433,14 +433,12 @@ class WarpPhysics:
         return self._feet.force
 
     @property
-    def ligament_force(self) -> wp.array:
-        return self._ligaments.force
+    def obstacle_force(self) -> wp.array:
+        return self._feet.obstacle_force
 
     @property
-    def acc_sensordata(self) -> wp.array:
-        """`data.sensordata` as the last step2 (or reset) left it: its acceleration-stage sensors,
-        the contact forces, as MuJoCo reports them after a step (MuJoCo Warp's step1 zeroes them)."""
-        return self._acc_sensordata
+    def ligament_force(self) -> wp.array:
+        return self._ligaments.force
 
     def reset(self, worlds: np.ndarray | None = None) -> None:
         """Put the worlds named (all by default) in the keyframe's pose at rest, muscles as
@@ -460,12 +458,11 @@ class WarpPhysics:
         """Run `work`'s launches, from the second time on as one Warp graph (a CUDA graph, or
         Warp's recorded replay on the CPU): a physics step is some 300 launches, each costing the
         host more than the GPU. The first run loads every kernel the graph will hold. A graph
-        keeps the host's choices made when it was captured, so those (`choices`, and the model's
-        option flags: contacts on or off) are part of its key; every array it reads or writes
-        keeps its place in memory."""
+        keeps the host's choices made when it was captured, so those (`choices`) are part of its
+        key; every array it reads or writes keeps its place in memory."""
         if self._graphs is None:
             return work()
-        key = (name, *choices, int(self.model.opt.disableflags))
+        key = (name, *choices)
         if key not in self._graphs:
             self._graphs[key] = None
             return work()
@@ -487,10 +484,8 @@ class WarpPhysics:
         obstacles = self._obstacle_geoms
         wp.launch(_place_obstacles, self.obstacles.shape, [obstacles, self.obstacles, reset, m.geom_pos, m.geom_size,
                                                            d.geom_xpos])
-        wp.launch(_bound_obstacles, obstacles.shape, [obstacles, self.obstacles, m.geom_rbound, m.geom_aabb])
         self._place()
         mjw.forward(m, d)
-        wp.copy(self._acc_sensordata, d.sensordata)
         self._read_state()  # the muscle lengths of the new pose
         wp.launch(_equilibrate, self._muscles.excitation.shape, [self._muscles, reset])
         self._read_state()
@@ -502,8 +497,6 @@ class WarpPhysics:
             self._drive()
             mjw.transmission(m, d)  # the contact sites moved: their actuators' moment arms
             mjw.step2(m, d)
-            if substep == substeps - 1:
-                wp.copy(self._acc_sensordata, d.sensordata)
             self._projection(m, d)
             self._place()
             mjw.step1(m, d)
@@ -516,8 +509,8 @@ class WarpPhysics:
                   [mu, mv, self.dt, FIBER_SUBSTEPS, d.qpos, d.qvel, d.ten_length, d.ten_velocity, d.ctrl, m.actuator_biasprm])
         wp.launch(_point_torques, (self.nworld, mv.torque_actuators.shape[0]), [mv, mu.tension, d.ctrl])
         wp.launch(_contact_actuation, self._feet.force.shape,
-                  [self._feet, d.geom_xpos, d.xpos, d.xmat, d.cvel, d.subtree_com, m.site_pos, d.site_xpos,
-                   d.actuator_velocity, d.ctrl, m.actuator_biasprm])
+                  [self._feet, self.obstacles, d.geom_xpos, d.xpos, d.xipos, d.xmat, d.cvel, d.subtree_com, m.site_pos,
+                   d.site_xpos, d.actuator_velocity, d.ctrl, m.actuator_biasprm, d.xfrc_applied])
 
     def _place(self) -> None:
         m, d, mv, lg = self.model, self.data, self._moving, self._ligaments
@@ -529,5 +522,5 @@ class WarpPhysics:
 
     def _read_state(self) -> None:
         d = self.data
-        wp.launch(_read_state, self.nworld, [self._muscles, self._feet, self._ligaments, d.qpos, d.qvel, d.ten_length,
-                                             d.geom_xpos, d.xpos, d.xmat, d.cvel, d.subtree_com])
+        wp.launch(_read_state, self.nworld, [self._muscles, self._feet, self._ligaments, self.obstacles, d.qpos, d.qvel,
+                                             d.ten_length, d.geom_xpos, d.xpos, d.xipos, d.xmat, d.cvel, d.subtree_com])
