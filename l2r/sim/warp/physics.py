@@ -300,9 +300,10 @@ class WarpPhysics:
     length and tendon slack length as fractions of the .osim's, 1 at first), `contact_law` (the
     feet's `ContactLaw.table`) are the next episode's, which the env may write before resetting
     a world; `obstacles` is each world's course (x, y, radius per obstacle sphere, where the model
-    parks them when unused), which the env writes whole with a reset; `params` is the muscles' table per world, the scales applied. With
-    `per_world_bodies` each world has its own segment masses and inertias in `model`
-    (`BODY_FIELDS`), which the env may write before resetting a world.
+    parks them when unused), which the env writes whole with a reset; `params` is the muscles'
+    table per world, the scales applied. With `per_world_bodies` each world has its own segment
+    masses and inertias in `model` (`BODY_FIELDS`), which the env may write before resetting a
+    world.
     """
 
     def __init__(self, m: mujoco.MjModel, osim: Osim, muscle_list: list[Muscle], nworld: int, keyframe: int,
