@@ -94,6 +94,16 @@ def _friction(f: float, slip: float, law: np.ndarray) -> tuple[float, float]:
     return f * (shape + uv * slip), f * (dshape + uv)
 
 
+@numba.njit(cache=True)
+def _point_velocity(cvel: np.ndarray, root_com: np.ndarray, px: float, py: float,
+                    pz: float) -> tuple[float, float, float]:
+    """The velocity of a body's material point at (px, py, pz) in the world: cvel is the body's
+    (angular, linear) velocity at its root's subtree centre of mass, `root_com`."""
+    rx, ry, rz = px - root_com[0], py - root_com[1], pz - root_com[2]
+    return (cvel[3] + cvel[1] * rz - cvel[2] * ry, cvel[4] + cvel[2] * rx - cvel[0] * rz,
+            cvel[5] + cvel[0] * ry - cvel[1] * rx)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body: np.ndarray,
                   root: np.ndarray, element: np.ndarray, geom_xpos: np.ndarray, xpos: np.ndarray, xmat: np.ndarray,
@@ -124,14 +134,7 @@ def ground_forces(law: np.ndarray, radius: np.ndarray, sphere: np.ndarray, body:
         force[i, 0] = force[i, 1] = damping[i, 0] = damping[i, 1] = 0.0
         if depth <= 0.0:
             continue
-        # velocity of the body's material point at the contact: cvel is (angular, linear) at the
-        # root's subtree centre of mass
-        rx = point[i, 0] - subtree_com[root[i], 0]
-        ry = point[i, 1] - subtree_com[root[i], 1]
-        rz = point[i, 2] - subtree_com[root[i], 2]
-        w = cvel[b, 0:3]
-        vx = cvel[b, 3] + w[1] * rz - w[2] * ry
-        vy = cvel[b, 4] + w[2] * rx - w[0] * rz
+        vx, vy, _ = _point_velocity(cvel[b], subtree_com[root[i]], point[i, 0], point[i, 1], point[i, 2])
         hertz = 4.0 / 3.0 * k * depth * np.sqrt(radius[i] * k * depth)
         f = hertz * (1.0 - 1.5 * c * vy)  # penetration rate is -vy
         if f <= 0.0:
@@ -183,12 +186,7 @@ def obstacle_forces(course: np.ndarray, radius: np.ndarray, sphere: np.ndarray, 
             nx, ny, nz = nx / gap, ny / gap, nz / gap  # from the obstacle's centre to the sphere's
             reach = r - 0.5 * depth
             px, py, pz = course[o, 0] + reach * nx, course[o, 1] + reach * ny, reach * nz
-            # the body's material point there (cvel: angular, linear at the root's subtree centre of mass)
-            rx, ry, rz = px - subtree_com[root[i], 0], py - subtree_com[root[i], 1], pz - subtree_com[root[i], 2]
-            w = cvel[b, 0:3]
-            vx = cvel[b, 3] + w[1] * rz - w[2] * ry
-            vy = cvel[b, 4] + w[2] * rx - w[0] * rz
-            vz = cvel[b, 5] + w[0] * ry - w[1] * rx
+            vx, vy, vz = _point_velocity(cvel[b], subtree_com[root[i]], px, py, pz)
             k = (OBSTACLE_STIFFNESS_TIMES_RADIUS / r) ** (2.0 / 3.0) / 2.0
             hertz = 4.0 / 3.0 * k * depth * np.sqrt(radius[i] * r / (radius[i] + r) * k * depth)
             f = hertz * (1.0 - 1.5 * OBSTACLE_DISSIPATION * (vx * nx + vy * ny + vz * nz))
