@@ -4,6 +4,7 @@ condition, and a small file system of their own to fill."""
 from __future__ import annotations
 
 import errno
+import os
 import socket
 import subprocess
 import time
@@ -17,11 +18,26 @@ T = TypeVar("T")
 ROOT = Path(__file__).resolve().parents[1]
 
 
+# Ports below the kernel's ephemeral range (32768 up on Linux), a block for each xdist worker: a
+# port the kernel picked (bind to 0) could be picked again for the other worker, or for any
+# connection, between the draw and the daemon's bind ("Address already in use"); these it hands to
+# no one, and the workers' blocks do not overlap.
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
+_BLOCK = (32768 - 16384) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_PORTS = iter(range(16384 + _WORKER * _BLOCK, 16384 + (_WORKER + 1) * _BLOCK))
+
+
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port free on 127.0.0.1, drawn once a session from this worker's own block (a port
+    an earlier test's daemon held may still be closing)."""
+    for port in _PORTS:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"test worker {_WORKER} has used up its {_BLOCK} ports")
 
 
 PROCESS_START_S = 60.0
