@@ -103,13 +103,15 @@ def test_a_staged_job_runs_the_port_then_opensim_from_the_port_s_learner_and_res
     assert stage["env_steps"] > 0
 
     # Once OpenSim's stage has begun, a resume goes on with it, even where the port's would have time left;
-    # its budget is what the job's leaves after the port's stage as it ran (15 s and the poll's overshoot).
+    # its budget is what the job's leaves after the port's stage as it ran (15 s and the poll's overshoot,
+    # which on a loaded machine can pass the 17 s now asked for: the stage counts at most that).
     resumed = run_up("--resume", str(port_run), "--opensim-stage", "17", "--seconds", "33")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "port's stage of 17 s spent" not in resumed.stderr
     assert f"OpenSim's stage goes on in {stage_run}" in resumed.stderr
     left = re.search(r"nothing to do: the run's time budget of ([\d.]+) s spent", resumed.stderr)
-    assert left and float(left[1]) == pytest.approx(33 - RunCounters.read(port_run / "metrics").time), resumed.stderr
+    port_stage = min(17, RunCounters.read(port_run / "metrics").time)
+    assert left and float(left[1]) == pytest.approx(33 - port_stage), resumed.stderr
 
 
 def test_a_resume_whose_opensim_stage_launch_json_is_corrupt_is_refused_in_one_line(tmp_path):
