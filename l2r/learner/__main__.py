@@ -196,6 +196,8 @@ class LearnerSettings(DaemonSettings):
                                          "target and the actor's loss take the least of (default: all; REDQ's "
                                          "target: 2 of 10)", group=SAC, ge=1)
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
+    min_alpha: float = setting(SAC_DEFAULTS.min_alpha, "a floor under the learnt temperature, so that exploration "
+                               "does not end with alpha near 0 (0: none)", group=SAC, ge=0)
 
     n_step: int = setting(TD3_DEFAULTS.n_step, "steps summed into each sampled reward before the bootstrap "
                           "(n-step returns, built by the replay server)", group=OFF_POLICY, ge=1)
@@ -408,7 +410,8 @@ class LearnerSettings(DaemonSettings):
                 critic_lr=self._given("lr", SAC_DEFAULTS.critic_lr), alpha_lr=self._given("lr", SAC_DEFAULTS.alpha_lr),
                 update_repeat=self.update_repeat, n_step=self.n_step,
                 target_entropy=self._given("target_entropy", self.target_entropy_per_action * self.spaces[1]),
-                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha, critics=self.critics,
+                initial_alpha=self.initial_alpha, autotune_alpha=not self.fixed_alpha,
+                min_alpha=self.min_alpha, critics=self.critics,
                 critics_in_min=self._given("critics_in_min", self.critics), mirror=self.mirror,
                 precision=self.precision, **self._image_options())
         except ValueError as e:  # a combination SACConfig refuses

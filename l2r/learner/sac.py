@@ -87,6 +87,9 @@ class SACConfig:
     """Entropy temperature at the start of training."""
     autotune_alpha: bool = True
     """Learn alpha towards the target entropy; off keeps it at initial_alpha."""
+    min_alpha: float = 0.0
+    """A floor under the learnt temperature: however far the entropy rises above its target, alpha
+    stays at least this, so exploration cannot end in a local optimum with alpha near 0; 0: none."""
     relative_x: bool = False
     """The networks see world x coordinates as distances from the pelvis (see ObservationFilter)."""
     normalize_obs: bool = False
@@ -118,6 +121,8 @@ class SACConfig:
         check_off_policy(self)
         if min(self.batch_size, self.update_repeat, self.n_step) < 1 or self.initial_alpha <= 0:
             raise ValueError("batch_size, update_repeat and n_step must be >= 1 and initial_alpha > 0")
+        if not 0 <= self.min_alpha <= self.initial_alpha:
+            raise ValueError(f"need 0 <= min_alpha <= initial_alpha, got {self.min_alpha} and {self.initial_alpha}")
         if not 1 <= self.critics_in_min <= self.critics:
             raise ValueError(f"need 1 <= critics_in_min <= critics, got {self.critics_in_min} of {self.critics}")
 
@@ -422,6 +427,9 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
         alpha_loss.backward()
         average_gradients([state.log_alpha])
         state.alpha_opt.step()
+        if config.min_alpha > 0:
+            with torch.no_grad():
+                state.log_alpha.clamp_(min=math.log(config.min_alpha))
 
     # 5. Polyak copy of the target critics.
     with torch.no_grad():

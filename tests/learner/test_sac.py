@@ -153,6 +153,19 @@ def test_alpha_rises_when_entropy_is_below_target_and_falls_above():
         assert direction * (float(state.log_alpha.detach()) - math.log(0.1)) > 0
 
 
+def test_alpha_falls_no_lower_than_its_floor():
+    floored = small_config(target_entropy=-50.0, alpha_lr=0.1, min_alpha=0.08)
+    state = init_state(floored, OBS, ACT, seed=4)
+    unfloored = init_state(replace(floored, min_alpha=0.0), OBS, ACT, seed=4)
+    for step in range(5):
+        update(state, random_batch(seed=step), floored)
+        update(unfloored, random_batch(seed=step), replace(floored, min_alpha=0.0))
+    assert float(unfloored.log_alpha.detach().exp()) < 0.07
+    assert float(state.log_alpha.detach().exp()) == pytest.approx(0.08)
+    with pytest.raises(ValueError, match="min_alpha"):
+        small_config(min_alpha=0.2)
+
+
 def test_fixed_alpha_stays():
     config = small_config(autotune_alpha=False)
     state = init_state(config, OBS, ACT, seed=5)
