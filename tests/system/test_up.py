@@ -148,7 +148,7 @@ def test_the_env_step_budget_ends_a_job_and_resume_reuses_its_flags_and_counters
     out = finish(first, tmp_path / "first.out", 400)
     assert first.returncode == 0, out
     assert "done: budget of 1,500 env steps spent" in out
-    assert "a longer run: l2r up --seconds 7200" in out  # a short run says what a long one reaches
+    assert "a longer run: l2r up --seconds 3600" in out  # a short run says what a long one reaches
     run_dir = next(tmp_path.glob(f"{name}-*"))
     before = json.loads((run_dir / "summary.json").read_text())
     assert 1500 <= before["env_steps"] < 1500 + 3000 and before["time"] < 400 and before["updates"] > 0, before
