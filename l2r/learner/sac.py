@@ -89,7 +89,7 @@ class SACConfig:
     """Learn alpha towards the target entropy; off keeps it at initial_alpha."""
     min_alpha: float = 0.0
     """A floor under the learnt temperature: however far the entropy rises above its target, alpha
-    stays at least this, so exploration cannot end in a local optimum with alpha near 0; 0: none."""
+    stays at least this; 0: none."""
     relative_x: bool = False
     """The networks see world x coordinates as distances from the pelvis (see ObservationFilter)."""
     normalize_obs: bool = False
@@ -419,7 +419,7 @@ def update(state: TrainState, batch: Batch, config: SACConfig) -> dict[str, torc
     average_gradients(state.actor.parameters())
     state.actor_opt.step()
 
-    # 4. Temperature: raise alpha when entropy is below target, lower it when above.
+    # 4. Temperature: raise alpha when entropy is below target, lower it (no further than min_alpha) when above.
     log_prob = log_prob.detach()
     alpha_loss = -(state.log_alpha.exp() * (log_prob + state.target_entropy)).mean()
     if config.autotune_alpha:
