@@ -196,8 +196,7 @@ class LearnerSettings(DaemonSettings):
                                          "target and the actor's loss take the least of (default: all; REDQ's "
                                          "target: 2 of 10)", group=SAC, ge=1)
     fixed_alpha: bool = setting(False, "keep alpha at --initial-alpha (no tuning)", group=SAC)
-    min_alpha: float = setting(SAC_DEFAULTS.min_alpha, "a floor under the learnt temperature, so that exploration "
-                               "does not end with alpha near 0 (0: none)", group=SAC, ge=0)
+    min_alpha: float = setting(SAC_DEFAULTS.min_alpha, "a floor under the learnt temperature (0: none)", group=SAC, ge=0)
 
     n_step: int = setting(TD3_DEFAULTS.n_step, "steps summed into each sampled reward before the bootstrap "
                           "(n-step returns, built by the replay server)", group=OFF_POLICY, ge=1)

@@ -155,13 +155,13 @@ def test_alpha_rises_when_entropy_is_below_target_and_falls_above():
 
 def test_alpha_falls_no_lower_than_its_floor():
     floored = small_config(target_entropy=-50.0, alpha_lr=0.1, min_alpha=0.08)
-    state = init_state(floored, OBS, ACT, seed=4)
-    unfloored = init_state(replace(floored, min_alpha=0.0), OBS, ACT, seed=4)
+    unfloored = replace(floored, min_alpha=0.0)
+    floored_state, unfloored_state = init_state(floored, OBS, ACT, seed=4), init_state(unfloored, OBS, ACT, seed=4)
     for step in range(5):
-        update(state, random_batch(seed=step), floored)
-        update(unfloored, random_batch(seed=step), replace(floored, min_alpha=0.0))
-    assert float(unfloored.log_alpha.detach().exp()) < 0.07
-    assert float(state.log_alpha.detach().exp()) == pytest.approx(0.08)
+        update(floored_state, random_batch(seed=step), floored)
+        update(unfloored_state, random_batch(seed=step), unfloored)
+    assert float(unfloored_state.log_alpha.detach().exp()) < 0.07
+    assert float(floored_state.log_alpha.detach().exp()) == pytest.approx(0.08)
     with pytest.raises(ValueError, match="min_alpha"):
         small_config(min_alpha=0.2)
 
